@@ -1,0 +1,1 @@
+"""Hydra search-path plugin: config folders contributed by sgf-pipeline plugin packages."""

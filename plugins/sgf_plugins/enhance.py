@@ -1,0 +1,69 @@
+"""Image enhancement before IPM (paper Sec. IV-C): none, or CLAHE for night sequences."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from sgf_pipeline import Stage, StageParams, StageRegistry, hookimpl
+from sgf_pipeline.types import CameraImage, Frame
+
+
+def as_rgb(image: np.ndarray) -> np.ndarray:
+    """An (H, W, 3) uint8 view of a grey or RGB image."""
+    if image.ndim == 2:
+        return np.repeat(image[:, :, None], 3, axis=2)
+    if image.ndim == 3 and image.shape[2] == 3:
+        return image
+    if image.ndim == 3 and image.shape[2] == 1:
+        return np.repeat(image, 3, axis=2)
+    raise ValueError(f"expected an (H, W) or (H, W, 3) image, got shape {image.shape}")
+
+
+class NoEnhancement(Stage):
+    """Pass the camera image through unchanged (grey images become 3-channel)."""
+
+    kind = "enhance"
+    name = "none"
+    output = "image"
+
+    def process(self, frame: Frame) -> CameraImage:
+        """The frame's image as RGB."""
+        return CameraImage(as_rgb(frame.image), frame.index)
+
+
+class ClaheParams(StageParams):
+    """Contrast Limited Adaptive Histogram Equalization on the lightness channel."""
+
+    clip_limit: float = Field(2.0, gt=0.0, description="CLAHE contrast limit")
+    tiles: int = Field(8, ge=1, le=64, description="tiles per image side")
+
+
+class ClaheEnhancement(Stage):
+    """CLAHE on the L channel of Lab, for dark (night) images lit by the robot's LED."""
+
+    kind = "enhance"
+    name = "clahe"
+    output = "image"
+    Params = ClaheParams
+
+    def __init__(self, params: ClaheParams) -> None:
+        super().__init__(params)
+        self._clahe = cv2.createCLAHE(clipLimit=params.clip_limit, tileGridSize=(params.tiles, params.tiles))
+
+    def process(self, frame: Frame) -> CameraImage:
+        """The frame's image with equalised local contrast."""
+        image = frame.image
+        if image.ndim == 2:
+            return CameraImage(as_rgb(self._clahe.apply(image)), frame.index)
+        lab = cv2.cvtColor(as_rgb(image), cv2.COLOR_RGB2LAB)
+        lab[:, :, 0] = self._clahe.apply(np.ascontiguousarray(lab[:, :, 0]))
+        return CameraImage(cv2.cvtColor(lab, cv2.COLOR_LAB2RGB), frame.index)
+
+
+@hookimpl
+def sgf_register_stages(registry: StageRegistry) -> None:
+    """Register the enhancement variants."""
+    registry.add(NoEnhancement)
+    registry.add(ClaheEnhancement)

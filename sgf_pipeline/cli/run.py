@@ -1,0 +1,65 @@
+"""``sgf-run``: run the pipeline on a dataset (Hydra app; ``-m`` for sweeps)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from sgf_pipeline.cli.common import friendly_errors
+from sgf_pipeline.config import config_dir
+from sgf_pipeline.runner import Pipeline
+
+
+def _fmt(value: Any, spec: str = ".2f") -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def summary(metrics: dict[str, Any], run_dir: Path) -> str:
+    """The short table printed at the end of a run."""
+    ate = metrics["ate_rmse_m"]
+    sgf = metrics["sgf"]
+    loops = metrics["loops"]
+    timing = metrics.get("timing", {})
+    rows = [
+        ("ATE odometry (m)", _fmt(ate["odometry"])),
+        ("ATE odometry + SGF (m)", _fmt(ate["sgf"])),
+        ("SGF detected", f"{_fmt(sgf['detected'], 'd')}/{_fmt(sgf['total'], 'd')}"),
+        (
+            "loop pairs found (rev.)",
+            f"{_fmt(loops['pairs_found'], 'd')}/{_fmt(loops['pairs_total'], 'd')} "
+            f"({_fmt(loops['pairs_found_reverse'], 'd')}/{_fmt(loops['pairs_total_reverse'], 'd')})",
+        ),
+        (
+            "loops closed (rev.), false",
+            f"{_fmt(loops['closed'], 'd')} ({_fmt(loops['closed_reverse'], 'd')}), {_fmt(loops['false_closed'], 'd')}",
+        ),
+        ("frames processed / seen", f"{timing.get('frames', '-')}/{timing.get('dataset_frames', '-')}"),
+        ("frames/s, real-time factor", f"{_fmt(timing.get('fps'), '.1f')}, {_fmt(timing.get('realtime_factor'))}"),
+        ("peak RSS (MiB)", _fmt(metrics.get("peak_rss_mb"), ".0f")),
+    ]
+    width = max(len(k) for k, _ in rows)
+    lines = [f"  {k:<{width}}  {v}" for k, v in rows]
+    files = [run_dir / n for n in ("metrics.json", "report.md", "trajectory.png") if (run_dir / n).exists()]
+    lines.append("")
+    lines += [f"  {f}" for f in files]
+    return "\n".join([f"sgf-run: {metrics.get('sequence', '')}", *lines])
+
+
+@hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
+@friendly_errors
+def main(cfg: DictConfig) -> float | None:
+    """Build the configured pipeline, stream the dataset through it and write the run directory."""
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    pipeline = Pipeline.from_config(cfg, run_dir=run_dir)
+    metrics = pipeline.run()
+    print(summary(metrics, run_dir), flush=True)
+    value = metrics["ate_rmse_m"]["sgf"]
+    return float(value) if value is not None else None
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,171 @@
+"""The composed configuration, validated with pydantic after Hydra has composed it."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from sgf_pipeline.errors import ConfigError
+
+#: Keys of a stage's config node that are not the stage's parameters.
+RESERVED_KEYS = ("name", "rename")
+
+#: The paper's pipeline, in data-flow order (DESIGN.md section 1).
+PAPER_STAGES = ("dataset", "enhance", "ipm", "saliency", "detector", "descriptor", "association", "loop", "backend")
+
+
+def config_dir() -> Path:
+    """The ``conf/`` folder: inside the installed package, or at the top of a checkout."""
+    here = Path(__file__).resolve().parent
+    for candidate in (here / "conf", here.parent / "conf"):
+        if (candidate / ".sgf_pipeline_conf").is_file():
+            return candidate
+    raise ConfigError(f"the configuration folder conf/ was not found next to {here}; reinstall sgf-pipeline")
+
+
+class RunOptions(BaseModel):
+    """Options of the runner itself (config node ``run``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    keyframe_distance: float = Field(
+        0.0, ge=0.0, description="process a frame once the odometry moved this far (m) since the last one; 0 = all"
+    )
+    keyframe_angle: float = Field(
+        0.2, gt=0.0, description="...or turned this much (rad) since the last processed frame"
+    )
+    max_frames: int | None = Field(None, ge=1, description="stop after this many dataset frames")
+    progress: bool = Field(True, description="show a progress bar over frames")
+    overwrite: bool = Field(False, description="allow writing into a directory that holds a finished run")
+    plots: bool = Field(True, description="write the trajectory plot and report.md")
+    torch_threads: int | None = Field(
+        None, ge=1, description="torch intra-op threads (1 inside parallel sweeps); null = torch's default"
+    )
+    ate_max_time_diff: float = Field(0.01, gt=0.0, description="timestamp association tolerance for ATE (s)")
+
+
+class PluginOptions(BaseModel):
+    """Which entry-point plugins a run may load (config node ``plugins``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    allow: list[str] | None = Field(None, description="load only these entry points (a deployment allow-list)")
+    block: list[str] = Field(default_factory=list, description="never load these entry points")
+
+
+class StageConfig(BaseModel):
+    """One stage's node: the variant name, an input rename map, and the variant's parameters."""
+
+    model_config = ConfigDict(frozen=True)
+
+    kind: str
+    name: str
+    rename: dict[str, str] = Field(default_factory=dict)
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class PipelineConfig(BaseModel):
+    """The whole validated configuration of a run."""
+
+    model_config = ConfigDict(frozen=True)
+
+    pipeline: tuple[str, ...]
+    stages: dict[str, StageConfig]
+    run: RunOptions = Field(default_factory=RunOptions)
+    plugins: PluginOptions = Field(default_factory=PluginOptions)
+
+
+def _find_target(node: Any, path: str) -> str | None:
+    if isinstance(node, Mapping):
+        for key, value in node.items():
+            if key == "_target_":
+                return path
+            found = _find_target(value, f"{path}.{key}")
+            if found:
+                return found
+    elif isinstance(node, (list, tuple)):
+        for i, value in enumerate(node):
+            found = _find_target(value, f"{path}[{i}]")
+            if found:
+                return found
+    return None
+
+
+def format_validation_error(group: str, model: type[BaseModel], error: ValidationError) -> str:
+    """One line per problem: the config key, what is wrong, and the expected type."""
+    lines = []
+    for item in error.errors():
+        loc = ".".join(str(p) for p in item["loc"])
+        key = f"{group}.{loc}" if loc else group
+        field = model.model_fields.get(str(item["loc"][0])) if item["loc"] else None
+        expected = ""
+        if field is not None and field.annotation is not None:
+            ann = field.annotation
+            expected = f"; expected {getattr(ann, '__name__', None) or str(ann).replace('typing.', '')}"
+        if item["type"] == "extra_forbidden":
+            known = ", ".join(model.model_fields) or "none"
+            lines.append(f"{key}: unknown parameter (parameters of this variant: {known})")
+        else:
+            lines.append(f"{key}: {item['msg']} (got {item.get('input')!r}){expected}")
+    return "\n  ".join(lines)
+
+
+def validate_options(group: str, model: type[BaseModel], values: Mapping[str, Any] | None) -> Any:
+    """Validate a plain config node against a pydantic model, with a clear error."""
+    try:
+        return model.model_validate(dict(values or {}))
+    except ValidationError as exc:
+        raise ConfigError(f"invalid configuration:\n  {format_validation_error(group, model, exc)}") from None
+
+
+def _check_finite(node: Any, path: str) -> None:
+    if isinstance(node, float) and not math.isfinite(node):
+        raise ConfigError(f"{path}: {node!r} is not a finite number")
+    if isinstance(node, Mapping):
+        for k, v in node.items():
+            _check_finite(v, f"{path}.{k}")
+    elif isinstance(node, (list, tuple)):
+        for i, v in enumerate(node):
+            _check_finite(v, f"{path}[{i}]")
+
+
+def parse_config(raw: Mapping[str, Any]) -> PipelineConfig:
+    """Split a composed (plain, resolved) config into validated run options and stage nodes."""
+    if "pipeline" not in raw:
+        raise ConfigError("the config has no `pipeline` list (the stage kinds to run, dataset first)")
+    kinds = raw["pipeline"]
+    if isinstance(kinds, str) or not isinstance(kinds, (list, tuple)) or not kinds:
+        raise ConfigError(f"`pipeline` must be a non-empty list of stage kinds, got {kinds!r}")
+    if len(set(kinds)) != len(kinds):
+        raise ConfigError(f"`pipeline` lists a stage kind twice: {list(kinds)}")
+    stages: dict[str, StageConfig] = {}
+    for kind in kinds:
+        node = raw.get(kind)
+        if node is None:
+            raise ConfigError(
+                f"{kind}: listed in `pipeline` but has no config node; choose a variant with `{kind}=<variant>`"
+            )
+        if not isinstance(node, Mapping):
+            raise ConfigError(f"{kind}: the config node must be a mapping with a `name` key, got {node!r}")
+        target = _find_target(node, kind)
+        if target:
+            raise ConfigError(
+                f"{target}: `_target_` is refused. Variants are chosen by registered name only "
+                f"(`{kind}=<variant>`), so that a config file can never import code."
+            )
+        name = node.get("name")
+        if not isinstance(name, str) or not name:
+            raise ConfigError(f"{kind}: the config node needs a `name` (the variant), got {name!r}")
+        rename = node.get("rename") or {}
+        if not isinstance(rename, Mapping) or not all(isinstance(v, str) for v in rename.values()):
+            raise ConfigError(f"{kind}.rename must map input names to output names, got {rename!r}")
+        params = {k: v for k, v in node.items() if k not in RESERVED_KEYS}
+        _check_finite(params, kind)
+        stages[kind] = StageConfig(kind=kind, name=name, rename=dict(rename), params=params)
+    run = validate_options("run", RunOptions, raw.get("run"))
+    plugins = validate_options("plugins", PluginOptions, raw.get("plugins"))
+    return PipelineConfig(pipeline=tuple(kinds), stages=stages, run=run, plugins=plugins)

@@ -1,0 +1,194 @@
+"""The project's folder dataset format (version 1): what ``sgf-world`` writes and ``dataset=folder`` reads.
+
+Layout of a sequence folder::
+
+    sequence.yaml       format: sgf-folder, version: 1, name, rate_hz, frames
+    calibration.yaml    intrinsics {fx, fy, cx, cy, width, height}, distortion {model, coefficients},
+                        camera_to_base: 4x4 rows (camera optical frame in the robot base frame)
+    images/000000.png   one image per frame (PNG or JPEG; grey or colour), sorted by name
+    timestamps.txt      one timestamp in seconds per image, same order
+    odometry.tum        TUM poses of the base in the odometry frame, one per image timestamp
+    imu.csv             optional: header ``timestamp,roll,pitch`` (rad), one row per image
+    groundtruth.tum     optional: TUM poses of the base in the world frame
+    masks/000000.png    optional: uint16 PNG of marking instance ids (0 = none), per image
+    truth.json          optional: marking table, passes and revisit pairs (synthetic worlds)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+
+from sgf_pipeline.calibration import Calibration
+from sgf_pipeline.errors import DataError
+from sgf_pipeline.io import atomic_write_text
+from sgf_pipeline.trajectory import Trajectory, write_tum
+from sgf_pipeline.types import MarkingPass, MarkingTruth, RevisitPair, SequenceTruth
+
+FORMAT = "sgf-folder"
+VERSION = 1
+
+
+def calibration_to_dict(calibration: Calibration) -> dict[str, Any]:
+    """Plain-data form of a calibration, as written to ``calibration.yaml``."""
+    return {
+        "intrinsics": calibration.intrinsics.model_dump(),
+        "distortion": {
+            "model": calibration.distortion.model,
+            "coefficients": list(calibration.distortion.coefficients),
+        },
+        "camera_to_base": [list(row) for row in calibration.camera_to_base],
+    }
+
+
+def read_calibration_yaml(path: str | os.PathLike[str]) -> Calibration:
+    """Read ``calibration.yaml``; a missing or malformed file gives a clear error."""
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f"calibration file not found: {p}")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise DataError(f"{p}: not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise DataError(f"{p}: expected a mapping with intrinsics, distortion and camera_to_base")
+    try:
+        return Calibration.model_validate(data)
+    except Exception as exc:
+        raise DataError(f"{p}: invalid calibration: {exc}") from None
+
+
+def truth_to_dict(truth: SequenceTruth) -> dict[str, Any]:
+    """Plain-data form of a sequence's ground truth, as written to ``truth.json``."""
+    return {
+        "markings": [asdict(m) for m in truth.markings.values()],
+        "passes": [asdict(p) for p in truth.passes],
+        "revisits": [
+            {"instance_id": r.instance_id, "first": r.first.number, "second": r.second.number, "reverse": r.reverse}
+            for r in truth.revisits
+        ],
+    }
+
+
+def truth_from_dict(data: dict[str, Any]) -> SequenceTruth:
+    """Inverse of :func:`truth_to_dict`."""
+    markings = {}
+    for m in data.get("markings", []):
+        m = dict(m)
+        m["pose"] = tuple(m["pose"])
+        m["size"] = tuple(m["size"])
+        markings[int(m["instance_id"])] = MarkingTruth(**m)
+    passes = [MarkingPass(**p) for p in data.get("passes", [])]
+    by_key = {(p.instance_id, p.number): p for p in passes}
+    revisits = [
+        RevisitPair(
+            r["instance_id"],
+            by_key[(r["instance_id"], r["first"])],
+            by_key[(r["instance_id"], r["second"])],
+            bool(r["reverse"]),
+        )
+        for r in data.get("revisits", [])
+    ]
+    return SequenceTruth(markings=markings, passes=passes, revisits=revisits)
+
+
+class FolderDatasetWriter:
+    """Stream frames into a new sequence folder; the folder appears whole when ``close`` succeeds.
+
+    Frames are written into ``<root>.partial`` and renamed onto ``root`` at the end, so an
+    interrupted export never leaves a folder that looks complete. An existing ``root`` is
+    refused unless ``overwrite`` is set.
+    """
+
+    def __init__(
+        self,
+        root: str | os.PathLike[str],
+        name: str,
+        calibration: Calibration,
+        rate_hz: float | None = None,
+        image_format: str = "png",
+        overwrite: bool = False,
+    ) -> None:
+        self.root = Path(root)
+        if self.root.exists() and not overwrite:
+            raise DataError(f"{self.root} exists already; choose another folder or allow overwriting")
+        if image_format not in ("png", "jpg"):
+            raise DataError(f"image_format must be png or jpg, got {image_format!r}")
+        self.tmp = self.root.with_name(self.root.name + ".partial")
+        if self.tmp.exists():
+            shutil.rmtree(self.tmp)
+        (self.tmp / "images").mkdir(parents=True)
+        self.name = name
+        self.calibration = calibration
+        self.rate_hz = rate_hz
+        self.image_format = image_format
+        self._timestamps: list[float] = []
+        self._odometry: list[np.ndarray] = []
+        self._ground_truth: list[np.ndarray] = []
+        self._imu: list[tuple[float, float]] = []
+        self._masks = False
+
+    def add(
+        self,
+        timestamp: float,
+        image: np.ndarray,
+        odometry: np.ndarray,
+        imu_roll_pitch: tuple[float, float] | None = None,
+        ground_truth: np.ndarray | None = None,
+        instance_ids: np.ndarray | None = None,
+    ) -> None:
+        """Append one frame (image RGB or grey uint8; instance ids written as uint16 PNG)."""
+        index = len(self._timestamps)
+        stem = f"{index:06d}"
+        bgr = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+        if not cv2.imwrite(str(self.tmp / "images" / f"{stem}.{self.image_format}"), bgr):
+            raise DataError(f"could not write image {stem} into {self.tmp}")
+        if instance_ids is not None:
+            if instance_ids.max(initial=0) > np.iinfo(np.uint16).max:
+                raise DataError("instance ids above 65535 cannot be stored in a uint16 mask")
+            (self.tmp / "masks").mkdir(exist_ok=True)
+            cv2.imwrite(str(self.tmp / "masks" / f"{stem}.png"), instance_ids.astype(np.uint16))
+            self._masks = True
+        self._timestamps.append(float(timestamp))
+        self._odometry.append(np.asarray(odometry, dtype=np.float64))
+        if imu_roll_pitch is not None:
+            self._imu.append((float(imu_roll_pitch[0]), float(imu_roll_pitch[1])))
+        if ground_truth is not None:
+            self._ground_truth.append(np.asarray(ground_truth, dtype=np.float64))
+
+    def close(self, truth: SequenceTruth | None = None) -> Path:
+        """Write the metadata files and move the finished folder into place."""
+        n = len(self._timestamps)
+        if n == 0:
+            raise DataError("no frames were added")
+        ts = np.asarray(self._timestamps)
+        write_tum(self.tmp / "odometry.tum", Trajectory(ts, np.stack(self._odometry)))
+        if self._ground_truth:
+            if len(self._ground_truth) != n:
+                raise DataError(f"ground truth given for {len(self._ground_truth)} of {n} frames")
+            write_tum(self.tmp / "groundtruth.tum", Trajectory(ts, np.stack(self._ground_truth)))
+        if self._imu:
+            if len(self._imu) != n:
+                raise DataError(f"IMU attitude given for {len(self._imu)} of {n} frames")
+            rows = ["timestamp,roll,pitch"] + [
+                f"{t:.9f},{r:.9f},{p:.9f}" for t, (r, p) in zip(ts, self._imu, strict=True)
+            ]
+            atomic_write_text(self.tmp / "imu.csv", "\n".join(rows) + "\n")
+        atomic_write_text(self.tmp / "timestamps.txt", "\n".join(f"{t:.9f}" for t in ts) + "\n")
+        atomic_write_text(self.tmp / "calibration.yaml", yaml.safe_dump(calibration_to_dict(self.calibration)))
+        meta = {"format": FORMAT, "version": VERSION, "name": self.name, "rate_hz": self.rate_hz, "frames": n}
+        atomic_write_text(self.tmp / "sequence.yaml", yaml.safe_dump(meta, sort_keys=False))
+        if truth is not None:
+            atomic_write_text(self.tmp / "truth.json", json.dumps(truth_to_dict(truth)) + "\n")
+        if self.root.exists():
+            shutil.rmtree(self.root)
+        os.replace(self.tmp, self.root)
+        return self.root

@@ -1,0 +1,182 @@
+"""The run directory: metrics.json, trajectories, effective config, plot and report (DESIGN.md section 4)."""
+
+from __future__ import annotations
+
+import logging
+import traceback
+from typing import TYPE_CHECKING, Any
+
+import yaml
+
+from sgf_pipeline.evaluation import ate_rmse
+from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text
+from sgf_pipeline.trajectory import Trajectory, write_tum
+
+if TYPE_CHECKING:
+    from sgf_pipeline.runner import Pipeline
+
+log = logging.getLogger("sgf_pipeline")
+
+#: Fields every metrics.json has, null when the run cannot know them.
+METRIC_SKELETON: dict[str, Any] = {
+    "ate_rmse_m": {"odometry": None, "sgf": None},
+    "sgf": {"detected": None, "total": None},
+    "loops": {
+        "pairs_found": None,
+        "pairs_total": None,
+        "pairs_found_reverse": None,
+        "pairs_total_reverse": None,
+        "closed": None,
+        "closed_reverse": None,
+        "false_closed": None,
+    },
+}
+
+
+def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in extra.items():
+        if isinstance(value, dict) and isinstance(out.get(key), dict):
+            out[key] = _merge(out[key], value)
+        else:
+            out[key] = value
+    return out
+
+
+def collect_metrics(pipeline: Pipeline, trajectories: dict[str, Trajectory]) -> dict[str, Any]:
+    """Merge the skeleton, ATE, the stages' metrics and the observers' reports."""
+    from sgf_pipeline.runner import peak_rss_mb
+
+    metrics: dict[str, Any] = {
+        "status": "finished",
+        "sequence": pipeline.info.sequence,
+        "stages": {n.kind: n.name for n in pipeline.order},
+    }
+    metrics = _merge(metrics, METRIC_SKELETON)
+    gt = trajectories.get("gt")
+    if gt is not None and len(gt) >= 3:
+        for name in ("odometry", "sgf"):
+            est = trajectories.get(name)
+            if est is not None and len(est) >= 3:
+                try:
+                    metrics["ate_rmse_m"][name] = ate_rmse(gt, est, "se3", pipeline.config.run.ate_max_time_diff)
+                except Exception as exc:
+                    log.warning("ATE of %s not computed: %s", name, exc)
+                    metrics.setdefault("warnings", []).append(f"ATE of {name} not computed: {exc}")
+    metrics = _merge(metrics, pipeline.context.metrics)
+    for report in pipeline.plugins.manager.hook.sgf_report_metrics(run=pipeline.info):
+        if report:
+            metrics = _merge(metrics, report)
+    metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
+    return metrics
+
+
+def write_run(pipeline: Pipeline, trajectories: dict[str, Trajectory], metrics: dict[str, Any]) -> None:
+    """Write every file of the run directory atomically."""
+    run_dir = pipeline.run_dir
+    assert run_dir is not None
+    run_dir.mkdir(parents=True, exist_ok=True)
+    for name, trajectory in trajectories.items():
+        write_tum(run_dir / f"trajectory_{name}.tum", trajectory)
+    if pipeline.effective_config is not None:
+        atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(pipeline.effective_config, sort_keys=False))
+    if pipeline.config.run.plots:
+        plot_trajectories(run_dir / "trajectory.png", trajectories, metrics)
+        atomic_write_text(run_dir / "report.md", render_report(metrics))
+    atomic_write_json(run_dir / "metrics.json", metrics)
+
+
+def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:
+    """Record a failed or interrupted run, keeping whatever the run directory already holds."""
+    run_dir = pipeline.run_dir
+    assert run_dir is not None
+    info = pipeline.info
+    payload = {
+        "status": status,
+        "error": f"{type(exc).__name__}: {exc}",
+        "frames_seen": info.frames_seen,
+        "frames_processed": info.frames_processed,
+        "traceback": traceback.format_exception(type(exc), exc, exc.__traceback__)[-6:],
+    }
+    try:
+        atomic_write_json(run_dir / "failure.json", payload)
+    except OSError:  # pragma: no cover - best effort while failing
+        log.exception("could not write failure.json")
+
+
+def plot_trajectories(path: Any, trajectories: dict[str, Trajectory], metrics: dict[str, Any]) -> None:
+    """Top-down plot of the ground truth, odometry and SGF trajectories (aligned as for ATE)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sgf_pipeline.evaluation import aligned_positions
+
+    fig, ax = plt.subplots(figsize=(7, 7), dpi=110)
+    gt = trajectories.get("gt")
+    styles = {"gt": ("k", "ground truth"), "odometry": ("tab:red", "odometry"), "sgf": ("tab:blue", "odometry + SGF")}
+    for name, trajectory in trajectories.items():
+        color, label = styles.get(name, (None, name))
+        xy = aligned_positions(gt, trajectory) if gt is not None and name != "gt" else trajectory.positions
+        ate = metrics.get("ate_rmse_m", {}).get(name)
+        if ate is not None:
+            label = f"{label} (ATE {ate:.2f} m)"
+        ax.plot(xy[:, 0], xy[:, 1], color=color, lw=1.2, label=label)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.grid(alpha=0.3)
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(f"{metrics.get('sequence', '')}: trajectories (SE(3)-aligned to ground truth)")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def _fmt(value: Any, digits: int = 3) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def render_report(metrics: dict[str, Any]) -> str:
+    """A short Markdown report of one run."""
+    ate = metrics.get("ate_rmse_m", {})
+    sgf = metrics.get("sgf", {})
+    loops = metrics.get("loops", {})
+    timing = metrics.get("timing", {})
+    lines = [
+        f"# Run report: {metrics.get('sequence', '')}",
+        "",
+        "Stages: " + ", ".join(f"`{k}={v}`" for k, v in metrics.get("stages", {}).items()),
+        "",
+        "| ATE RMSE (m) | odometry | odometry + SGF |",
+        "|---|---|---|",
+        f"| SE(3)-aligned | {_fmt(ate.get('odometry'))} | {_fmt(ate.get('sgf'))} |",
+        "",
+        "| detection | find loop pairs (rev.) | loops closed (rev.) | false loops |",
+        "|---|---|---|---|",
+        f"| {_fmt(sgf.get('detected'))}/{_fmt(sgf.get('total'))} "
+        f"| {_fmt(loops.get('pairs_found'))}/{_fmt(loops.get('pairs_total'))} "
+        f"({_fmt(loops.get('pairs_found_reverse'))}/{_fmt(loops.get('pairs_total_reverse'))}) "
+        f"| {_fmt(loops.get('closed'))} ({_fmt(loops.get('closed_reverse'))}) | {_fmt(loops.get('false_closed'))} |",
+        "",
+        "| stage | mean ms | total s |",
+        "|---|---|---|",
+    ]
+    for stage, row in timing.get("stages", {}).items():
+        lines.append(f"| {stage} | {_fmt(row.get('mean_ms'), 2)} | {_fmt(row.get('total_s'), 2)} |")
+    lines += [
+        "",
+        f"Frames: {timing.get('frames', '-')} processed of {timing.get('dataset_frames', '-')}; "
+        f"{_fmt(timing.get('fps'), 1)} frames/s; real-time factor {_fmt(timing.get('realtime_factor'), 2)}; "
+        f"peak RSS {_fmt(metrics.get('peak_rss_mb'), 0)} MiB.",
+        "",
+        "![trajectories](trajectory.png)",
+        "",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,396 @@
+"""The pipeline: a DAG of configured stages that frames stream through in time order.
+
+Usable as a library: ``Pipeline.from_config(cfg)`` builds and validates the graph (every config
+or wiring error is raised here, before the first frame), ``process(frame)`` runs one frame and
+``finish()`` finalizes and writes the run directory. ``run()`` does all three over the dataset.
+"""
+
+from __future__ import annotations
+
+import graphlib
+import logging
+import math
+import resource
+import time
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sgf_pipeline.config import PipelineConfig, StageConfig, format_validation_error, parse_config
+from sgf_pipeline.context import RunContext
+from sgf_pipeline.errors import ConfigError, PipelineGraphError, StageError
+from sgf_pipeline.registry import LoadedPlugins, VariantInfo, load_plugins
+from sgf_pipeline.stage import Dataset, InputSpec, Stage
+from sgf_pipeline.trajectory import Trajectory
+from sgf_pipeline.types import Frame, PoseEstimate
+
+log = logging.getLogger("sgf_pipeline")
+
+
+@dataclass
+class StageNode:
+    """A configured stage in the graph: its variant, instance and wired inputs."""
+
+    kind: str
+    name: str
+    variant: VariantInfo
+    stage: Stage | Dataset
+    output: str
+    inputs: list[tuple[InputSpec, str]] = field(default_factory=list)
+
+    @property
+    def label(self) -> str:
+        """``kind=name`` for messages."""
+        return f"{self.kind}={self.name}"
+
+
+@dataclass
+class RunInfo:
+    """What observers see of a run: stages in order, counts and the output directory."""
+
+    run_dir: Path | None
+    stages: list[StageNode]
+    sequence: str
+    total_frames: int
+    frames_seen: int = 0
+    frames_processed: int = 0
+    dataset_seconds: float = 0.0
+    work_seconds: float = 0.0
+    first_timestamp: float | None = None
+    last_timestamp: float | None = None
+    options: Any = None
+
+
+@dataclass
+class StepResult:
+    """What ``process(frame)`` returns: every stage output and the current pose estimate."""
+
+    frame_index: int
+    timestamp: float
+    outputs: dict[str, Any]
+    pose: np.ndarray | None
+
+
+def _types_compatible(produced: tuple[type, ...], expected: tuple[type, ...]) -> bool:
+    return all(any(issubclass(p, e) for e in expected) for p in produced)
+
+
+class Pipeline:
+    """A validated stage graph bound to one dataset sequence."""
+
+    def __init__(
+        self,
+        config: PipelineConfig,
+        plugins: LoadedPlugins,
+        run_dir: Path | None = None,
+        effective_config: Mapping[str, Any] | None = None,
+    ) -> None:
+        self.config = config
+        self.plugins = plugins
+        self.run_dir = Path(run_dir) if run_dir is not None else None
+        self.effective_config = effective_config
+        nodes = [self._instantiate(config.stages[kind]) for kind in config.pipeline]
+        self.order = self._wire(nodes)
+        self.dataset_node = self.order[0]
+        self.context = RunContext(run_dir=self.run_dir)
+        self.info = RunInfo(
+            run_dir=self.run_dir,
+            stages=self.order,
+            sequence=self.dataset_node.name,
+            total_frames=0,
+            options=config.run,
+        )
+        self._previous: dict[str, Any] = {}
+        self._odometry: list[tuple[float, np.ndarray]] = []
+        self._ground_truth: list[tuple[float, np.ndarray]] = []
+        self._last_key: np.ndarray | None = None
+        self._begun = False
+        self._finished = False
+        if self.run_dir is not None and (self.run_dir / "metrics.json").exists() and not config.run.overwrite:
+            raise ConfigError(
+                f"{self.run_dir} already holds a finished run (metrics.json); choose another output "
+                "directory (hydra.run.dir=...) or pass run.overwrite=true to replace it"
+            )
+
+    # -- building ---------------------------------------------------------------------------
+
+    @classmethod
+    def from_config(
+        cls,
+        cfg: Mapping[str, Any],
+        run_dir: str | Path | None = None,
+        plugins: LoadedPlugins | None = None,
+    ) -> Pipeline:
+        """Build a pipeline from a composed config (a DictConfig or a plain mapping)."""
+        raw = _to_plain(cfg)
+        config = parse_config(raw)
+        if plugins is None:
+            plugins = load_plugins(allow=config.plugins.allow, block=config.plugins.block)
+        return cls(config, plugins, Path(run_dir) if run_dir is not None else None, effective_config=raw)
+
+    def _instantiate(self, sc: StageConfig) -> StageNode:
+        variant = self.plugins.registry.get(sc.kind, sc.name)
+        if variant.kind != sc.kind:  # pragma: no cover - registry keys guarantee this
+            raise ConfigError(f"{sc.kind}: variant {sc.name!r} is a {variant.kind} stage")
+        try:
+            params = variant.params_model.model_validate(sc.params)
+        except Exception as exc:
+            from pydantic import ValidationError
+
+            if isinstance(exc, ValidationError):
+                detail = format_validation_error(sc.kind, variant.params_model, exc)
+                raise ConfigError(f"invalid parameters for {sc.kind}={sc.name}:\n  {detail}") from None
+            raise
+        try:
+            stage = variant.cls(params)
+        except (ValueError, FileNotFoundError) as exc:
+            raise ConfigError(f"{sc.kind}={sc.name} cannot start: {exc}") from exc
+        node = StageNode(sc.kind, sc.name, variant, stage, variant.cls.output)
+        unknown = set(sc.rename) - {i.parameter for i in variant.signature.inputs}
+        if unknown:
+            known = ", ".join(i.parameter for i in variant.signature.inputs) or "none"
+            raise PipelineGraphError(
+                f"{sc.kind}.rename names input(s) {sorted(unknown)} that {sc.kind}={sc.name} does not have "
+                f"(its inputs: {known})"
+            )
+        node.inputs = [(spec, sc.rename.get(spec.parameter, spec.parameter)) for spec in variant.signature.inputs]
+        return node
+
+    def _wire(self, nodes: list[StageNode]) -> list[StageNode]:
+        datasets = [n for n in nodes if isinstance(n.stage, Dataset)]
+        if len(datasets) != 1:
+            raise PipelineGraphError(
+                f"a pipeline needs exactly one dataset stage, got {len(datasets)} "
+                f"({', '.join(n.label for n in datasets) or 'none'}); put `dataset` first in `pipeline`"
+            )
+        producers: dict[str, StageNode] = {}
+        for node in nodes:
+            other = producers.get(node.output)
+            if other is not None:
+                raise PipelineGraphError(
+                    f"output {node.output!r} is produced by two stages, {other.label} and {node.label}; "
+                    "remove one of them from `pipeline`"
+                )
+            producers[node.output] = node
+        graph: dict[str, set[str]] = {n.kind: set() for n in nodes}
+        for node in nodes:
+            for spec, source in node.inputs:
+                producer = producers.get(source)
+                if producer is None:
+                    available = ", ".join(f"{o} ({p.label})" for o, p in sorted(producers.items()))
+                    raise PipelineGraphError(
+                        f"{node.label} needs input {source!r} ({spec.describe()}) but no stage produces it. "
+                        f"Outputs available: {available}. Add a stage that produces {source!r} to `pipeline`, "
+                        f"or map the input to another output with {node.kind}.rename.{spec.parameter}=<output>"
+                    )
+                produced = producer.variant.signature.output_types
+                if not _types_compatible(produced, spec.types):
+                    got = " | ".join(t.__name__ for t in produced)
+                    raise PipelineGraphError(
+                        f"type mismatch on edge {producer.label} -> {node.label}: {producer.label} produces "
+                        f"{source!r} as {got}, but {node.label} expects {spec.parameter!r} as {spec.describe()}. "
+                        f"Wire another output with {node.kind}.rename.{spec.parameter}=<output>"
+                    )
+                if not spec.previous:
+                    graph[node.kind].add(producer.kind)
+        try:
+            order = list(graphlib.TopologicalSorter(graph).static_order())
+        except graphlib.CycleError as exc:
+            cycle = exc.args[1]
+            raise PipelineGraphError(
+                f"the stages form a cycle: {' -> '.join(cycle)}. Break it by removing a stage or by "
+                "declaring one input as Previous[...] (the value of the previous frame)"
+            ) from None
+        by_kind = {n.kind: n for n in nodes}
+        ordered = [by_kind[k] for k in order]
+        ordered.remove(datasets[0])
+        return [datasets[0], *ordered]
+
+    # -- running ----------------------------------------------------------------------------
+
+    @property
+    def dataset(self) -> Dataset:
+        """The dataset stage."""
+        stage = self.dataset_node.stage
+        assert isinstance(stage, Dataset)
+        return stage
+
+    def begin(self) -> None:
+        """Prepare every stage for the sequence and announce the run to observers."""
+        if self._begun:
+            return
+        if self.config.run.torch_threads is not None:
+            try:
+                import torch
+
+                torch.set_num_threads(self.config.run.torch_threads)
+            except ImportError:  # pragma: no cover - torch is a dependency
+                pass
+        self.info.total_frames = len(self.dataset)
+        for node in self.order:
+            node.stage.begin(self.context)
+        if self.run_dir is not None:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.plugins.manager.hook.sgf_run_start(run=self.info)
+        self._begun = True
+
+    def is_keyframe(self, frame: Frame) -> bool:
+        """Whether the frame moved far enough from the last processed one to be processed."""
+        opts = self.config.run
+        if opts.keyframe_distance <= 0.0 or self._last_key is None:
+            return True
+        delta = np.linalg.inv(self._last_key) @ frame.odometry
+        moved = float(np.linalg.norm(delta[:3, 3]))
+        turned = math.acos(max(-1.0, min(1.0, (np.trace(delta[:3, :3]) - 1.0) / 2.0)))
+        return moved >= opts.keyframe_distance or turned >= opts.keyframe_angle
+
+    def process(self, frame: Frame) -> StepResult:
+        """Run every stage after ``dataset`` on one frame."""
+        self.begin()
+        hook = self.plugins.manager.hook
+        self._last_key = frame.odometry
+        values: dict[str, Any] = {"frame": frame}
+        start = time.perf_counter()
+        for node in self.order[1:]:
+            kwargs: dict[str, Any] = {}
+            skip = False
+            for spec, source in node.inputs:
+                value = self._previous.get(source) if spec.previous else values.get(source)
+                if value is None and not spec.optional:
+                    skip = True
+                    break
+                kwargs[spec.parameter] = value
+            if skip:
+                values[node.output] = None
+                hook.sgf_after_stage(run=self.info, stage=node, frame=frame, output=None, seconds=0.0)
+                continue
+            hook.sgf_before_stage(run=self.info, stage=node, frame=frame)
+            t0 = time.perf_counter()
+            try:
+                out = node.stage.process(**kwargs)  # type: ignore[union-attr]  # only Stage nodes follow dataset
+            except Exception as exc:
+                hook.sgf_on_error(run=self.info, stage=node, frame=frame, error=exc)
+                raise StageError(
+                    f"stage {node.label} failed on frame {frame.index} (t={frame.timestamp:.3f} s): "
+                    f"{type(exc).__name__}: {exc}",
+                    node.kind,
+                    node.name,
+                    frame.index,
+                ) from exc
+            seconds = time.perf_counter() - t0
+            values[node.output] = out
+            hook.sgf_after_stage(run=self.info, stage=node, frame=frame, output=out, seconds=seconds)
+        elapsed = time.perf_counter() - start
+        self.info.work_seconds += elapsed
+        self.info.frames_processed += 1
+        self._previous = values
+        self._odometry.append((frame.timestamp, frame.odometry))
+        if frame.ground_truth is not None:
+            self._ground_truth.append((frame.timestamp, frame.ground_truth))
+        hook.sgf_frame_end(run=self.info, frame=frame, seconds=elapsed)
+        pose = next((v.latest for v in values.values() if isinstance(v, PoseEstimate)), None)
+        return StepResult(frame.index, frame.timestamp, values, pose)
+
+    def frames(self) -> Iterator[Frame]:
+        """The dataset's frames, timed and counted, with keyframe selection applied."""
+        self.begin()
+        iterator = iter(self.dataset.frames())
+        limit = self.config.run.max_frames
+        while limit is None or self.info.frames_seen < limit:
+            t0 = time.perf_counter()
+            try:
+                frame = next(iterator)
+            except StopIteration:
+                self.info.dataset_seconds += time.perf_counter() - t0
+                return
+            self.info.frames_seen += 1
+            if self.info.first_timestamp is None:
+                self.info.first_timestamp = frame.timestamp
+            elif self.info.last_timestamp is not None and frame.timestamp <= self.info.last_timestamp:
+                raise StageError(
+                    f"dataset {self.dataset_node.label} yielded frame {frame.index} at t={frame.timestamp} "
+                    f"after t={self.info.last_timestamp}: frames must come in increasing time order",
+                    "dataset",
+                    self.dataset_node.name,
+                    frame.index,
+                )
+            self.info.last_timestamp = frame.timestamp
+            key = self.is_keyframe(frame)
+            if key:
+                _ = frame.image  # load (decode or render) now, so it counts as dataset time
+                frame.truth_ids()
+            self.info.dataset_seconds += time.perf_counter() - t0
+            if key:
+                yield frame
+
+    def run(self) -> dict[str, Any]:
+        """Stream the whole dataset through the pipeline, finalize, and return the metrics."""
+        try:
+            for frame in self.frames():
+                self.process(frame)
+            return self.finish()
+        except BaseException as exc:
+            self._write_failure(exc)
+            raise
+
+    # -- finishing --------------------------------------------------------------------------
+
+    def finish(self) -> dict[str, Any]:
+        """Finalize every stage, compute metrics and write the run directory."""
+        from sgf_pipeline import outputs
+
+        if self._finished:
+            raise RuntimeError("finish() was called twice")
+        self.begin()
+        for node in self.order:
+            try:
+                node.stage.finalize(self.context)
+            except Exception as exc:
+                self.plugins.manager.hook.sgf_on_error(run=self.info, stage=node, frame=None, error=exc)
+                raise StageError(
+                    f"stage {node.label} failed in finalize: {type(exc).__name__}: {exc}", node.kind, node.name, None
+                ) from exc
+        self._finished = True
+        trajectories = dict(self.context.trajectories)
+        if self._odometry:
+            trajectories.setdefault("odometry", _trajectory(self._odometry))
+        if self._ground_truth:
+            trajectories.setdefault("gt", _trajectory(self._ground_truth))
+        metrics = outputs.collect_metrics(self, trajectories)
+        if self.run_dir is not None:
+            outputs.write_run(self, trajectories, metrics)
+        self.plugins.manager.hook.sgf_run_end(run=self.info, metrics=metrics)
+        return metrics
+
+    def _write_failure(self, exc: BaseException) -> None:
+        from sgf_pipeline import outputs
+
+        if self.run_dir is None or not self._begun:
+            return
+        status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        outputs.write_failure(self, status, exc)
+
+
+def _trajectory(rows: list[tuple[float, np.ndarray]]) -> Trajectory:
+    return Trajectory(np.array([t for t, _ in rows]), np.stack([p for _, p in rows]))
+
+
+def _to_plain(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    try:
+        from omegaconf import DictConfig, OmegaConf
+
+        if isinstance(cfg, DictConfig):
+            container = OmegaConf.to_container(cfg, resolve=True)
+            assert isinstance(container, dict)
+            return {str(k): v for k, v in container.items() if k != "hydra"}
+    except ImportError:  # pragma: no cover - omegaconf is a dependency
+        pass
+    return {str(k): v for k, v in dict(cfg).items() if k != "hydra"}
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process in MiB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -1,0 +1,163 @@
+"""The stage contract: what a plugin implements to add a variant of a pipeline stage."""
+
+from __future__ import annotations
+
+import inspect
+import typing
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass
+from typing import Annotated, Any, ClassVar, Optional, TypeVar
+
+from pydantic import BaseModel, ConfigDict
+
+from sgf_pipeline.context import RunContext
+from sgf_pipeline.types import Frame
+
+T = TypeVar("T")
+
+
+class _PreviousFrame:
+    """Marker: the input takes the value produced on the previous frame (a feedback edge)."""
+
+    def __repr__(self) -> str:
+        return "PREVIOUS_FRAME"
+
+
+PREVIOUS_FRAME = _PreviousFrame()
+
+#: An input annotated ``Previous[T]`` receives the ``T`` produced on the previous frame (or
+#: ``None`` on the first). Such edges close feedback loops (the back-end's estimate feeding the
+#: association of the next frame) without making the stage graph cyclic.
+Previous = Annotated[Optional[T], PREVIOUS_FRAME]  # noqa: UP045  (Annotated needs the Optional form)
+
+
+class StageParams(BaseModel):
+    """Base of every stage's ``Params``: unknown keys are refused, values are immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Stage(ABC):
+    """One variant of a pipeline stage.
+
+    Subclasses set ``kind`` (the config group), ``name`` (the variant), ``output`` (the name of
+    the value they produce) and ``Params``; ``process`` takes its inputs as keyword parameters
+    named like the outputs of other stages, and its annotations are the types checked on edges.
+    """
+
+    kind: ClassVar[str]
+    name: ClassVar[str]
+    output: ClassVar[str]
+    Params: ClassVar[type[StageParams]] = StageParams
+
+    def __init__(self, params: StageParams) -> None:
+        self.params = params
+
+    def begin(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
+        """Reset per-sequence state before the first frame."""
+
+    @abstractmethod
+    def process(self, *args: Any, **kwargs: Any) -> Any:
+        """Compute this stage's output for one frame."""
+
+    def finalize(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
+        """Finish the sequence: final optimisation, metrics, files."""
+
+
+class Dataset(ABC):
+    """The source of a pipeline: a sequence of frames in time order (config group ``dataset``)."""
+
+    kind: ClassVar[str] = "dataset"
+    name: ClassVar[str]
+    output: ClassVar[str] = "frame"
+    Params: ClassVar[type[StageParams]] = StageParams
+
+    def __init__(self, params: StageParams) -> None:
+        self.params = params
+
+    @abstractmethod
+    def frames(self) -> Iterator[Frame]:
+        """Yield the sequence's frames in time order."""
+
+    def __len__(self) -> int:
+        """Number of frames, or 0 when unknown in advance."""
+        return 0
+
+    def begin(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
+        """Fill what the dataset knows into the run context (calibration, ground truth)."""
+
+    def finalize(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
+        """Release resources at the end of the sequence."""
+
+
+StageClass = type[Stage] | type[Dataset]
+
+
+@dataclass(frozen=True)
+class InputSpec:
+    """One input of a stage: its parameter name, expected type and edge kind."""
+
+    parameter: str
+    annotation: Any
+    types: tuple[type, ...]
+    optional: bool
+    previous: bool
+
+    def describe(self) -> str:
+        """Human-readable type of this input."""
+        names = " | ".join(t.__name__ for t in self.types)
+        return f"Previous[{names}]" if self.previous else names
+
+
+@dataclass(frozen=True)
+class StageSignature:
+    """The inputs and output type of a stage class, read from its ``process`` annotations."""
+
+    inputs: tuple[InputSpec, ...]
+    output_types: tuple[type, ...]
+    output_optional: bool
+
+
+def _split_optional(annotation: Any) -> tuple[tuple[type, ...], bool]:
+    """Return the concrete classes of an annotation and whether it admits ``None``."""
+    origin = typing.get_origin(annotation)
+    if origin is typing.Union or (origin is not None and str(origin) == "<class 'types.UnionType'>"):
+        args = typing.get_args(annotation)
+        optional = type(None) in args
+        types_ = tuple(a for a in args if a is not type(None))
+    else:
+        types_, optional = (annotation,), False
+    resolved: list[type] = []
+    for t in types_:
+        base = typing.get_origin(t) or t
+        if not isinstance(base, type):
+            raise TypeError(f"annotation {t!r} is not a class")
+        resolved.append(base)
+    return tuple(resolved), optional
+
+
+def signature_of(cls: StageClass) -> StageSignature:
+    """Read the typed inputs and output of a stage class."""
+    if issubclass(cls, Dataset):
+        return StageSignature(inputs=(), output_types=(Frame,), output_optional=False)
+    hints = typing.get_type_hints(cls.process, include_extras=True)
+    params = list(inspect.signature(cls.process).parameters.values())[1:]
+    inputs: list[InputSpec] = []
+    for p in params:
+        if p.kind in (p.VAR_POSITIONAL, p.VAR_KEYWORD):
+            raise TypeError(f"{cls.__qualname__}.process must name its inputs; *args/**kwargs are not allowed")
+        if p.name not in hints:
+            raise TypeError(f"{cls.__qualname__}.process: input {p.name!r} has no type annotation")
+        annotation = hints[p.name]
+        previous = False
+        if typing.get_origin(annotation) is Annotated:
+            base, *extras = typing.get_args(annotation)
+            previous = any(e is PREVIOUS_FRAME for e in extras)
+            annotation = base
+        types_, optional = _split_optional(annotation)
+        inputs.append(InputSpec(p.name, hints[p.name], types_, optional or previous, previous))
+    if "return" not in hints:
+        raise TypeError(f"{cls.__qualname__}.process has no return annotation (the output type)")
+    out_types, out_optional = _split_optional(hints["return"])
+    return StageSignature(tuple(inputs), out_types, out_optional)

@@ -1,0 +1,309 @@
+"""Values that flow along the pipeline's edges, one class per kind of value.
+
+Poses are 4x4 homogeneous matrices (float64). The robot's base frame has x forward, y left and
+z up, with its origin on the ground under the robot; the camera frame is the optical frame
+(x right, y down, z forward). Images are ``uint8``: ``(H, W, 3)`` RGB or ``(H, W)`` grey.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from sgf_pipeline.calibration import Calibration
+
+
+class Frame:
+    """One camera frame with the robot's odometry, IMU attitude and, when known, ground truth.
+
+    The image may be given as a callable that loads it on first access, so that frames skipped
+    by keyframe selection are never decoded or rendered.
+    """
+
+    __slots__ = (
+        "_image",
+        "calibration",
+        "ground_truth",
+        "imu_roll_pitch",
+        "index",
+        "instance_ids",
+        "odometry",
+        "timestamp",
+    )
+
+    def __init__(
+        self,
+        index: int,
+        timestamp: float,
+        image: np.ndarray | Callable[[], np.ndarray],
+        odometry: np.ndarray,
+        calibration: Calibration,
+        imu_roll_pitch: tuple[float, float] | None = None,
+        ground_truth: np.ndarray | None = None,
+        instance_ids: np.ndarray | Callable[[], np.ndarray | None] | None = None,
+    ) -> None:
+        self.index = index
+        self.timestamp = timestamp
+        self._image = image
+        self.odometry = odometry
+        self.calibration = calibration
+        self.imu_roll_pitch = imu_roll_pitch
+        self.ground_truth = ground_truth
+        self.instance_ids = instance_ids
+
+    @property
+    def image(self) -> np.ndarray:
+        """The camera image (loaded on first access)."""
+        if callable(self._image):
+            self._image = self._image()
+        return self._image
+
+    @property
+    def image_loaded(self) -> bool:
+        """Whether the image has been loaded already."""
+        return not callable(self._image)
+
+    def truth_ids(self) -> np.ndarray | None:
+        """Ground-truth marking instance per pixel (0 = no marking), or ``None`` when unknown."""
+        if callable(self.instance_ids):
+            self.instance_ids = self.instance_ids()
+        return self.instance_ids
+
+    def __repr__(self) -> str:
+        return f"Frame(index={self.index}, timestamp={self.timestamp:.3f})"
+
+
+@dataclass(frozen=True)
+class CameraImage:
+    """The camera image after enhancement, ready for IPM."""
+
+    pixels: np.ndarray
+    frame_index: int
+
+
+@dataclass(frozen=True)
+class BevGrid:
+    """The metric grid of a bird's-eye view (the virtual camera of eq. 3-4).
+
+    Row 0 is the far edge (``x_max``), column 0 the left edge (``y_max``); a pixel's centre is at
+    ``(u + 0.5, v + 0.5)``. Ground coordinates are in the robot's base frame.
+    """
+
+    resolution: float
+    x_min: float
+    x_max: float
+    y_min: float
+    y_max: float
+
+    @property
+    def width(self) -> int:
+        """Number of columns."""
+        return round((self.y_max - self.y_min) / self.resolution)
+
+    @property
+    def height(self) -> int:
+        """Number of rows."""
+        return round((self.x_max - self.x_min) / self.resolution)
+
+    @property
+    def ground_to_pixel_matrix(self) -> np.ndarray:
+        """3x3 affine map from ground ``(x, y, 1)`` to pixel ``(u, v, 1)`` (eq. 3-4)."""
+        r = self.resolution
+        return np.array([[0.0, -1.0 / r, self.y_max / r - 0.5], [-1.0 / r, 0.0, self.x_max / r - 0.5], [0.0, 0.0, 1.0]])
+
+    def pixel_to_ground(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Metric ground coordinates ``(x, y)`` of pixel coordinates (eq. 9)."""
+        u = np.asarray(u, dtype=np.float64)
+        v = np.asarray(v, dtype=np.float64)
+        return self.x_max - (v + 0.5) * self.resolution, self.y_max - (u + 0.5) * self.resolution
+
+    def ground_to_pixel(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates ``(u, v)`` of metric ground coordinates."""
+        x = np.asarray(x, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        return (self.y_max - y) / self.resolution - 0.5, (self.x_max - x) / self.resolution - 0.5
+
+
+@dataclass(frozen=True)
+class Bev:
+    """A metric bird's-eye view of the ground in front of the robot."""
+
+    image: np.ndarray
+    valid: np.ndarray
+    grid: BevGrid
+    frame_index: int
+    timestamp: float
+    instance_ids: np.ndarray | None = None
+    roll: float = 0.0
+    pitch: float = 0.0
+
+
+@dataclass(frozen=True)
+class SaliencyMap:
+    """Per-pixel saliency in [0, 1] of a BEV."""
+
+    probability: np.ndarray
+    bev: Bev
+
+
+@dataclass(frozen=True)
+class SalientGroundFeature:
+    """A selected SGF: the most salient view of one physical ground feature in one pass."""
+
+    track_id: int
+    frame_index: int
+    timestamp: float
+    odometry: np.ndarray
+    pixels: np.ndarray
+    grid: BevGrid
+    saliency: float
+    hu: np.ndarray
+    views: int
+    instance_id: int | None = None
+
+
+@dataclass(frozen=True)
+class SgfDetections:
+    """The SGFs selected on one frame (often none)."""
+
+    items: tuple[SalientGroundFeature, ...] = ()
+
+
+@dataclass(frozen=True)
+class SgfDescriptor:
+    """The polar descriptor of an SGF's metric ground points (eq. 9-10)."""
+
+    sgf: SalientGroundFeature
+    points: np.ndarray
+    centroid: np.ndarray
+    matrix: np.ndarray
+    ring_key: np.ndarray
+
+
+@dataclass(frozen=True)
+class SgfDescriptors:
+    """The descriptors made on one frame."""
+
+    items: tuple[SgfDescriptor, ...] = ()
+
+
+@dataclass(frozen=True)
+class GroupAssignment:
+    """An SGF descriptor assigned to an SGF group (eq. 10)."""
+
+    descriptor: SgfDescriptor
+    group_id: int
+    new_group: bool
+    distance: float
+    shift: int
+    yaw: float
+    matched: SgfDescriptor | None
+    symmetric: bool
+
+
+@dataclass(frozen=True)
+class GroupAssignments:
+    """The group assignments made on one frame."""
+
+    items: tuple[GroupAssignment, ...] = ()
+
+
+@dataclass(frozen=True)
+class LoopConstraint:
+    """A relative-pose constraint between two robot poses from an SGF match (eq. 11).
+
+    ``relative`` is the 4x4 pose of ``frame_to``'s base in ``frame_from``'s base; ``covariance``
+    is 3x3 over the planar part ``(x, y, yaw)`` of that relative pose.
+    """
+
+    frame_from: int
+    frame_to: int
+    relative: np.ndarray
+    covariance: np.ndarray
+    group_id: int
+    reverse: bool
+    fitness: float
+    inlier_ratio: float
+    instance_ids: tuple[int | None, int | None] = (None, None)
+
+
+@dataclass(frozen=True)
+class LoopConstraints:
+    """The loop constraints found on one frame."""
+
+    items: tuple[LoopConstraint, ...] = ()
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """The back-end's current estimate of every processed frame's pose (map frame)."""
+
+    frame_index: int
+    poses: Mapping[int, np.ndarray]
+
+    @property
+    def latest(self) -> np.ndarray:
+        """The estimated pose of the newest frame."""
+        return self.poses[self.frame_index]
+
+
+@dataclass(frozen=True)
+class MarkingTruth:
+    """A ground-truth marking instance of a synthetic world (pose: world x, y, yaw; size: length, width in m)."""
+
+    instance_id: int
+    design: str
+    category: Literal["standard", "custom"]
+    symmetric: bool
+    pose: tuple[float, float, float]
+    size: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class MarkingPass:
+    """One pass of the robot over a marking: the frames over which the marking is wholly in view."""
+
+    instance_id: int
+    number: int
+    start_frame: int
+    end_frame: int
+    heading: float
+
+    def contains(self, frame_index: int) -> bool:
+        """Whether a frame belongs to this pass."""
+        return self.start_frame <= frame_index <= self.end_frame
+
+
+@dataclass(frozen=True)
+class RevisitPair:
+    """Two consecutive passes over the same marking instance (Table 3: loop pairs)."""
+
+    instance_id: int
+    first: MarkingPass
+    second: MarkingPass
+    reverse: bool
+
+
+@dataclass
+class SequenceTruth:
+    """What a dataset knows exactly: the marking table, each marking's passes, the revisit pairs."""
+
+    markings: dict[int, MarkingTruth] = field(default_factory=dict)
+    passes: list[MarkingPass] = field(default_factory=list)
+    revisits: list[RevisitPair] = field(default_factory=list)
+
+    def pass_of(self, instance_id: int, frame_index: int) -> MarkingPass | None:
+        """The pass of ``instance_id`` that ``frame_index`` belongs to, if any."""
+        for p in self.passes:
+            if p.instance_id == instance_id and p.contains(frame_index):
+                return p
+        return None
+
+    @property
+    def on_path(self) -> set[int]:
+        """Instances wholly in view at least once: the SGFs that should be detected (Table 3)."""
+        return {p.instance_id for p in self.passes}
