@@ -83,7 +83,7 @@ def _find_target(node: Any, path: str) -> str | None:
     if isinstance(node, Mapping):
         for key, value in node.items():
             if key == "_target_":
-                return path
+                return f"{path}._target_"
             found = _find_target(value, f"{path}.{key}")
             if found:
                 return found

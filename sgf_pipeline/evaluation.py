@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Literal
 
 from sgf_pipeline.trajectory import Trajectory
 
 Alignment = Literal["none", "se3", "sim3"]
+
+# evo logs every result table at INFO; the project reports its own numbers.
+logging.getLogger("evo").setLevel(logging.WARNING)
 
 
 def _to_evo(trajectory: Trajectory):  # type: ignore[no-untyped-def]

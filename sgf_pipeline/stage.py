@@ -141,7 +141,13 @@ def signature_of(cls: StageClass) -> StageSignature:
     """Read the typed inputs and output of a stage class."""
     if issubclass(cls, Dataset):
         return StageSignature(inputs=(), output_types=(Frame,), output_optional=False)
-    hints = typing.get_type_hints(cls.process, include_extras=True)
+    try:
+        hints = typing.get_type_hints(cls.process, include_extras=True)
+    except NameError as exc:
+        raise TypeError(
+            f"{cls.__qualname__}.process has an annotation that cannot be resolved ({exc}); "
+            "import the types it names at module level"
+        ) from None
     params = list(inspect.signature(cls.process).parameters.values())[1:]
     inputs: list[InputSpec] = []
     for p in params:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -23,8 +24,52 @@ def shared_data() -> Path:
 
 @pytest.fixture(autouse=True)
 def _isolated_home(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
-    """evo writes ~/.evo and ray its session files: keep both inside the test's temporary folder."""
+    """evo writes ~/.evo: keep it inside the test's temporary folder (ray's folder is set per test)."""
     home = tmp_path_factory.mktemp("home")
     monkeypatch.setenv("HOME", str(home))
-    monkeypatch.setenv("RAY_TMPDIR", str(home / "ray"))
     monkeypatch.setenv("MPLBACKEND", "Agg")
+
+
+@pytest.fixture(scope="session")
+def toy_plugin_site(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The throwaway third-party plugin of tests/thirdparty_plugin, pip-installed into a temporary folder.
+
+    Put the returned folder on PYTHONPATH of a subprocess to make the plugin visible to it; the
+    project and its virtual environment are not changed.
+    """
+    import importlib.util
+    import shutil
+    import sys
+
+    work = tmp_path_factory.mktemp("toy_plugin")
+    src = work / "src_pkg"
+    shutil.copytree(ROOT / "tests" / "thirdparty_plugin", src)
+    site = work / "site"
+    cmd = [
+        sys.executable,
+        "-m",
+        "pip",
+        "install",
+        "-q",
+        "--no-deps",
+        "--disable-pip-version-check",
+        "--target",
+        str(site),
+        str(src),
+    ]
+    if importlib.util.find_spec("setuptools") is not None:
+        cmd.insert(4, "--no-build-isolation")
+    subprocess.run(cmd, check=True, capture_output=True, text=True)
+    return site
+
+
+def run_cli(
+    script: str, *args: str, env: dict[str, str] | None = None, cwd: Path | None = None, timeout: float = 600
+) -> subprocess.CompletedProcess[str]:
+    """Run a console script of this environment and capture its output."""
+    import sys
+
+    exe = Path(sys.executable).parent / script
+    full_env = dict(os.environ)
+    full_env.update(env or {})
+    return subprocess.run([str(exe), *args], capture_output=True, text=True, env=full_env, cwd=cwd, timeout=timeout)

@@ -7,7 +7,7 @@ from typing import Any
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from omegaconf import DictConfig, open_dict
 
 from sgf_pipeline.cli.common import friendly_errors
 from sgf_pipeline.config import config_dir
@@ -49,11 +49,26 @@ def summary(metrics: dict[str, Any], run_dir: Path) -> str:
     return "\n".join([f"sgf-run: {metrics.get('sequence', '')}", *lines])
 
 
+def _parallel_sweep(hydra_cfg: Any) -> bool:
+    """Whether this job runs in a multirun whose launcher runs jobs in parallel."""
+    from hydra.types import RunMode
+
+    if hydra_cfg.mode != RunMode.MULTIRUN:
+        return False
+    target = str(hydra_cfg.launcher.get("_target_", ""))
+    return "BasicLauncher" not in target
+
+
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
 @friendly_errors
 def main(cfg: DictConfig) -> float | None:
     """Build the configured pipeline, stream the dataset through it and write the run directory."""
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    hydra_cfg = HydraConfig.get()
+    run_dir = Path(hydra_cfg.runtime.output_dir)
+    if _parallel_sweep(hydra_cfg) and cfg.get("run", {}).get("torch_threads") is None:
+        # Parallel jobs on one machine: torch's intra-op threads would fight over the cores.
+        with open_dict(cfg):
+            cfg.run.torch_threads = 1
     pipeline = Pipeline.from_config(cfg, run_dir=run_dir)
     metrics = pipeline.run()
     print(summary(metrics, run_dir), flush=True)

@@ -1,0 +1,94 @@
+"""The configuration folder: every option of every group validates against its registered variant."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from sgf_pipeline import Pipeline, load_plugins
+from sgf_pipeline.config import RESERVED_KEYS, config_dir
+
+CONF = config_dir()
+APP_CONFIGS = {"config", "sgf_plugins"}
+NON_STAGE_GROUPS = {"experiment", "local", "hydra"}
+
+
+def stage_options() -> list[tuple[str, Path]]:
+    return [
+        (group.name, path)
+        for group in sorted(CONF.iterdir())
+        if group.is_dir() and group.name not in NON_STAGE_GROUPS and not group.name.startswith("_")
+        for path in sorted(group.glob("*.yaml"))
+    ]
+
+
+@pytest.fixture(scope="module")
+def registry():
+    return load_plugins().registry
+
+
+@pytest.mark.parametrize(("kind", "path"), stage_options(), ids=lambda v: getattr(v, "stem", v))
+def test_each_option_validates_against_its_variant(registry, kind: str, path: Path):
+    node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    assert isinstance(node, dict) and "name" in node, f"{path} needs a `name` key"
+    variant = registry.get(kind, node["name"])
+    params = {k: v for k, v in node.items() if k not in RESERVED_KEYS}
+    validated = variant.params_model.model_validate(params)
+    for key, value in params.items():
+        assert getattr(validated, key) == value or isinstance(value, (list, dict)), (path, key)
+    first_line = path.read_text().splitlines()[0]
+    assert first_line.startswith("#"), f"{path} should start with a comment saying what it is"
+
+
+def test_the_default_config_builds_a_valid_pipeline():
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = compose("config")
+    pipeline = Pipeline.from_config(cfg)
+    assert pipeline.order[0].kind == "dataset"
+    assert [n.kind for n in pipeline.order] == list(cfg.pipeline) or set(n.kind for n in pipeline.order) == set(
+        cfg.pipeline
+    )
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
+def test_each_experiment_composes(name: str):
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=[f"+experiment={name}"])
+    assert "pipeline" in cfg
+
+
+def test_conf_is_inside_the_package_and_the_wheel(tmp_path: Path):
+    assert (Path(__file__).resolve().parents[1] / "sgf_pipeline" / "conf" / "config.yaml").is_file()
+    root = Path(__file__).resolve().parents[1]
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "pip",
+            "wheel",
+            "-q",
+            "--no-deps",
+            "--no-build-isolation",
+            "-w",
+            str(tmp_path),
+            str(root),
+        ],
+        check=True,
+        capture_output=True,
+    )
+    wheel = next(tmp_path.glob("sgf_pipeline-*.whl"))
+    names = set(zipfile.ZipFile(wheel).namelist())
+    for conf_file in CONF.rglob("*.yaml"):
+        rel = conf_file.relative_to(CONF)
+        if rel.parts[0] == "local":
+            continue
+        assert f"sgf_pipeline/conf/{rel.as_posix()}" in names
+    assert "sgf_pipeline/conf/.sgf_pipeline_conf" in names
+    assert "hydra_plugins/sgf_pipeline_searchpath/searchpath.py" in names
+    assert any(n.startswith("sgf_plugins/") for n in names)

@@ -1,0 +1,222 @@
+"""Plugin discovery and the registry: the stage contract is enforced when a plugin registers."""
+
+from __future__ import annotations
+
+import ast
+import inspect
+import json
+import re
+from pathlib import Path
+
+import pytest
+from conftest import ROOT, run_cli
+from pydantic import BaseModel
+
+from sgf_pipeline import PluginError, Stage, StageRegistry, hookimpl, hookspecs, load_plugins
+from sgf_pipeline.registry import ALLOW_ENV, BLOCK_ENV
+from sgf_pipeline.types import CameraImage, Frame
+
+
+class Good(Stage):
+    """A valid stage."""
+
+    kind = "enhance"
+    name = "good"
+    output = "image"
+
+    def process(self, frame: Frame) -> CameraImage:
+        return CameraImage(frame.image, frame.index)
+
+
+class LooseParams(BaseModel):
+    x: int = 1
+
+
+class Loose(Good):
+    """Params that accept unknown keys."""
+
+    name = "loose"
+    Params = LooseParams  # type: ignore[assignment]
+
+
+class BadName(Good):
+    """A variant name that is not an identifier."""
+
+    name = "Bad-Name"
+
+
+class NoReturn(Stage):
+    """process without a return annotation."""
+
+    kind = "enhance"
+    name = "noreturn"
+    output = "image"
+
+    def process(self, frame: Frame):  # type: ignore[no-untyped-def]
+        return frame
+
+
+class Splat(Stage):
+    """process with **kwargs."""
+
+    kind = "enhance"
+    name = "splat"
+    output = "image"
+
+    def process(self, **inputs: Frame) -> CameraImage:
+        raise NotImplementedError
+
+
+@pytest.mark.parametrize(
+    ("cls", "message"),
+    [
+        (Loose, "Params must refuse unknown keys; derive it from StageParams"),
+        (BadName, "name must be a lower-case identifier, got 'Bad-Name'"),
+        (NoReturn, "has no return annotation"),
+        (Splat, "must name its inputs"),
+        (int, "is not a Stage or Dataset subclass"),
+    ],
+)
+def test_registry_refuses_classes_that_break_the_contract(cls, message):
+    with pytest.raises(PluginError, match=re.escape(message)):
+        StageRegistry().add(cls)
+
+
+def test_one_variant_registered_twice_by_two_plugins():
+    class Other(Good):
+        """Same kind and name as Good."""
+
+    registry = StageRegistry()
+    registry._scoped("first", None).add(Good)
+    with pytest.raises(PluginError, match="registered twice: by first and by second"):
+        registry._scoped("second", None).add(Other)
+
+
+def test_first_party_plugins_come_through_the_entry_point_group():
+    loaded = load_plugins()
+    info = loaded.registry.get("enhance", "clahe")
+    assert info.plugin == "enhance"
+    assert info.distribution == "sgf-pipeline"
+    assert info.signature.inputs[0].parameter == "frame"
+
+
+def test_allow_and_block_lists(monkeypatch: pytest.MonkeyPatch):
+    monkeypatch.setenv(BLOCK_ENV, "enhance")
+    assert "enhance" not in load_plugins().registry.kinds()
+    monkeypatch.delenv(BLOCK_ENV)
+    monkeypatch.setenv(ALLOW_ENV, "enhance")
+    assert "enhance" in load_plugins().registry.kinds()
+    monkeypatch.setenv(ALLOW_ENV, "enhance,not_installed")
+    with pytest.raises(PluginError, match="allowed plugin\\(s\\) not_installed are not installed"):
+        load_plugins()
+
+
+def test_a_plugin_that_fails_to_import_is_named(monkeypatch: pytest.MonkeyPatch):
+    from importlib import metadata
+
+    broken = metadata.EntryPoint(name="broken", value="no_such_module_xyz", group="sgf_pipeline")
+    real = metadata.entry_points
+
+    def fake(**kwargs):  # type: ignore[no-untyped-def]
+        eps = list(real(**kwargs))
+        return [*eps, broken] if kwargs.get("group") == "sgf_pipeline" else eps
+
+    monkeypatch.setattr(metadata, "entry_points", fake)
+    with pytest.raises(
+        PluginError,
+        match=r"plugin 'broken' \(no_such_module_xyz\).*failed to import.*SGF_PIPELINE_DISABLED_PLUGINS=broken",
+    ):
+        load_plugins()
+
+
+def test_every_hookspec_is_documented():
+    specs = [m for n, m in inspect.getmembers(hookspecs.PipelineHooks, inspect.isfunction) if n.startswith("sgf_")]
+    assert len(specs) >= 7
+    for spec in specs:
+        doc = inspect.getdoc(spec) or ""
+        assert doc.strip(), f"hookspec {spec.__name__} has no docstring"
+        params = [p for p in inspect.signature(spec).parameters if p != "self"]
+        for p in params:
+            assert f":param {p}:" in doc, f"hookspec {spec.__name__} does not document parameter {p!r}"
+
+
+def test_the_core_imports_no_plugin():
+    offenders = []
+    for path in (ROOT / "sgf_pipeline").rglob("*.py"):
+        tree = ast.parse(path.read_text(), filename=str(path))
+        for node in ast.walk(tree):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module]
+            offenders += [f"{path.relative_to(ROOT)}: {n}" for n in names if n.split(".")[0] == "sgf_plugins"]
+    assert not offenders, offenders
+
+
+def test_import_linter_contract_holds():
+    result = run_cli("lint-imports", cwd=ROOT)
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "The core never imports a plugin KEPT" in result.stdout
+
+
+def test_hookimpl_marker_is_the_projects():
+    assert hookimpl.project_name == "sgf_pipeline"
+
+
+def test_third_party_plugin_package_is_listed_and_selected_by_config(toy_plugin_site: Path, tmp_path: Path):
+    env = {"PYTHONPATH": str(toy_plugin_site)}
+    listing = run_cli("sgf-plugins", "format=json", env=env)
+    assert listing.returncode == 0, listing.stderr
+    entries = {(e["kind"], e["name"]): e for e in json.loads(listing.stdout)}
+    gamma = entries[("enhance", "gamma")]
+    assert gamma["distribution"] == "sgf-toy-plugin" and gamma["plugin"] == "toy"
+    assert gamma["params"] == [
+        {"name": "gamma", "type": "float", "default": 1.0, "description": "exponent applied to intensities in [0, 1]"}
+    ]
+    text = run_cli("sgf-plugins", "kind=enhance", env=env).stdout
+    assert "enhance=gamma  -> image  from toy (sgf-toy-plugin)" in text
+
+    run_dir = tmp_path / "run"
+    result = run_cli(
+        "sgf-run",
+        "pipeline=[dataset,enhance]",
+        "dataset=toy_circle",
+        "enhance=gamma",
+        "enhance.gamma=0.25",
+        "run.progress=false",
+        f"hydra.run.dir={run_dir}",
+        env=env,
+    )
+    assert result.returncode == 0, result.stderr
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert metrics["stages"] == {"dataset": "toy_circle", "enhance": "gamma"}
+    assert metrics["timing"]["frames"] == 40
+    # Odometry is the circle scaled by 1.02 (radius 5.0 -> 5.1): after alignment every error is 0.1 m.
+    assert metrics["ate_rmse_m"]["odometry"] == pytest.approx(0.1, abs=2e-3)
+    effective = (run_dir / "config.yaml").read_text()
+    assert "gamma: 0.25" in effective
+    assert "ATE odometry (m)            0.10" in result.stdout
+
+    # Without the plugin on the path, the same config fails with Hydra's list of options.
+    missing = run_cli("sgf-run", "pipeline=[dataset,enhance]", "dataset=toy_circle", f"hydra.run.dir={tmp_path / 'x'}")
+    assert missing.returncode != 0
+    assert "Could not find 'dataset/" in missing.stderr
+
+
+def test_cli_reports_config_errors_without_a_traceback(toy_plugin_site: Path, tmp_path: Path):
+    env = {"PYTHONPATH": str(toy_plugin_site)}
+    result = run_cli(
+        "sgf-run",
+        "pipeline=[dataset,enhance]",
+        "dataset=toy_circle",
+        "enhance=clahe",
+        "enhance.clip_limit=-2",
+        f"hydra.run.dir={tmp_path}",
+        env=env,
+    )
+    assert result.returncode == 2
+    assert "error: invalid parameters for enhance=clahe" in result.stderr
+    assert "enhance.clip_limit: Input should be greater than 0" in result.stderr
+    assert "Traceback" not in result.stderr
+    assert not (tmp_path / "metrics.json").exists()

@@ -1,0 +1,133 @@
+"""The runner: wiring, streaming, feedback edges, outputs and the run directory."""
+
+from __future__ import annotations
+
+import itertools
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from toy_stages import ToyPlugin
+
+from sgf_pipeline import Pipeline, StageError, load_plugins
+from sgf_pipeline.trajectory import read_tum
+
+
+@pytest.fixture(scope="module")
+def plugins():
+    return load_plugins(extra=[("toy", ToyPlugin())])
+
+
+def config(**stages):
+    kinds = ["dataset", *stages]
+    cfg = {"pipeline": kinds, "dataset": {"name": "figure_eight", "frames": 30}, "run": {"progress": False}}
+    cfg.update(stages)
+    return cfg
+
+
+def test_streams_frames_in_order_with_feedback_and_optional_edges(plugins):
+    cfg = config(
+        enhance={"name": "none"},
+        measure={"name": "brightness"},
+        counter={"name": "feedback", "start": 5},
+        gate={"name": "even"},
+        consumer={"name": "strict"},
+    )
+    pipeline = Pipeline.from_config(cfg, plugins=plugins)
+    assert [n.kind for n in pipeline.order][:2] == ["dataset", "enhance"]
+    assert pipeline.order.index(next(n for n in pipeline.order if n.kind == "measure")) > 1
+    results = [pipeline.process(f) for f in pipeline.dataset.frames()]
+    assert [r.outputs["count"] for r in results] == list(range(5, 35))
+    assert [r.outputs["brightness"] for r in results[:4]] == [0.0, 1.0, 2.0, 3.0]
+    assert [r.outputs["consumed"] for r in results[:5]] == [0, None, 20, None, 40]
+    metrics = pipeline.finish()
+    assert metrics["timing"]["stages"]["consumer"]["calls"] == 15
+    assert metrics["timing"]["stages"]["measure"]["calls"] == 30
+
+
+def test_run_writes_the_run_directory(plugins, tmp_path: Path):
+    cfg = config(enhance={"name": "clahe", "clip_limit": 3.0}, backend={"name": "trust_odometry"})
+    metrics = Pipeline.from_config(cfg, run_dir=tmp_path, plugins=plugins).run()
+    names = {p.name for p in tmp_path.iterdir()}
+    assert {
+        "metrics.json",
+        "config.yaml",
+        "trajectory_gt.tum",
+        "trajectory_odometry.tum",
+        "trajectory_sgf.tum",
+        "trajectory.png",
+        "report.md",
+    } <= names
+    assert not [n for n in names if n.endswith(".part")]
+    on_disk = json.loads((tmp_path / "metrics.json").read_text())
+    assert on_disk["status"] == "finished"
+    assert on_disk["stages"] == {"dataset": "figure_eight", "enhance": "clahe", "backend": "trust_odometry"}
+    # Odometry is the ground truth scaled by 1.05 around the origin: after a rigid alignment the
+    # error is the scale residual, far above zero but well below the 10 m extent.
+    assert 0.05 < on_disk["ate_rmse_m"]["odometry"] < 1.0
+    assert on_disk["ate_rmse_m"]["sgf"] == pytest.approx(on_disk["ate_rmse_m"]["odometry"], rel=1e-9)
+    assert on_disk["backend"] == {"nodes": 30}
+    timing = on_disk["timing"]
+    assert timing["frames"] == 30 and timing["dataset_frames"] == 30
+    assert timing["fps"] > 0 and timing["realtime_factor"] > 0
+    assert timing["sequence_seconds"] == pytest.approx(2.9)
+    assert set(timing["stages"]) == {"enhance", "backend"}
+    assert on_disk["peak_rss_mb"] > 10
+    for key in ("pairs_found", "closed", "false_closed"):
+        assert key in on_disk["loops"] and on_disk["loops"][key] is None
+    gt = read_tum(tmp_path / "trajectory_gt.tum")
+    assert len(gt) == 30 and gt.timestamps[1] == pytest.approx(0.1)
+    assert metrics["ate_rmse_m"] == on_disk["ate_rmse_m"]
+
+
+def test_metrics_json_exists_with_timing_even_without_other_metrics(plugins, tmp_path: Path):
+    cfg = config(enhance={"name": "none"})
+    Pipeline.from_config(cfg, run_dir=tmp_path, plugins=plugins).run()
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    assert metrics["timing"]["stages"]["enhance"]["calls"] == 30
+    assert metrics["timing"]["stages"]["enhance"]["mean_ms"] >= 0
+    assert metrics["sgf"] == {"detected": None, "total": None}
+
+
+def test_keyframe_selection_by_distance(plugins):
+    cfg = config(enhance={"name": "none"})
+    cfg["dataset"]["frames"] = 200
+    cfg["run"]["keyframe_distance"] = 1.0
+    cfg["run"]["keyframe_angle"] = 10.0
+    pipeline = Pipeline.from_config(cfg, plugins=plugins)
+    processed = [pipeline.process(f).frame_index for f in pipeline.frames()]
+    poses = {f.index: f.odometry for f in pipeline.dataset.frames()}
+    gaps = [np.linalg.norm(poses[b][:3, 3] - poses[a][:3, 3]) for a, b in itertools.pairwise(processed)]
+    assert processed[0] == 0
+    assert min(gaps) >= 1.0
+    assert 40 < len(processed) < 120  # about 97 m of path at >= 1 m spacing
+    assert pipeline.info.frames_seen == 200
+
+
+def test_max_frames_limits_the_stream(plugins):
+    cfg = config(enhance={"name": "none"})
+    cfg["run"]["max_frames"] = 7
+    metrics = Pipeline.from_config(cfg, plugins=plugins).run()
+    assert metrics["timing"]["dataset_frames"] == 7
+
+
+def test_stage_error_names_stage_and_frame_and_keeps_the_run_dir(plugins, tmp_path: Path):
+    cfg = config(explode={"name": "on_three"})
+    pipeline = Pipeline.from_config(cfg, run_dir=tmp_path, plugins=plugins)
+    with pytest.raises(StageError, match=r"stage explode=on_three failed on frame 3 .*RuntimeError: kaboom"):
+        pipeline.run()
+    failure = json.loads((tmp_path / "failure.json").read_text())
+    assert failure["status"] == "failed"
+    assert failure["frames_processed"] == 3
+    assert not (tmp_path / "metrics.json").exists()
+
+
+def test_process_returns_the_pose_estimate_for_embedding(plugins):
+    cfg = config(backend={"name": "trust_odometry"})
+    pipeline = Pipeline.from_config(cfg, plugins=plugins)
+    frames = list(pipeline.dataset.frames())
+    step = pipeline.process(frames[0])
+    assert step.pose is not None and np.allclose(step.pose, frames[0].odometry)
+    step = pipeline.process(frames[1])
+    assert np.allclose(step.pose, frames[1].odometry)

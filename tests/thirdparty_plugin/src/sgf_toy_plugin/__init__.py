@@ -1,0 +1,1 @@
+"""A third-party plugin: a gamma enhancement and a small circular test sequence."""
