@@ -1,0 +1,374 @@
+"""Aggregate run directories into the paper's tables (Tables 1-4), CSV and figures."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from collections import defaultdict
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from sgf_pipeline.errors import DataError
+from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text
+
+#: The paper's Table 2 (ATE in m) per sequence: (odometry, ORB-SLAM3, odometry + SGF).
+PAPER_TABLE2 = {
+    "campus_large_loop": (292.966, 28.422, 9.482),
+    "campus_reverse_slope": (140.532, 48.546, 14.384),
+    "campus_delivery": (71.147, 19.828, 12.365),
+    "campus_large_loop_night": (295.106, None, 11.540),
+}
+#: The paper's Table 3: detection, loop pairs found (reverse), loops closed (reverse).
+PAPER_TABLE3 = {
+    "campus_large_loop": ("79/94", "33/34 (3/3)", "31 (1)"),
+    "campus_reverse_slope": ("37/46", "11/16 (11/16)", "7 (7)"),
+    "campus_delivery": ("19/23", "1/1 (1/1)", "1 (1)"),
+}
+#: The paper's Table 4: ATE (m) with MC-IPM and with plain IPM.
+PAPER_TABLE4 = {"campus_large_loop": (9.482, 12.567), "campus_reverse_slope": (14.384, 67.625)}
+#: The paper's Table 1: MaxF, MAE, MeanF, S-measure.
+PAPER_TABLE1 = {
+    "SelfReformer*": (0.953, 0.032, 0.908, 0.920),
+    "SelfReformer": (0.463, 0.259, 0.310, 0.575),
+    "LDF": (0.545, 0.179, 0.422, 0.664),
+    "U2Net": (0.580, 0.140, 0.565, 0.679),
+}
+SEQUENCE_ORDER = ["campus_large_loop", "campus_reverse_slope", "campus_delivery", "campus_large_loop_night"]
+IGNORED_KEYS = ("run.progress", "run.torch_threads", "run.overwrite", "plugins.")
+
+
+@dataclass
+class RunRecord:
+    """One finished run: its directory, metrics and effective configuration."""
+
+    path: Path
+    metrics: dict[str, Any]
+    config: dict[str, Any]
+
+    @property
+    def sequence(self) -> str:
+        """The dataset variant the run used."""
+        return str(self.metrics.get("sequence") or self.config.get("dataset", {}).get("name", "?"))
+
+    @property
+    def seed(self) -> Any:
+        """The dataset seed, when the dataset has one."""
+        return self.config.get("dataset", {}).get("seed")
+
+
+def _flatten(node: Any, prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if isinstance(node, dict):
+        for key, value in node.items():
+            out.update(_flatten(value, f"{prefix}{key}."))
+    else:
+        out[prefix[:-1]] = json.dumps(node) if isinstance(node, list) else node
+    return out
+
+
+def find_runs(root: str | Path) -> list[RunRecord]:
+    """Every finished run below ``root`` (a run directory or a multirun directory)."""
+    base = Path(root)
+    if not base.exists():
+        raise DataError(f"{base} does not exist; pass a run or multirun directory written by sgf-run")
+    runs = []
+    for metrics_path in sorted(base.rglob("metrics.json")):
+        try:
+            metrics = json.loads(metrics_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise DataError(f"{metrics_path} is not valid JSON ({exc}); was the run interrupted?") from None
+        config_path = metrics_path.parent / "config.yaml"
+        config = yaml.safe_load(config_path.read_text()) if config_path.exists() else {}
+        runs.append(RunRecord(metrics_path.parent, metrics, config or {}))
+    if not runs:
+        raise DataError(f"no metrics.json below {base}; pass a directory written by sgf-run")
+    return runs
+
+
+def swept_keys(runs: Iterable[RunRecord]) -> list[str]:
+    """Config keys whose values differ between runs (except seeds and presentation options)."""
+    flats = [_flatten(r.config) for r in runs]
+    keys = sorted(set().union(*flats)) if flats else []
+    out = []
+    for key in keys:
+        if key == "dataset.seed" or key.startswith(IGNORED_KEYS):
+            continue
+        if key.startswith("dataset.") and key != "dataset.name":
+            continue
+        values = {json.dumps(f.get(key), sort_keys=True, default=str) for f in flats}
+        if len(values) > 1:
+            out.append(key)
+    return out
+
+
+def _mean_std(values: list[float]) -> tuple[float, float] | None:
+    vals = [v for v in values if v is not None and math.isfinite(v)]
+    if not vals:
+        return None
+    mean = sum(vals) / len(vals)
+    std = math.sqrt(sum((v - mean) ** 2 for v in vals) / (len(vals) - 1)) if len(vals) > 1 else 0.0
+    return mean, std
+
+
+def _fmt_ms(stat: tuple[float, float] | None, n: int, digits: int = 2) -> str:
+    if stat is None:
+        return "-"
+    return f"{stat[0]:.{digits}f} ± {stat[1]:.{digits}f}" if n > 1 else f"{stat[0]:.{digits}f}"
+
+
+def _get(metrics: dict[str, Any], *path: str) -> Any:
+    node: Any = metrics
+    for p in path:
+        if not isinstance(node, dict):
+            return None
+        node = node.get(p)
+    return node
+
+
+def _sum(runs: list[RunRecord], *path: str) -> int | None:
+    values = [_get(r.metrics, *path) for r in runs]
+    return None if any(v is None for v in values) else int(sum(values))
+
+
+def _variant_label(run: RunRecord, keys: list[str]) -> str:
+    flat = _flatten(run.config)
+    return ", ".join(f"{k}={flat.get(k)}" for k in keys if k != "dataset.name") or "default"
+
+
+def _ordered(sequences: Iterable[str]) -> list[str]:
+    seqs = set(sequences)
+    return [s for s in SEQUENCE_ORDER if s in seqs] + sorted(seqs - set(SEQUENCE_ORDER))
+
+
+def build_tables(runs: list[RunRecord]) -> dict[str, Any]:
+    """The paper's tables as data: per variant and sequence, mean/std over seeds and sums of counts."""
+    keys = [k for k in swept_keys(runs) if k != "dataset.name"]
+    groups: dict[tuple[str, str], list[RunRecord]] = defaultdict(list)
+    for run in runs:
+        groups[(_variant_label(run, keys), run.sequence)].append(run)
+    rows = []
+    for (variant, sequence), members in sorted(groups.items()):
+        ate_odo = _mean_std([_get(r.metrics, "ate_rmse_m", "odometry") for r in members])
+        ate_sgf = _mean_std([_get(r.metrics, "ate_rmse_m", "sgf") for r in members])
+        fps = _mean_std([_get(r.metrics, "timing", "fps") for r in members])
+        rtf = _mean_std([_get(r.metrics, "timing", "realtime_factor") for r in members])
+        rows.append(
+            {
+                "variant": variant,
+                "sequence": sequence,
+                "runs": len(members),
+                "seeds": sorted({str(r.seed) for r in members}),
+                "ate_odometry": ate_odo,
+                "ate_sgf": ate_sgf,
+                "detected": _sum(members, "sgf", "detected"),
+                "total": _sum(members, "sgf", "total"),
+                "pairs_found": _sum(members, "loops", "pairs_found"),
+                "pairs_total": _sum(members, "loops", "pairs_total"),
+                "pairs_found_reverse": _sum(members, "loops", "pairs_found_reverse"),
+                "pairs_total_reverse": _sum(members, "loops", "pairs_total_reverse"),
+                "closed": _sum(members, "loops", "closed"),
+                "closed_reverse": _sum(members, "loops", "closed_reverse"),
+                "false_closed": _sum(members, "loops", "false_closed"),
+                "fps": fps,
+                "realtime_factor": rtf,
+            }
+        )
+    return {"swept": keys, "rows": rows}
+
+
+def _ratio(a: int | None, b: int | None) -> str:
+    return "-" if a is None or b is None else f"{a}/{b}"
+
+
+def render_markdown(runs: list[RunRecord], tables: dict[str, Any], figures: dict[str, str]) -> str:
+    """report.md with the paper's table layouts and its numbers beside the measured ones."""
+    rows = tables["rows"]
+    variants = sorted({r["variant"] for r in rows})
+    out = [f"# sgf-report: {len(runs)} run(s)", ""]
+    if tables["swept"]:
+        out += ["Swept: " + ", ".join(f"`{k}`" for k in tables["swept"]), ""]
+    out += ["Values are mean ± standard deviation over seeds; counts are summed over seeds.", ""]
+
+    out += ["## Table 2: absolute trajectory error (m, SE(3)-aligned)", ""]
+    for variant in variants:
+        vrows = {r["sequence"]: r for r in rows if r["variant"] == variant}
+        seqs = _ordered(vrows)
+        if len(variants) > 1:
+            out += [f"**{variant}**", ""]
+        out += ["| method | " + " | ".join(seqs) + " |", "|---" * (len(seqs) + 1) + "|"]
+        out.append(
+            "| odometry | " + " | ".join(_fmt_ms(vrows[s]["ate_odometry"], vrows[s]["runs"]) for s in seqs) + " |"
+        )
+        out.append(
+            "| odometry + SGF | " + " | ".join(_fmt_ms(vrows[s]["ate_sgf"], vrows[s]["runs"]) for s in seqs) + " |"
+        )
+        paper = [PAPER_TABLE2.get(s) for s in seqs]
+        out.append("| paper: odometry | " + " | ".join(f"{p[0]:.3f}" if p else "-" for p in paper) + " |")
+        out.append("| paper: odometry + SGF | " + " | ".join(f"{p[2]:.3f}" if p else "-" for p in paper) + " |")
+        out.append("")
+
+    out += ["## Table 3: SGF detection, loop pairs found and loops closed", ""]
+    out += [
+        "| variant | sequence | runs | detection | find loop pairs (rev.) | loops closed (rev.) | false loops | paper |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in sorted(rows, key=lambda r: (r["variant"], _ordered([r["sequence"]]))):
+        paper = PAPER_TABLE3.get(r["sequence"])
+        out.append(
+            f"| {r['variant']} | {r['sequence']} | {r['runs']} | {_ratio(r['detected'], r['total'])} "
+            f"| {_ratio(r['pairs_found'], r['pairs_total'])} ({_ratio(r['pairs_found_reverse'], r['pairs_total_reverse'])}) "
+            f"| {r['closed'] if r['closed'] is not None else '-'} ({r['closed_reverse'] if r['closed_reverse'] is not None else '-'}) "
+            f"| {r['false_closed'] if r['false_closed'] is not None else '-'} "
+            f"| {' / '.join(paper) if paper else '-'} |"
+        )
+    out.append("")
+
+    ipm_key = next((k for k in tables["swept"] if k == "ipm.name"), None)
+    if ipm_key:
+        out += ["## Table 4: MC-IPM vs plain IPM (ATE of odometry + SGF, m)", ""]
+        seqs = _ordered({r["sequence"] for r in rows})
+        out += [
+            "| sequence | " + " | ".join(variants) + " | paper MC-IPM | paper IPM |",
+            "|---" * (len(variants) + 3) + "|",
+        ]
+        for s in seqs:
+            cells = []
+            for v in variants:
+                match = [r for r in rows if r["variant"] == v and r["sequence"] == s]
+                cells.append(_fmt_ms(match[0]["ate_sgf"], match[0]["runs"]) if match else "-")
+            p = PAPER_TABLE4.get(s)
+            out.append(f"| {s} | " + " | ".join(cells) + f" | {p[0] if p else '-'} | {p[1] if p else '-'} |")
+        out.append("")
+
+    out += ["## Speed", "", "| variant | sequence | frames/s | real-time factor |", "|---|---|---|---|"]
+    for r in rows:
+        out.append(
+            f"| {r['variant']} | {r['sequence']} | {_fmt_ms(r['fps'], r['runs'], 1)} "
+            f"| {_fmt_ms(r['realtime_factor'], r['runs'])} |"
+        )
+    out.append("")
+    if figures:
+        out += ["## Figures", ""]
+        for title, rel in figures.items():
+            out += [f"### {title}", "", f"![{title}]({rel})", ""]
+    out += ["## Runs", "", "| run | sequence | seed | ATE odometry | ATE SGF |", "|---|---|---|---|---|"]
+    for run in runs:
+        ate = run.metrics.get("ate_rmse_m", {})
+        fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
+        out.append(
+            f"| {run.path.name} | {run.sequence} | {run.seed} | {fmt(ate.get('odometry'))} | {fmt(ate.get('sgf'))} |"
+        )
+    return "\n".join(out) + "\n"
+
+
+def runs_csv(runs: list[RunRecord]) -> str:
+    """One CSV row per run with the headline metrics and the swept config keys."""
+    keys = swept_keys(runs)
+    fields = [
+        "run",
+        "sequence",
+        "seed",
+        *keys,
+        "ate_odometry",
+        "ate_sgf",
+        "detected",
+        "total",
+        "pairs_found",
+        "pairs_total",
+        "pairs_found_reverse",
+        "pairs_total_reverse",
+        "closed",
+        "closed_reverse",
+        "false_closed",
+        "fps",
+        "realtime_factor",
+        "peak_rss_mb",
+    ]
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, fieldnames=fields)
+    writer.writeheader()
+    for run in runs:
+        flat = _flatten(run.config)
+        m = run.metrics
+        writer.writerow(
+            {
+                "run": str(run.path),
+                "sequence": run.sequence,
+                "seed": run.seed,
+                **{k: flat.get(k) for k in keys},
+                "ate_odometry": _get(m, "ate_rmse_m", "odometry"),
+                "ate_sgf": _get(m, "ate_rmse_m", "sgf"),
+                "detected": _get(m, "sgf", "detected"),
+                "total": _get(m, "sgf", "total"),
+                "pairs_found": _get(m, "loops", "pairs_found"),
+                "pairs_total": _get(m, "loops", "pairs_total"),
+                "pairs_found_reverse": _get(m, "loops", "pairs_found_reverse"),
+                "pairs_total_reverse": _get(m, "loops", "pairs_total_reverse"),
+                "closed": _get(m, "loops", "closed"),
+                "closed_reverse": _get(m, "loops", "closed_reverse"),
+                "false_closed": _get(m, "loops", "false_closed"),
+                "fps": _get(m, "timing", "fps"),
+                "realtime_factor": _get(m, "timing", "realtime_factor"),
+                "peak_rss_mb": m.get("peak_rss_mb"),
+            }
+        )
+    return buf.getvalue()
+
+
+def plot_timing(path: Path, runs: list[RunRecord]) -> None:
+    """Bar chart of mean per-stage milliseconds per frame, averaged over runs."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    per_stage: dict[str, list[float]] = defaultdict(list)
+    for run in runs:
+        for stage, row in (_get(run.metrics, "timing", "stages") or {}).items():
+            if row.get("mean_ms") is not None:
+                per_stage[f"{stage}\n{row.get('variant', '')}"].append(float(row["mean_ms"]))
+    if not per_stage:
+        return
+    labels = list(per_stage)
+    means = [sum(v) / len(v) for v in per_stage.values()]
+    fig, ax = plt.subplots(figsize=(max(5.0, 1.1 * len(labels)), 3.6), dpi=110)
+    bars = ax.bar(range(len(labels)), means, color="tab:blue")
+    ax.bar_label(bars, labels=[f"{m:.1f}" for m in means], fontsize=8)
+    ax.set_xticks(range(len(labels)), labels, fontsize=8)
+    ax.set_ylabel("ms per processed frame")
+    ax.set_title("Per-stage time (mean over runs)")
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def write_report(root: str | Path, out_dir: str | Path | None = None) -> dict[str, Any]:
+    """Read every run below ``root`` and write report.md, runs.csv, tables.json and figures."""
+    runs = find_runs(root)
+    out = Path(out_dir) if out_dir is not None else Path(root)
+    out.mkdir(parents=True, exist_ok=True)
+    tables = build_tables(runs)
+    figures: dict[str, str] = {}
+    plot_timing(out / "timing.png", runs)
+    if (out / "timing.png").exists():
+        figures["Per-stage timing"] = "timing.png"
+    for run in runs:
+        for name, title in (
+            ("trajectory.png", "Trajectories"),
+            ("sgf_frames.png", "Selected SGFs and groups"),
+            ("ipm_comparison.png", "MC-IPM vs IPM"),
+        ):
+            if (run.path / name).exists():
+                figures[f"{title}: {run.path.name}"] = str((run.path / name).resolve())
+    atomic_write_text(out / "report.md", render_markdown(runs, tables, figures))
+    atomic_write_text(out / "runs.csv", runs_csv(runs))
+    atomic_write_json(out / "tables.json", tables)
+    return tables

@@ -1,0 +1,112 @@
+"""sgf-report: aggregation of run directories into the paper's tables."""
+
+from __future__ import annotations
+
+import csv
+import json
+import statistics
+from pathlib import Path
+
+import pytest
+import yaml
+from conftest import run_cli
+
+from sgf_pipeline.errors import DataError
+from sgf_pipeline.report import build_tables, find_runs, write_report
+
+
+def fake_run(root: Path, name: str, sequence: str, seed: int, ipm: str, ate: tuple[float, float], counts: dict) -> None:
+    run = root / name
+    run.mkdir(parents=True)
+    metrics = {
+        "status": "finished",
+        "sequence": sequence,
+        "ate_rmse_m": {"odometry": ate[0], "sgf": ate[1]},
+        "sgf": {"detected": counts["detected"], "total": counts["total"]},
+        "loops": {
+            "pairs_found": counts["found"],
+            "pairs_total": counts["pairs"],
+            "pairs_found_reverse": 1,
+            "pairs_total_reverse": 1,
+            "closed": counts["closed"],
+            "closed_reverse": 1,
+            "false_closed": 0,
+        },
+        "timing": {"fps": 20.0, "realtime_factor": 2.0, "stages": {"ipm": {"variant": ipm, "mean_ms": 1.5}}},
+    }
+    (run / "metrics.json").write_text(json.dumps(metrics))
+    config = {
+        "pipeline": ["dataset", "ipm"],
+        "dataset": {"name": sequence, "seed": seed},
+        "ipm": {"name": ipm},
+        "run": {"progress": False},
+    }
+    (run / "config.yaml").write_text(yaml.safe_dump(config))
+
+
+def test_tables_aggregate_over_seeds_and_split_by_swept_keys(tmp_path: Path):
+    ates = {("mc", 0): (100.0, 5.0), ("mc", 1): (120.0, 7.0), ("plain", 0): (100.0, 20.0), ("plain", 1): (120.0, 30.0)}
+    for i, ((ipm, seed), ate) in enumerate(ates.items()):
+        counts = {"detected": 9 + seed, "total": 10, "found": 3, "pairs": 4, "closed": 2 + seed}
+        fake_run(tmp_path, f"{i}_run", "campus_reverse_slope", seed, ipm, ate, counts)
+    tables = write_report(tmp_path)
+    assert tables["swept"] == ["ipm.name"]
+    rows = {r["variant"]: r for r in tables["rows"]}
+    mc = rows["ipm.name=mc"]
+    assert mc["runs"] == 2 and mc["seeds"] == ["0", "1"]
+    assert mc["ate_sgf"][0] == pytest.approx(6.0)
+    assert mc["ate_sgf"][1] == pytest.approx(statistics.stdev([5.0, 7.0]))
+    assert (mc["detected"], mc["total"], mc["closed"]) == (19, 20, 5)
+    assert rows["ipm.name=plain"]["ate_sgf"][0] == pytest.approx(25.0)
+    report = (tmp_path / "report.md").read_text()
+    assert "## Table 4: MC-IPM vs plain IPM" in report
+    assert "| campus_reverse_slope | 6.00 ± 1.41 | 25.00 ± 7.07 | 14.384 | 67.625 |" in report
+    assert "| paper: odometry + SGF | 14.384 |" in report
+    assert "19/20" in report and "6/8 (2/2)" in report
+    rows_csv = list(csv.DictReader((tmp_path / "runs.csv").open()))
+    assert len(rows_csv) == 4 and rows_csv[0]["ipm.name"] in {"mc", "plain"}
+    assert (tmp_path / "timing.png").stat().st_size > 1000
+    assert json.loads((tmp_path / "tables.json").read_text())["swept"] == ["ipm.name"]
+
+
+def test_report_cli_takes_a_positional_directory(tmp_path: Path):
+    fake_run(
+        tmp_path,
+        "r",
+        "campus_delivery",
+        0,
+        "mc",
+        (70.0, 10.0),
+        {"detected": 20, "total": 23, "found": 1, "pairs": 1, "closed": 1},
+    )
+    result = run_cli("sgf-report", str(tmp_path))
+    assert result.returncode == 0, result.stderr
+    assert "| odometry + SGF | 10.00 |" in result.stdout
+    assert (tmp_path / "report.md").exists()
+
+
+def test_report_errors_are_clear(tmp_path: Path):
+    with pytest.raises(DataError, match="does not exist"):
+        find_runs(tmp_path / "nope")
+    with pytest.raises(DataError, match="no metrics.json below"):
+        find_runs(tmp_path)
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "metrics.json").write_text("{truncated")
+    with pytest.raises(DataError, match="not valid JSON"):
+        find_runs(tmp_path)
+    result = run_cli("sgf-report", str(tmp_path / "nope"))
+    assert result.returncode == 2 and "does not exist" in result.stderr
+
+
+def test_single_run_needs_no_sweep(tmp_path: Path):
+    fake_run(
+        tmp_path,
+        "r",
+        "campus_delivery",
+        0,
+        "mc",
+        (70.0, 10.0),
+        {"detected": 20, "total": 23, "found": 1, "pairs": 1, "closed": 1},
+    )
+    tables = build_tables(find_runs(tmp_path))
+    assert tables["swept"] == [] and tables["rows"][0]["variant"] == "default"
