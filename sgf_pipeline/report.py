@@ -182,6 +182,12 @@ def build_tables(runs: list[RunRecord]) -> dict[str, Any]:
     return {"swept": keys, "rows": rows}
 
 
+def _num(value: Any, digits: int = 3) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.{digits}f}" if isinstance(value, float) else str(value)
+
+
 def _ratio(a: int | None, b: int | None) -> str:
     return "-" if a is None or b is None else f"{a}/{b}"
 
@@ -202,31 +208,33 @@ def render_markdown(runs: list[RunRecord], tables: dict[str, Any], figures: dict
         if len(variants) > 1:
             out += [f"**{variant}**", ""]
         out += ["| method | " + " | ".join(seqs) + " |", "|---" * (len(seqs) + 1) + "|"]
-        out.append(
-            "| odometry | " + " | ".join(_fmt_ms(vrows[s]["ate_odometry"], vrows[s]["runs"]) for s in seqs) + " |"
-        )
-        out.append(
-            "| odometry + SGF | " + " | ".join(_fmt_ms(vrows[s]["ate_sgf"], vrows[s]["runs"]) for s in seqs) + " |"
-        )
-        paper = [PAPER_TABLE2.get(s) for s in seqs]
-        out.append("| paper: odometry | " + " | ".join(f"{p[0]:.3f}" if p else "-" for p in paper) + " |")
-        out.append("| paper: odometry + SGF | " + " | ".join(f"{p[2]:.3f}" if p else "-" for p in paper) + " |")
+        for label, key in (("odometry", "ate_odometry"), ("odometry + SGF", "ate_sgf")):
+            cells = [_fmt_ms(vrows[s][key], vrows[s]["runs"]) for s in seqs]
+            out.append(f"| {label} | " + " | ".join(cells) + " |")
+        for label, col in (("paper: odometry", 0), ("paper: odometry + SGF", 2)):
+            cells = [_num(PAPER_TABLE2.get(s, (None, None, None))[col]) for s in seqs]
+            out.append(f"| {label} | " + " | ".join(cells) + " |")
         out.append("")
 
     out += ["## Table 3: SGF detection, loop pairs found and loops closed", ""]
-    out += [
-        "| variant | sequence | runs | detection | find loop pairs (rev.) | loops closed (rev.) | false loops | paper |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
+    header = ["variant", "sequence", "runs", "detection", "find loop pairs (rev.)", "loops closed (rev.)"]
+    out += ["| " + " | ".join([*header, "false loops", "paper"]) + " |", "|---" * 8 + "|"]
     for r in sorted(rows, key=lambda r: (r["variant"], _ordered([r["sequence"]]))):
-        paper = PAPER_TABLE3.get(r["sequence"])
-        out.append(
-            f"| {r['variant']} | {r['sequence']} | {r['runs']} | {_ratio(r['detected'], r['total'])} "
-            f"| {_ratio(r['pairs_found'], r['pairs_total'])} ({_ratio(r['pairs_found_reverse'], r['pairs_total_reverse'])}) "
-            f"| {r['closed'] if r['closed'] is not None else '-'} ({r['closed_reverse'] if r['closed_reverse'] is not None else '-'}) "
-            f"| {r['false_closed'] if r['false_closed'] is not None else '-'} "
-            f"| {' / '.join(paper) if paper else '-'} |"
-        )
+        paper3 = PAPER_TABLE3.get(r["sequence"])
+        reverse = _ratio(r["pairs_found_reverse"], r["pairs_total_reverse"])
+        pairs = f"{_ratio(r['pairs_found'], r['pairs_total'])} ({reverse})"
+        closed = f"{_num(r['closed'])} ({_num(r['closed_reverse'])})"
+        cells = [
+            r["variant"],
+            r["sequence"],
+            str(r["runs"]),
+            _ratio(r["detected"], r["total"]),
+            pairs,
+            closed,
+            _num(r["false_closed"]),
+            " / ".join(paper3) if paper3 else "-",
+        ]
+        out.append("| " + " | ".join(cells) + " |")
     out.append("")
 
     ipm_key = next((k for k in tables["swept"] if k == "ipm.name"), None)

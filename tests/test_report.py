@@ -88,7 +88,7 @@ def test_report_cli_takes_a_positional_directory(tmp_path: Path):
 def test_report_errors_are_clear(tmp_path: Path):
     with pytest.raises(DataError, match="does not exist"):
         find_runs(tmp_path / "nope")
-    with pytest.raises(DataError, match="no metrics.json below"):
+    with pytest.raises(DataError, match=r"no metrics\.json below"):
         find_runs(tmp_path)
     (tmp_path / "bad").mkdir()
     (tmp_path / "bad" / "metrics.json").write_text("{truncated")
