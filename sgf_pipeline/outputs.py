@@ -99,9 +99,15 @@ def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:
         "traceback": traceback.format_exception(type(exc), exc, exc.__traceback__)[-6:],
     }
     try:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        for name, rows in (("odometry", pipeline._odometry), ("gt", pipeline._ground_truth)):
+            if len(rows) >= 1:
+                from sgf_pipeline.runner import _trajectory
+
+                write_tum(run_dir / f"trajectory_{name}.partial.tum", _trajectory(rows))
         atomic_write_json(run_dir / "failure.json", payload)
-    except OSError:  # pragma: no cover - best effort while failing
-        log.exception("could not write failure.json")
+    except Exception:  # pragma: no cover - best effort while failing
+        log.exception("could not record the failed run")
 
 
 def plot_trajectories(path: Any, trajectories: dict[str, Trajectory], metrics: dict[str, Any]) -> None:

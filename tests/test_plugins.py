@@ -220,3 +220,42 @@ def test_cli_reports_config_errors_without_a_traceback(toy_plugin_site: Path, tm
     assert "enhance.clip_limit: Input should be greater than 0" in result.stderr
     assert "Traceback" not in result.stderr
     assert not (tmp_path / "metrics.json").exists()
+
+
+def test_sigterm_during_a_run_leaves_a_record_and_no_half_file(toy_plugin_site: Path, tmp_path: Path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    run_dir = tmp_path / "run"
+    env = dict(os.environ, PYTHONPATH=str(toy_plugin_site))
+    proc = subprocess.Popen(
+        [
+            str(Path(sys.executable).parent / "sgf-run"),
+            "pipeline=[dataset,enhance]",
+            "dataset=toy_circle",
+            "dataset.frames=1000000",
+            "enhance=clahe",
+            "run.progress=false",
+            f"hydra.run.dir={run_dir}",
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.time() + 60
+    while not (run_dir / "run.log").exists() or "pipeline:" not in (run_dir / "run.log").read_text():
+        assert time.time() < deadline and proc.poll() is None, proc.communicate()
+        time.sleep(0.2)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=60)
+    assert proc.returncode != 0
+    failure = json.loads((run_dir / "failure.json").read_text())
+    assert failure["status"] == "interrupted"
+    assert failure["frames_processed"] > 0
+    assert not (run_dir / "metrics.json").exists()
+    assert not [p for p in run_dir.iterdir() if p.name.endswith(".part")]

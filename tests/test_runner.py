@@ -131,3 +131,27 @@ def test_process_returns_the_pose_estimate_for_embedding(plugins):
     assert step.pose is not None and np.allclose(step.pose, frames[0].odometry)
     step = pipeline.process(frames[1])
     assert np.allclose(step.pose, frames[1].odometry)
+
+
+def test_an_interrupted_run_records_itself_and_leaves_no_half_file(plugins, tmp_path: Path):
+    from sgf_pipeline import Stage
+
+    cfg = config(explode={"name": "on_three"})
+    pipeline = Pipeline.from_config(cfg, run_dir=tmp_path, plugins=plugins)
+    original = Stage.process
+
+    def interrupt(frame):  # type: ignore[no-untyped-def]
+        if frame.index == 5:
+            raise KeyboardInterrupt
+        return 0
+
+    node = next(n for n in pipeline.order if n.kind == "explode")
+    node.stage.process = interrupt  # type: ignore[method-assign]
+    with pytest.raises(KeyboardInterrupt):
+        pipeline.run()
+    assert original is Stage.process
+    failure = json.loads((tmp_path / "failure.json").read_text())
+    assert failure["status"] == "interrupted" and failure["frames_processed"] == 5
+    assert len(read_tum(tmp_path / "trajectory_odometry.partial.tum")) == 5
+    assert not [p for p in tmp_path.iterdir() if p.name.endswith(".part")]
+    assert not (tmp_path / "metrics.json").exists()

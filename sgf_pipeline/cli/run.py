@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import signal
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -59,6 +61,14 @@ def _parallel_sweep(hydra_cfg: Any) -> bool:
     return "BasicLauncher" not in target
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, turned into an interrupt so that the run records itself and leaves no half file."""
+
+
+def _on_sigterm(signum: int, frame: Any) -> None:
+    raise Terminated(f"signal {signum}")
+
+
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
 @friendly_errors
 def main(cfg: DictConfig) -> float | None:
@@ -70,6 +80,8 @@ def main(cfg: DictConfig) -> float | None:
         with open_dict(cfg):
             cfg.run.torch_threads = 1
     pipeline = Pipeline.from_config(cfg, run_dir=run_dir)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _on_sigterm)
     metrics = pipeline.run()
     print(summary(metrics, run_dir), flush=True)
     value = metrics["ate_rmse_m"]["sgf"]
