@@ -158,7 +158,7 @@ class HuMomentDetector(Stage):
        wholly in view, while occluded or noisy views form small groups.
 
     A frame's output holds the SGFs whose range ended on that frame, so selections arrive late and
-    carry their own frame index and odometry. Tracks still open when the sequence ends are dropped
+    carry their own frame index and odometry (``views`` counts the views of the whole range). Tracks still open when the sequence ends are dropped
     (``finalize`` cannot emit outputs) and counted in the metrics as ``open_at_end``.
 
     Hu scale (the ambiguity of eq. 8): with ``raw`` invariants, the distance between consecutive
