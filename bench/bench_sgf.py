@@ -20,7 +20,15 @@ from sgf_plugins.sgf.association import OnlineGroupsParams, OnlineSgfGroups
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams
 from sgf_plugins.sgf.detector import HuMomentDetector, HuWindowParams, border_band
 from sgf_plugins.sgf.hu import HuScale, hu_distance, hu_moments
-from sgf_plugins.sgf.polar import BinValue, ColumnSet, polar_context, shift_to_yaw, shifted_distances, symmetry_spread
+from sgf_plugins.sgf.polar import (
+    BinValue,
+    ColumnSet,
+    polar_context,
+    shift_to_yaw,
+    shifted_distances,
+    symmetry_spread,
+    voxel_downsample,
+)
 from sgf_plugins.sgf.synthetic import (
     DEFAULT_GRID,
     Annulus,
@@ -186,6 +194,24 @@ def measure_bin_values(rng: np.random.Generator, quick: bool) -> None:
             f"{np.percentile(cross, 5):.3f} | {np.min(cross):.3f} | {np.median(yaw_err):.1f} / "
             f"{np.percentile(yaw_err, 95):.1f} | {spread['disc']:.3f}, {spread['ring']:.3f} | {other:.3f} |"
         )
+    print("\n| voxel (m), count bins, intersection | same p50 | same p95 | different p5 |")
+    print("|---|---|---|---|")
+    for voxel in (0.02, 0.04, 0.06):
+        desc = {
+            n: [
+                polar_context(q, q.mean(axis=0), bin_value="count") for q in (voxel_downsample(p, voxel) for _, p in vs)
+            ]
+            for n, vs in views.items()
+        }
+        same = [
+            shifted_distances(b, a[None])[0].min() for ds in desc.values() for a, b in itertools.combinations(ds, 2)
+        ]
+        cross = [
+            shifted_distances(db, da[None])[0].min()
+            for name_a, name_b in itertools.combinations(desc, 2)
+            for da, db in itertools.product(desc[name_a][:2], desc[name_b][:2])
+        ]
+        print(f"| {voxel} | {np.median(same):.3f} | {np.percentile(same, 95):.3f} | {np.percentile(cross, 5):.3f} |")
 
 
 # -- 3. eq. 10 search: vectorised against a per-shift loop -------------------------------------------

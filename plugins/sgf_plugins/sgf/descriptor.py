@@ -53,7 +53,8 @@ class PolarContext(Stage):
     noisy masks (bench/bench_sgf.py), ``count`` separates the same marking (eq. 10 p95 0.043)
     from different ones (p5 0.131) best, against 0.062/0.085 for ``density``, and gives the
     smallest yaw error (p95 3.2 degrees). The default voxel (2 cm) is the BEV's pixel: at 4 cm
-    the 4-degree sectors of the inner rings empty out and the same-marking distance triples.
+    the 4-degree sectors of the inner rings empty out and the same-marking median rises five-fold
+    (0.021 to 0.104), overlapping different markings.
     """
 
     kind = "descriptor"

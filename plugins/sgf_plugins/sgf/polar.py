@@ -30,7 +30,7 @@ def polar_context(
     num_rings: int = 10,
     num_sectors: int = 90,
     max_radius: float = 2.0,
-    bin_value: BinValue = "density",
+    bin_value: BinValue = "count",
 ) -> np.ndarray:
     """The (N_r, N_s) polar descriptor of ground points around ``centroid`` within ``max_radius`` (L_max).
 
