@@ -174,6 +174,8 @@ def test_degenerate_saliency_maps_do_not_crash():
     with pytest.raises(ValueError, match="finite 4x4"):
         broken = Frame(9, 0.9, np.zeros((4, 4), np.uint8), np.full((4, 4), np.nan), calibration)
         detector.process(broken, bev, SaliencyMap(np.zeros((256, 256), np.float32), bev))
+    with pytest.raises(ValueError, match="float map"):
+        detector.process(frame, bev, SaliencyMap(np.zeros((256, 256), np.uint8), bev))
     with pytest.raises(ValueError, match="min_area"):
         HuWindowParams(min_area=2)
 

@@ -125,13 +125,15 @@ class OnlineSgfGroups(Stage):
     different places (perceptual aliasing) in different groups while allowing for drift.
 
     The query joins the candidate group of smallest eq. 10 distance if it is at most
-    ``new_group_distance`` (0.7), else it opens a group. ``matched`` is the closest member of
-    that group (by eq. 10 against each member's own descriptor) and ``shift``/``yaw`` are relative
-    to it: the query's frame is turned by ``yaw`` from the matched member's frame, so
-    ``R(yaw) @ (points - centroid) + matched.centroid`` approximates ``matched.points``. Shifts within
-    ``yaw_tolerance`` of the best (2- or 4-fold symmetric markings) are resolved by the relative yaw
-    of the two poses, and groups within ``tie_margin`` of the best distance (identical standard
-    markings, which eq. 10 cannot tell apart) are resolved by the nearest member on the map.
+    ``new_group_distance`` (0.7), else it opens a group (then ``distance`` is the smallest
+    distance to a gated group, 1 when none was gated, and ``shift``/``yaw`` are 0). ``matched`` is
+    the closest member of that group (by eq. 10 against each member's own descriptor) and
+    ``shift``/``yaw`` are relative to it: the query's frame is turned by ``yaw`` from the matched
+    member's frame, so ``R(yaw) @ (points - centroid) + matched.centroid`` approximates
+    ``matched.points``. Shifts within ``yaw_tolerance`` of the best (2- or 4-fold symmetric
+    markings) are resolved by the relative yaw of the two poses, and groups within ``tie_margin``
+    of the best distance (identical standard markings, which eq. 10 cannot tell apart) are
+    resolved by the nearest member on the map.
 
     The group descriptor is the mean of its members after turning each by its shift into the
     first member's orientation: averaging unaligned descriptors of a feature seen from different
@@ -170,7 +172,11 @@ class OnlineSgfGroups(Stage):
         return list(self._groups)
 
     def seed_groups(self, groups: Iterable[SgfGroup]) -> None:
-        """Start every sequence with prior groups (from a saved SGF map); their members keep fixed map positions."""
+        """Start every sequence with prior groups (from a saved SGF map); their members keep fixed map positions.
+
+        A member without an anchor is placed by its own odometry pose; a saved map should store the
+        optimised positions as anchors.
+        """
         prior = []
         for group in groups:
             g = copy.copy(group)

@@ -204,13 +204,16 @@ class HuMomentDetector(Stage):
 
     def regions(self, bev: Bev, saliency: SaliencyMap) -> tuple[np.ndarray, list[Region]]:
         """Label image and candidate regions of one frame (label k is ``regions[k - 1]``)."""
-        prob = np.asarray(saliency.probability)
+        raw = np.asarray(saliency.probability)
+        if raw.dtype != bool and not np.issubdtype(raw.dtype, np.floating):
+            raise ValueError(f"saliency must be a float map in [0, 1] (or a boolean mask), got dtype {raw.dtype}")
+        prob = np.nan_to_num(raw.astype(np.float32), nan=0.0)
         valid = np.asarray(bev.valid, dtype=bool)
         if prob.shape != valid.shape:
             raise ValueError(f"saliency map {prob.shape} and BEV valid mask {valid.shape} differ in size")
         if prob.ndim != 2:
             raise ValueError(f"saliency must be an (H, W) map, got shape {prob.shape}")
-        mask = (np.nan_to_num(prob, nan=0.0) >= self.params.threshold) & valid
+        mask = (prob >= self.params.threshold) & valid
         if self.params.closing > 0:
             size = 2 * self.params.closing + 1
             kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
