@@ -197,19 +197,19 @@ def measure_bin_values(rng: np.random.Generator, quick: bool) -> None:
     print("\n| voxel (m), count bins, intersection | same p50 | same p95 | different p5 |")
     print("|---|---|---|---|")
     for voxel in (0.02, 0.04, 0.06):
-        desc = {
+        by_voxel: dict[str, list[np.ndarray]] = {
             n: [
                 polar_context(q, q.mean(axis=0), bin_value="count") for q in (voxel_downsample(p, voxel) for _, p in vs)
             ]
             for n, vs in views.items()
         }
         same = [
-            shifted_distances(b, a[None])[0].min() for ds in desc.values() for a, b in itertools.combinations(ds, 2)
+            shifted_distances(b, a[None])[0].min() for ds in by_voxel.values() for a, b in itertools.combinations(ds, 2)
         ]
         cross = [
             shifted_distances(db, da[None])[0].min()
-            for name_a, name_b in itertools.combinations(desc, 2)
-            for da, db in itertools.product(desc[name_a][:2], desc[name_b][:2])
+            for name_a, name_b in itertools.combinations(by_voxel, 2)
+            for da, db in itertools.product(by_voxel[name_a][:2], by_voxel[name_b][:2])
         ]
         print(f"| {voxel} | {np.median(same):.3f} | {np.percentile(same, 95):.3f} | {np.percentile(cross, 5):.3f} |")
 
