@@ -179,6 +179,11 @@ class Pipeline:
         for node in nodes:
             for spec, source in node.inputs:
                 producer = producers.get(source)
+                if producer is None and spec.optional:
+                    # An optional input (``X | None``, ``Previous[X]``) that no stage produces receives None,
+                    # e.g. the association's back-end estimate in a pipeline without a back-end.
+                    log.info("%s: optional input %r has no producer; it receives None", node.label, source)
+                    continue
                 if producer is None:
                     available = ", ".join(f"{o} ({p.label})" for o, p in sorted(producers.items()))
                     raise PipelineGraphError(

@@ -1,0 +1,93 @@
+"""The SGF descriptor (Sec. III-C, eq. 9): metric ground points of a selected SGF and their polar context."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from sgf_pipeline import RunContext, Stage, StageParams, StageRegistry, hookimpl
+from sgf_pipeline.types import SalientGroundFeature, SgfDescriptor, SgfDescriptors, SgfDetections
+from sgf_plugins.sgf.polar import polar_context, ring_key, voxel_downsample
+
+
+class PolarContextParams(StageParams):
+    """Downsampling and the polar grid of the descriptor (paper: L_max = 2 m, N_s = 90, N_r = 10)."""
+
+    max_radius: float = Field(2.0, gt=0.0, description="L_max: radius (m) of the descriptor around the centroid")
+    num_sectors: int = Field(90, ge=4, description="N_s: azimuth sectors (2 pi / N_s each)")
+    num_rings: int = Field(10, ge=1, description="N_r: rings (L_max / N_r each)")
+    voxel_size: float = Field(0.02, ge=0.0, description="voxel grid (m) for downsampling the SGF points; 0 = none")
+    bin_value: Literal["count", "density", "occupancy"] = Field(
+        "count", description="bin value: ground points in the bin, points per square metre, or 0/1 occupancy"
+    )
+    min_points: int = Field(3, ge=1, description="SGFs with fewer ground points after downsampling are dropped")
+
+
+def describe(
+    sgf: SalientGroundFeature,
+    params: PolarContextParams,
+) -> SgfDescriptor | None:
+    """The descriptor of one SGF, or None when it has fewer than ``min_points`` ground points."""
+    pixels = np.asarray(sgf.pixels).reshape(-1, 2)
+    x, y = sgf.grid.pixel_to_ground(pixels[:, 0], pixels[:, 1])  # eq. 9
+    points = voxel_downsample(np.stack([x, y], axis=1), params.voxel_size)
+    if len(points) < params.min_points:
+        return None
+    centroid = points.mean(axis=0)
+    matrix = polar_context(points, centroid, params.num_rings, params.num_sectors, params.max_radius, params.bin_value)
+    return SgfDescriptor(sgf=sgf, points=points, centroid=centroid, matrix=matrix, ring_key=ring_key(matrix))
+
+
+class PolarContext(Stage):
+    """Lift each selected SGF to metric ground points (eq. 9), downsample, and describe it around its centroid.
+
+    Points are in the robot's base frame of the SGF's own frame; sectors count counter-clockwise
+    from its heading. The bin value is an ambiguity of the paper: Scan Context stores the largest
+    height in a bin, but every SGF point lies on the ground (z ~ 0). Here the default is the
+    ``count`` of ground points in the bin, which after voxel downsampling is the marking's area in
+    the bin (a density per bin). Eq. 10 normalises every column, so the options differ only in how
+    they weight rings: ``density`` (per square metre) lifts the few points of the inner rings,
+    ``occupancy`` drops the radial extent. Over 12 rendered markings seen from 5 headings with
+    noisy masks (bench/bench_sgf.py), ``count`` separates the same marking (eq. 10 p95 0.043)
+    from different ones (p5 0.131) best, against 0.062/0.085 for ``density``, and gives the
+    smallest yaw error (p95 3.2 degrees). The default voxel (2 cm) is the BEV's pixel: at 4 cm
+    the 4-degree sectors of the inner rings empty out and the same-marking median rises five-fold
+    (0.021 to 0.104), overlapping different markings.
+    """
+
+    kind = "descriptor"
+    name = "polar_context"
+    output = "descriptors"
+    Params = PolarContextParams
+
+    def __init__(self, params: PolarContextParams) -> None:
+        super().__init__(params)
+        self.params: PolarContextParams = params
+        self._dropped = 0
+
+    def begin(self, context: RunContext) -> None:
+        """Reset the count of dropped SGFs."""
+        self._dropped = 0
+
+    def process(self, sgfs: SgfDetections) -> SgfDescriptors:
+        """The descriptors of this frame's selected SGFs."""
+        out = []
+        for sgf in sgfs.items:
+            descriptor = describe(sgf, self.params)
+            if descriptor is None:
+                self._dropped += 1
+            else:
+                out.append(descriptor)
+        return SgfDescriptors(tuple(out))
+
+    def finalize(self, context: RunContext) -> None:
+        """Report how many SGFs had too few points to describe."""
+        context.metrics.setdefault("sgf", {})["too_few_points"] = self._dropped
+
+
+@hookimpl
+def sgf_register_stages(registry: StageRegistry) -> None:
+    """Register the polar context descriptor."""
+    registry.add(PolarContext)

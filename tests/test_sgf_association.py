@@ -1,0 +1,292 @@
+"""SGF description (eq. 9) and online grouping (eq. 10): yaw, symmetry, spatial gate, seeding, metrics."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from sgf_plugins.sgf.association import OnlineGroupsParams, OnlineSgfGroups, SgfGroup, group_purity, loop_pairs
+from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams, describe
+from sgf_plugins.sgf.hu import hu_moments
+from sgf_plugins.sgf.polar import align, shifted_distances
+from sgf_plugins.sgf.synthetic import DEFAULT_GRID, Annulus, GroundShape, arrow_shape, ell_shape, render_saliency
+
+from sgf_pipeline import RunContext
+from sgf_pipeline.geometry import pose_from_xy_yaw
+from sgf_pipeline.types import (
+    MarkingPass,
+    PoseEstimate,
+    RevisitPair,
+    SalientGroundFeature,
+    SequenceTruth,
+    SgfDescriptor,
+    SgfDescriptors,
+    SgfDetections,
+)
+
+ARROW = GroundShape(arrow_shape(), (5.0, 0.0, 0.3), 1)
+DISC = GroundShape((Annulus(0.3),), (5.0, 0.0, 0.0), 2)
+ELL = GroundShape(ell_shape(), (5.0, 0.0, 1.1), 3)
+
+
+def sgf_at(shape: GroundShape, pose: np.ndarray, frame: int, odometry: np.ndarray | None = None):
+    """The SGF of a marking seen from a base pose (pixels of its rendered saliency mask)."""
+    probability, _ = render_saliency([shape], pose, DEFAULT_GRID, None, 2)
+    v, u = np.nonzero(probability >= 0.5)
+    pixels = np.stack([u, v], axis=1).astype(np.int32)
+    assert len(pixels) > 100, "the marking must be in view"
+    odo = pose if odometry is None else odometry
+    return SalientGroundFeature(
+        frame, frame, 0.1 * frame, odo, pixels, DEFAULT_GRID, 1.0, hu_moments(pixels), 5, shape.instance_id
+    )
+
+
+def desc(shape, pose, frame, odometry=None) -> SgfDescriptor:
+    d = describe(sgf_at(shape, pose, frame, odometry), PolarContextParams())
+    assert d is not None
+    return d
+
+
+def seen_from(shape: GroundShape, distance: float, heading: float, lateral: float = 0.0) -> np.ndarray:
+    """A base pose looking at the marking from ``distance`` m behind it along ``heading``."""
+    x, y, _ = shape.pose
+    c, s = math.cos(heading), math.sin(heading)
+    return pose_from_xy_yaw(x - distance * c - lateral * s, y - distance * s + lateral * c, heading)
+
+
+def stage(**params) -> OnlineSgfGroups:
+    s = OnlineSgfGroups(OnlineGroupsParams(**params))
+    s.begin(RunContext(None))
+    return s
+
+
+def feed(s: OnlineSgfGroups, frame: int, odometry: np.ndarray, *descriptors, estimate=None):
+    """One frame of the association stage (the frame carries the odometry for the distance travelled)."""
+    from sgf_plugins.sgf.synthetic import toy_calibration
+
+    from sgf_pipeline.types import Frame
+
+    f = Frame(frame, 0.1 * frame, np.zeros((2, 2), np.uint8), odometry, toy_calibration())
+    return s.process(f, SgfDescriptors(tuple(descriptors)), estimate).items
+
+
+def angle_error(a: float, b: float) -> float:
+    return abs((a - b + math.pi) % (2 * math.pi) - math.pi)
+
+
+def test_descriptor_lifts_pixels_with_eq9():
+    sgf = sgf_at(ARROW, seen_from(ARROW, 3.0, 0.2), 4)
+    d = describe(sgf, PolarContextParams(voxel_size=0.0))
+    assert d is not None
+    x, y = DEFAULT_GRID.pixel_to_ground(sgf.pixels[:, 0], sgf.pixels[:, 1])
+    assert np.allclose(d.points, np.stack([x, y], axis=1))
+    assert np.allclose(d.centroid, d.points.mean(axis=0))
+    assert d.centroid[0] == pytest.approx(3.0, abs=0.15)  # the arrow is 3 m ahead
+    assert d.matrix.shape == (10, 90) and d.matrix.sum() == len(d.points)  # count bins, all within 2 m
+    assert np.allclose(d.ring_key, d.matrix.mean(axis=1))
+    coarse = describe(sgf, PolarContextParams(voxel_size=0.1))
+    assert coarse is not None and len(coarse.points) < len(d.points) / 10
+    # Too few points: dropped by the stage, counted in the metrics.
+    one = SalientGroundFeature(1, 1, 0.1, np.eye(4), np.array([[10, 10]]), DEFAULT_GRID, 1.0, np.zeros(7), 1)
+    stage_ = PolarContext(PolarContextParams())
+    context = RunContext(None)
+    stage_.begin(context)
+    out = stage_.process(SgfDetections((one, sgf)))
+    assert [x.sgf for x in out.items] == [sgf]
+    stage_.finalize(context)
+    assert context.metrics["sgf"]["too_few_points"] == 1
+
+
+def test_revisits_join_the_group_with_the_right_yaw_forward_and_reverse():
+    s = stage()
+    pose_a = seen_from(ARROW, 3.0, 0.05, 0.1)
+    pose_b = seen_from(ARROW, 2.6, 0.31, -0.2)
+    pose_c = seen_from(ARROW, 3.2, math.pi + 0.07, 0.15)  # a reverse revisit
+    a, b, c = desc(ARROW, pose_a, 1), desc(ARROW, pose_b, 2), desc(ARROW, pose_c, 3)
+    (first,) = feed(s, 1, pose_a, a)
+    assert first.new_group and first.matched is None and first.shift == 0
+    (second,) = feed(s, 2, pose_b, b)
+    (third,) = feed(s, 3, pose_c, c)
+    for got, pose in ((second, pose_b), (third, pose_c)):
+        assert not got.new_group and got.group_id == first.group_id and not got.symmetric
+        assert got.distance < 0.06
+        member = got.matched
+        assert member is not None
+        truth_yaw = math.atan2(pose[1, 0], pose[0, 0]) - math.atan2(
+            member.sgf.odometry[1, 0], member.sgf.odometry[0, 0]
+        )
+        assert math.degrees(angle_error(got.yaw, truth_yaw)) <= 4.0
+        assert got.yaw == pytest.approx(((got.shift * 4.0 + 180.0) % 360.0 - 180.0) * math.pi / 180.0)
+        # The contract for ICP: R(yaw) (points - centroid) + matched.centroid lies on the matched points.
+        cy, sy = math.cos(got.yaw), math.sin(got.yaw)
+        moved = (got.descriptor.points - got.descriptor.centroid) @ np.array([[cy, -sy], [sy, cy]]).T
+        gap, _ = cKDTree(member.points).query(moved + member.centroid)
+        assert np.median(gap) < 0.06
+    assert abs(math.degrees(third.yaw)) > 150.0  # reverse loop: about 180 degrees
+    assert len(s.groups) == 1 and len(s.groups[0].members) == 3
+
+
+def test_group_descriptor_is_the_mean_of_aligned_members():
+    s = stage()
+    pose_a, pose_c = seen_from(ELL, 3.0, 0.0), seen_from(ELL, 3.0, math.pi + 0.5)
+    a, c = desc(ELL, pose_a, 1), desc(ELL, pose_c, 2)
+    feed(s, 1, pose_a, a)
+    feed(s, 2, pose_c, c)
+    group = s.groups[0]
+    expected = np.mean([align(m.matrix, o) for m, o in zip(group.members, group.offsets, strict=True)], axis=0)
+    assert np.allclose(group.descriptor, expected)
+    # Aligned, the mean still looks like the first member at shift 0; the plain mean is a blur of two
+    # orientations that matches a new view of the marking worse than the aligned mean does.
+    assert shifted_distances(group.descriptor, a.matrix[None])[0, 0] < 0.06
+    plain = (a.matrix + c.matrix) / 2.0
+    assert shifted_distances(plain, a.matrix[None])[0, 0] > 0.1
+    view = desc(ELL, seen_from(ELL, 2.8, 2.0), 3).matrix
+    to_aligned = shifted_distances(view, group.descriptor[None])[0].min()
+    to_plain = shifted_distances(view, plain[None])[0].min()
+    assert to_aligned < 0.06 and to_plain > to_aligned + 0.03
+
+
+def test_a_symmetric_marking_is_flagged():
+    s = stage()
+    poses = [seen_from(DISC, 3.0, h) for h in (0.0, 1.3, math.pi - 0.2)]
+    results = [feed(s, i, p, desc(DISC, p, i))[0] for i, p in enumerate(poses)]
+    assert results[0].new_group and all(not r.new_group for r in results[1:])
+    assert all(r.symmetric for r in results)
+    assert s.groups[0].symmetric and s.groups[0].spread < 0.1
+    arrow = stage()
+    (r,) = feed(arrow, 0, seen_from(ARROW, 3.0, 0.0), desc(ARROW, seen_from(ARROW, 3.0, 0.0), 0))
+    assert not r.symmetric and arrow.groups[0].spread > 0.3
+
+
+def test_threshold_and_gate_open_new_groups():
+    # Different markings at the same place, without the gate: eq. 10 decides (0.7 lets them merge).
+    pose = seen_from(ARROW, 3.0, 0.0)
+    loose = stage(spatial_gate=False)
+    feed(loose, 0, pose, desc(ARROW, pose, 0))
+    (ell,) = feed(loose, 1, pose, desc(ELL, pose, 1))
+    assert not ell.new_group and 0.1 < ell.distance < 0.7
+    strict = stage(spatial_gate=False, new_group_distance=0.1)
+    feed(strict, 0, pose, desc(ARROW, pose, 0))
+    (ell,) = feed(strict, 1, pose, desc(ELL, pose, 1))
+    assert ell.new_group and ell.distance > 0.1 and ell.group_id == 1
+
+
+def test_identical_markings_far_apart_stay_in_their_own_groups():
+    """Perceptual aliasing: the same arrow design at x = 5 and x = 25 m; the robot comes back to the first."""
+    far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
+    s = stage()
+    p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(far, 3.0, 0.0)
+    (r1,) = feed(s, 1, p1, desc(ARROW, p1, 1))
+    (r2,) = feed(s, 2, p2, desc(far, p2, 2))
+    assert r2.new_group and r2.group_id != r1.group_id
+    # Back to the first arrow (reverse) with 1.5 m of odometry drift after 44 m: the gate (1.5 + 0.05 * 44 m)
+    # admits only the first arrow's group.
+    p3 = seen_from(ARROW, 3.0, math.pi + 0.1)
+    drifted = pose_from_xy_yaw(0.0, 1.5, 0.0) @ p3
+    feed(s, 3, pose_from_xy_yaw(28.0, 0.0, 0.0))
+    (r3,) = feed(s, 4, drifted, desc(ARROW, p3, 4, odometry=drifted))
+    assert not r3.new_group and r3.group_id == r1.group_id
+    assert [len(g.members) for g in s.groups] == [2, 1]
+    assert group_purity(s.groups) == 1.0
+
+
+def test_the_back_end_estimate_moves_members_on_the_map():
+    s = stage(drift_rate=0.0, gate_radius=1.0)
+    p1 = seen_from(ARROW, 3.0, 0.0)
+    feed(s, 1, p1, desc(ARROW, p1, 1))
+    p2 = seen_from(ARROW, 3.0, math.pi)
+    odo2 = pose_from_xy_yaw(0.0, 4.0, 0.0) @ p2  # 4 m of drift: outside the 1 m gate
+    (alone,) = feed(s, 2, odo2, desc(ARROW, p2, 2, odometry=odo2))
+    assert alone.new_group
+    # The same revisit when the back-end knows better: the estimate puts frame 2 where it truly was.
+    s = stage(drift_rate=0.0, gate_radius=1.0)
+    feed(s, 1, p1, desc(ARROW, p1, 1))
+    estimate = PoseEstimate(frame_index=2, poses={1: p1, 2: p2})
+    (joined,) = feed(s, 2, odo2, desc(ARROW, p2, 2, odometry=odo2), estimate=estimate)
+    assert not joined.new_group
+    # A frame the estimate lacks is placed by the odometry, corrected like the estimate's newest frame.
+    assert np.allclose(s.pose_of(7, odo2, PoseEstimate(2, {2: p2})), p2)
+    assert np.allclose(s.pose_of(2, odo2, None), odo2)
+
+
+def test_seeded_groups_start_every_sequence():
+    first = stage()
+    pose = seen_from(ARROW, 3.0, 0.2)
+    feed(first, 1, pose, desc(ARROW, pose, 1))
+    context = RunContext(None)
+    first.finalize(context)
+    saved: list[SgfGroup] = context.artifacts["sgf_groups"]
+    assert len(saved) == 1
+    # A new session: its odometry frame is unrelated to the map's; with no prior gate the group is found.
+    later = OnlineSgfGroups(OnlineGroupsParams())
+    later.seed_groups(saved)
+    later.begin(RunContext(None))
+    odo = pose_from_xy_yaw(100.0, -40.0, 1.0)
+    (r,) = feed(later, 1, odo, desc(ARROW, seen_from(ARROW, 3.0, math.pi), 1, odometry=odo))
+    assert not r.new_group and r.group_id == saved[0].group_id
+    assert r.matched is saved[0].members[0]
+    # begin() restores the seeded groups only; the map itself is not modified.
+    later.begin(RunContext(None))
+    assert [len(g.members) for g in later.groups] == [1] and len(saved[0].members) == 1
+    gated = OnlineSgfGroups(OnlineGroupsParams(prior_gate_radius=5.0))
+    gated.seed_groups(saved)
+    gated.begin(RunContext(None))
+    (far,) = feed(gated, 1, odo, desc(ARROW, seen_from(ARROW, 3.0, math.pi), 1, odometry=odo))
+    assert far.new_group and far.group_id == saved[0].group_id + 1
+    with pytest.raises(ValueError, match="distinct group ids"):
+        gated.seed_groups([saved[0], saved[0]])
+
+
+def test_identical_descriptors_and_shape_mismatch():
+    s = stage()
+    pose = seen_from(ARROW, 3.0, 0.0)
+    d = desc(ARROW, pose, 1)
+    feed(s, 1, pose, d)
+    (same,) = feed(s, 2, pose, d)
+    assert same.distance == pytest.approx(0.0, abs=1e-12) and same.shift == 0 and same.yaw == 0.0
+    other = SgfDescriptor(d.sgf, d.points, d.centroid, np.ones((10, 60)), np.ones(10))
+    with pytest.raises(ValueError, match="same N_r and N_s"):
+        feed(s, 3, pose, other)
+
+
+def test_metrics_purity_and_loop_pairs():
+    s = stage()
+    context = RunContext(None)
+    s.begin(context)
+    pa, pb = seen_from(ARROW, 3.0, 0.0), seen_from(ARROW, 3.0, math.pi)
+    pd = seen_from(DISC.placed(15.0, 0.0, 0.0), 3.0, 0.0)
+    disc = DISC.placed(15.0, 0.0, 0.0)
+    feed(s, 10, pa, desc(ARROW, pa, 10))
+    feed(s, 30, pd, desc(disc, pd, 30))
+    feed(s, 50, pb, desc(ARROW, pb, 50))
+    passes = [
+        MarkingPass(1, 0, 5, 12, 0.0),
+        MarkingPass(1, 1, 45, 52, math.pi),
+        MarkingPass(2, 0, 25, 32, 0.0),
+        MarkingPass(2, 1, 60, 66, math.pi),  # the disc's second pass produced no SGF
+    ]
+    truth = SequenceTruth(
+        passes=passes,
+        revisits=[RevisitPair(1, passes[0], passes[1], True), RevisitPair(2, passes[2], passes[3], True)],
+    )
+    assert loop_pairs(s.groups, truth) == {
+        "pairs_found": 1,
+        "pairs_total": 2,
+        "pairs_found_reverse": 1,
+        "pairs_total_reverse": 2,
+    }
+    context.truth = truth
+    s.finalize(context)
+    assert context.metrics["sgf"]["purity"] == 1.0 and context.metrics["sgf"]["groups"] == 2
+    assert context.metrics["sgf"]["symmetric_groups"] == 1
+    assert context.metrics["loops"]["pairs_found"] == 1
+    # A group holding two instances: purity is the share of members with their group's majority id.
+    mixed = SgfGroup(0)
+    for m in s.groups[0].members + s.groups[1].members:
+        mixed.add(m, 0)
+    assert group_purity([mixed]) == pytest.approx(2 / 3)
+    none = RunContext(None)
+    s.finalize(none)
+    assert none.metrics["sgf"]["purity"] is None and none.metrics["loops"]["pairs_found"] is None

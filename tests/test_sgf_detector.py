@@ -1,0 +1,198 @@
+"""The moment-based SGF detector on synthetic streams of BEV saliency maps (Sec. III-B)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from sgf_plugins.sgf.detector import HuMomentDetector, HuWindowParams, border_band
+from sgf_plugins.sgf.synthetic import (
+    DEFAULT_GRID,
+    Annulus,
+    ConvexPart,
+    GroundShape,
+    SaliencyStream,
+    arrow_shape,
+    fov_valid_mask,
+    rectangle,
+    straight_path,
+    toy_calibration,
+)
+
+from sgf_pipeline import RunContext
+from sgf_pipeline.geometry import pose_from_xy_yaw
+from sgf_pipeline.types import Bev, Frame, SaliencyMap, SalientGroundFeature
+
+DIAMOND = (ConvexPart(np.array([[-0.8, 0.0], [0.0, -0.4], [0.8, 0.0], [0.0, 0.4]])),)
+
+
+def run(stream: SaliencyStream, params: HuWindowParams | None = None, truth: bool = True):
+    """Stream through a detector; returns (detector, [(output frame, sgf)], context after finalize)."""
+    detector = HuMomentDetector(params or HuWindowParams())
+    context = RunContext(None)
+    detector.begin(context)
+    out: list[tuple[int, SalientGroundFeature]] = []
+    for frame, bev, saliency in stream:
+        for sgf in detector.process(frame, bev, saliency).items:
+            out.append((frame.index, sgf))
+    if truth:
+        context.truth = stream.truth()
+    detector.finalize(context)
+    return detector, out, context
+
+
+def out_and_back(step: float = 0.2, length: float = 12.0, lateral: float = 0.25) -> list[np.ndarray]:
+    """Drive along +x, then come back along -x on a parallel line (a reverse revisit)."""
+    n = int(length / step)
+    out = [pose_from_xy_yaw(i * step, 0.0, 0.0) for i in range(n)]
+    back = [pose_from_xy_yaw(length - i * step, lateral, math.pi) for i in range(n)]
+    return out + back
+
+
+@pytest.fixture(scope="module")
+def diamond_passes():
+    """A diamond passed twice (forward, then reverse); the truth of its passes from a first iteration."""
+    shapes = [GroundShape(DIAMOND, (6.03, 0.11, 0.37), 7)]
+    poses = out_and_back()
+    stream = SaliencyStream(shapes, poses, supersample=2)
+    for _ in stream:
+        pass
+    return shapes, poses, stream.truth()
+
+
+def test_one_sgf_per_pass_at_the_most_salient_frame(diamond_passes):
+    shapes, poses, truth = diamond_passes
+    passes = [p for p in truth.passes if p.instance_id == 7]
+    assert len(passes) == 2 and len(truth.revisits) == 1 and truth.revisits[0].reverse
+    # The saliency network is most confident on one frame inside each pass.
+    peaks = [p.start_frame + (p.end_frame - p.start_frame) // 3 for p in passes]
+    gain = np.full(len(poses), 0.8)
+    gain[peaks] = 1.0
+    stream = SaliencyStream(shapes, poses, gain=list(gain), supersample=2)
+    _, out, context = run(stream)
+    assert [sgf.frame_index for _, sgf in out] == peaks
+    for (emitted, sgf), p in zip(out, passes, strict=True):
+        assert p.contains(sgf.frame_index)
+        assert emitted > p.end_frame  # the range ends when the diamond leaves the view
+        assert sgf.instance_id == 7
+        assert sgf.views > p.end_frame - p.start_frame  # entering and leaving views belong to the range
+        assert sgf.saliency == pytest.approx(1.0, abs=0.05)
+        assert np.allclose(sgf.odometry, stream.poses[sgf.frame_index])  # odometry of its own frame
+        assert sgf.hu.shape == (7,) and sgf.grid == DEFAULT_GRID
+        area = 1.6 * 0.8 / 2 / 0.02**2  # the diamond's area in pixels
+        assert len(sgf.pixels) == pytest.approx(area, rel=0.05)
+    assert context.metrics["sgf"]["detected"] == 1
+    assert context.metrics["sgf"]["total"] == 1
+    assert context.metrics["sgf"]["selected"] == 2
+    assert context.metrics["sgf"]["open_at_end"] == 0
+    assert context.artifacts["sgf_selected"] == [sgf for _, sgf in out]
+
+
+def test_selected_views_never_touch_the_border():
+    """An arrow and a ring on a curved path: every SGF lies wholly inside the camera's view."""
+    shapes = [
+        GroundShape(arrow_shape(), (4.6, 0.4, 0.3), 1),
+        GroundShape((Annulus(0.35, 0.22),), (8.1, 0.6, 0.0), 2),
+    ]
+    poses: list[np.ndarray] = []
+    yaw_rate, step = 0.012, 0.2
+    x = y = yaw = 0.0
+    for _ in range(70):
+        poses.append(pose_from_xy_yaw(x, y, yaw))
+        x, y, yaw = x + step * math.cos(yaw), y + step * math.sin(yaw), yaw + yaw_rate
+    stream = SaliencyStream(shapes, poses, supersample=2)
+    _, out, context = run(stream)
+    assert sorted(sgf.instance_id for _, sgf in out) == [1, 2]
+    band = border_band(fov_valid_mask(DEFAULT_GRID), 1)
+    for _, sgf in out:
+        assert not band[sgf.pixels[:, 1], sgf.pixels[:, 0]].any()
+        assert context.truth is not None and context.truth.pass_of(sgf.instance_id, sgf.frame_index) is not None
+
+
+def test_a_marking_never_wholly_in_view_gives_no_sgf():
+    # Longer than the BEV (5.12 m): it always touches the image border.
+    long_bar = GroundShape((rectangle(7.0, 0.3),), (9.0, -1.0, 0.0), 1)
+    # A camera that sees only y < 0.56 m, and a square always cut by that edge of its view.
+    valid = np.zeros((DEFAULT_GRID.height, DEFAULT_GRID.width), bool)
+    valid[:, 100:] = True
+    beside = GroundShape((rectangle(0.6, 0.6),), (5.0, 0.56, 0.0), 2)
+    path = straight_path((0.0, 0.0, 0.0), 0.25, 50)
+    stream = SaliencyStream([long_bar, beside], path, valid=valid, supersample=2)
+    _, out, context = run(stream)
+    assert out == []
+    assert context.metrics["sgf"]["tracks"] >= 2
+    assert context.metrics["sgf"]["rejected_border"] >= 2
+    assert context.metrics["sgf"]["detected"] == 0 and context.metrics["sgf"]["total"] == 0
+
+
+def test_fast_motion_is_followed_through_odometry():
+    """A 0.5 m disc moving 0.6 m per frame never overlaps its previous view: only the prediction links them."""
+    disc = GroundShape((Annulus(0.25),), (7.0, 0.1, 0.0), 3)
+    stream = SaliencyStream([disc], straight_path((0.0, 0.0, 0.0), 0.6, 16), supersample=2)
+    detector, out, _ = run(stream)
+    assert len(out) == 1 and out[0][1].instance_id == 3
+    assert detector.stats["tracks"] == 1
+    # With the odometry withheld (the robot "stands still"), every frame starts a new track.
+    still = SaliencyStream([disc], straight_path((0.0, 0.0, 0.0), 0.6, 16), odometry=[np.eye(4)] * 16, supersample=2)
+    detector, out, _ = run(still, HuWindowParams(max_centroid_distance=0.0))
+    assert detector.stats["tracks"] > 3
+
+
+def test_degenerate_saliency_maps_do_not_crash():
+    grid, valid = DEFAULT_GRID, fov_valid_mask(DEFAULT_GRID)
+    detector = HuMomentDetector(HuWindowParams(min_area=5))
+    detector.begin(RunContext(None))
+    calibration = toy_calibration()
+    maps = [
+        np.zeros((256, 256), np.float32),  # nothing salient
+        np.ones((256, 256), np.float32),  # the whole view salient: one region touching every border
+        np.ones((256, 256), np.float32),
+        np.full((256, 256), np.nan, np.float32),  # a broken network output
+        np.zeros((256, 256), np.float32),
+    ]
+    maps[4][120, 128] = 1.0  # a single pixel: below min_area
+    maps[4][100:103, 128:130] = 1.0  # six pixels: a tiny region, kept
+    total = 0
+    for i, prob in enumerate(maps):
+        bev = Bev(np.zeros((256, 256), np.uint8), valid, grid, i, 0.1 * i)
+        frame = Frame(i, 0.1 * i, np.zeros((4, 4), np.uint8), pose_from_xy_yaw(0.1 * i, 0, 0), calibration)
+        total += len(detector.process(frame, bev, SaliencyMap(prob, bev)).items)
+        _, regions = detector.regions(bev, SaliencyMap(prob, bev))
+        if i == 1:
+            assert len(regions) == 1 and regions[0].touches_border
+        if i == 4:
+            assert len(regions) == 1 and len(regions[0].pixels) == 6
+    assert total == 0  # the whole-view region touched the border; the others were too short
+    bev = Bev(np.zeros((256, 256), np.uint8), valid, grid, 9, 0.9)
+    frame = Frame(9, 0.9, np.zeros((4, 4), np.uint8), np.eye(4), calibration)
+    with pytest.raises(ValueError, match="differ in size"):
+        detector.process(frame, bev, SaliencyMap(np.zeros((10, 10), np.float32), bev))
+    with pytest.raises(ValueError, match="BEV of frame 9 given with frame 8"):
+        other = Frame(8, 0.8, np.zeros((4, 4), np.uint8), np.eye(4), calibration)
+        detector.process(other, bev, SaliencyMap(np.zeros((256, 256), np.float32), bev))
+    with pytest.raises(ValueError, match="finite 4x4"):
+        broken = Frame(9, 0.9, np.zeros((4, 4), np.uint8), np.full((4, 4), np.nan), calibration)
+        detector.process(broken, bev, SaliencyMap(np.zeros((256, 256), np.float32), bev))
+    with pytest.raises(ValueError, match="float map"):
+        detector.process(frame, bev, SaliencyMap(np.zeros((256, 256), np.uint8), bev))
+    with pytest.raises(ValueError, match="min_area"):
+        HuWindowParams(min_area=2)
+
+
+def test_metrics_are_null_without_ground_truth(diamond_passes):
+    shapes, poses, _ = diamond_passes
+    _, out, context = run(SaliencyStream(shapes, poses[:40], supersample=2), truth=False)
+    assert len(out) == 1
+    assert context.metrics["sgf"]["detected"] is None and context.metrics["sgf"]["total"] is None
+
+
+def test_closing_joins_fragments_of_one_marking():
+    grid, valid = DEFAULT_GRID, fov_valid_mask(DEFAULT_GRID)
+    prob = np.zeros((256, 256), np.float32)
+    prob[100:140, 100:118] = 1.0
+    prob[100:140, 121:140] = 1.0  # the same marking, cut by a 3-pixel crack in the saliency
+    bev = Bev(np.zeros((256, 256), np.uint8), valid, grid, 0, 0.0)
+    assert len(HuMomentDetector(HuWindowParams()).regions(bev, SaliencyMap(prob, bev))[1]) == 2
+    closed = HuMomentDetector(HuWindowParams(closing=2)).regions(bev, SaliencyMap(prob, bev))[1]
+    assert len(closed) == 1 and 40 * 37 + 100 < len(closed[0].pixels) <= 40 * 40
