@@ -203,7 +203,9 @@ def read_times(path: str | os.PathLike[str]) -> np.ndarray:
     if np.any(steps <= 0):
         row = int(np.flatnonzero(steps <= 0)[0]) + 1
         kind = "duplicated" if steps[row - 1] == 0 else "out of order"
-        raise TrajectoryError(f"{p}:{lines[row]}: timestamp {ts[row]!r} is {kind}; timestamps must increase strictly")
+        raise TrajectoryError(
+            f"{p}:{lines[row]}: timestamp {float(ts[row])!r} is {kind}; timestamps must increase strictly"
+        )
     return ts
 
 
@@ -303,13 +305,15 @@ def write_euroc_csv(path: str | os.PathLike[str], trajectory: Trajectory) -> Non
 
 
 def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat:
-    """The format of a trajectory file, from its extension or else from its first data line."""
+    """The format of a trajectory file: ``.tum``, ``.kitti``, ``.csv`` (EuRoC) by name, else from its first line."""
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix == ".tum":
         return "tum"
     if suffix == ".kitti":
         return "kitti"
+    if suffix == ".csv":
+        return "euroc"
     if not p.is_file():
         raise TrajectoryError(f"trajectory file not found: {p}")
     with p.open("rb") as fh:

@@ -124,6 +124,10 @@ def open_bag(path: str | Path, typestore: str = "ros2_humble") -> Any:
         inner = [f for f in files if f.endswith((".mcap", ".db3", ".bag"))]
         hint = f"; pass the bag file itself ({', '.join(inner)})" if inner else ""
         raise DataError(f"{bag} is a folder without metadata.yaml, so not a ROS 2 bag (it holds: {files[:10]}){hint}")
+    if bag.is_file() and bag.suffix != ".bag":
+        with bag.open("rb") as fh:
+            if fh.read(13) == b"#ROSBAG V2.0\n":
+                raise DataError(f"{bag} is a ROS 1 bag; its name must end in .bag to be read as one: rename it")
     try:
         store = get_typestore(Stores(typestore))
     except ValueError:
@@ -301,21 +305,21 @@ class RosbagDataset(RecordedDataset):
             raise DataError(f"dataset.{key}={topic}: the topic has no messages in {self.path}")
         return str(msgtype)
 
-    def _messages(self, reader: Any, topic: str) -> Iterator[tuple[int, Any, str]]:
-        """``(ns, message, type)`` of a topic; undecodable messages are reported (strict) or skipped."""
+    def _messages(self, reader: Any, topic: str) -> Iterator[tuple[int, int, Any, str]]:
+        """``(position, ns, message, type)`` of a topic; undecodable messages are reported (strict) or skipped."""
         connections = [c for c in reader.connections if c.topic == topic]
-        for connection, bag_ns, raw in reader.messages(connections=connections):
+        for position, (connection, bag_ns, raw) in enumerate(reader.messages(connections=connections)):
             try:
                 msg = reader.deserialize(raw, connection.msgtype)
                 ns = bag_ns if self.params.stamps == "bag" else _stamp_ns(msg)
             except Exception as exc:
                 self.skips.problem(
                     "corrupt message",
-                    f"{topic}: message received at t={bag_ns / 1e9:.6f} s cannot be decoded "
+                    f"{topic}: message {position} (received at t={bag_ns / 1e9:.6f} s) cannot be decoded "
                     f"({type(exc).__name__}: {exc}); the bag is corrupt or truncated there",
                 )
                 continue
-            yield ns, msg, connection.msgtype
+            yield position, ns, msg, connection.msgtype
 
     def _ordered(self, topic: str, ns: int, last: int | None) -> bool:
         """Whether a stamp comes after the previous one; reports duplicates and disorder."""
@@ -332,7 +336,7 @@ class RosbagDataset(RecordedDataset):
     def _poses(self, reader: Any, topic: str, what: str) -> PoseSeries:
         stamps: list[int] = []
         poses: list[np.ndarray] = []
-        for ns, msg, msgtype in self._messages(reader, topic):
+        for _, ns, msg, msgtype in self._messages(reader, topic):
             pose = pose_of_message(msg, msgtype)
             if not finite_pose(pose):
                 self.skips.problem("bad pose", f"{topic}: {what} pose at t={ns / 1e9:.6f} s is not finite (NaN or inf)")
@@ -347,7 +351,7 @@ class RosbagDataset(RecordedDataset):
     def _attitude(self, reader: Any) -> ValueSeries | None:
         p = self.params
         samples = _ImuSamples()
-        for ns, msg, _ in self._messages(reader, p.imu_topic):
+        for _, ns, msg, _ in self._messages(reader, p.imu_topic):
             q = np.array([msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w])
             gyro = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
             accel = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
@@ -397,7 +401,7 @@ class RosbagDataset(RecordedDataset):
                 f"in the bag: {', '.join(infos) or 'none'}) or dataset.calibration_file=<calibration.yaml>"
             )
         camera_to_base = require_mounting(p, self.name)
-        for _, msg, _ in self._messages(reader, p.camera_info_topic):
+        for _, _, msg, _ in self._messages(reader, p.camera_info_topic):
             k = getattr(msg, "k", None)
             k = getattr(msg, "K", None) if k is None else k
             d = getattr(msg, "d", None)
@@ -431,7 +435,7 @@ class RosbagDataset(RecordedDataset):
 
     def _image_loader(self, msg: Any, msgtype: str, what: str) -> Callable[[], np.ndarray]:
         if msgtype == "sensor_msgs/msg/CompressedImage":
-            return lambda: decode_compressed_image(msg, what)
+            return lambda: decode_compressed_image(msg, "image data")
         encoding = str(msg.encoding).lower()
         if encoding not in _ENCODINGS:
             # Every frame of the topic would fail the same way: an error, whatever `strict` says.
@@ -439,7 +443,7 @@ class RosbagDataset(RecordedDataset):
                 f"dataset={self.name}: {what}: unknown image encoding {msg.encoding!r}; supported: "
                 f"{', '.join(SUPPORTED_ENCODINGS)}"
             )
-        return lambda: decode_raw_image(msg, what)
+        return lambda: decode_raw_image(msg, "image data")
 
     def frames(self) -> Iterator[Frame]:
         """Image messages in time order with odometry, IMU roll/pitch and ground truth at their stamps."""
@@ -450,9 +454,7 @@ class RosbagDataset(RecordedDataset):
         reader = open_bag(self.path, p.typestore)
         try:
             last: int | None = None
-            index = -1
-            for ns, msg, msgtype in self._messages(reader, p.image_topic):
-                index += 1
+            for index, ns, msg, msgtype in self._messages(reader, p.image_topic):
                 if not self._ordered(p.image_topic, ns, last):
                     continue
                 last = ns
