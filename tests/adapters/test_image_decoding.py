@@ -29,7 +29,8 @@ def _msg(encoding: str, data: np.ndarray, width: int = 8, height: int = 6, step:
 
 
 def test_colour_and_grey_encodings():
-    assert np.array_equal(decode_raw_image(_msg("rgb8", RGB), "t"), RGB)
+    decoded = decode_raw_image(_msg("rgb8", RGB), "t")
+    assert np.array_equal(decoded, RGB) and decoded.flags.writeable and decoded.flags.c_contiguous
     assert np.array_equal(decode_raw_image(_msg("bgr8", RGB[:, :, ::-1]), "t"), RGB)
     rgba = np.concatenate([RGB, np.full((6, 8, 1), 255, np.uint8)], axis=2)
     assert np.array_equal(decode_raw_image(_msg("rgba8", rgba), "t"), RGB)

@@ -211,7 +211,7 @@ class EurocDataset(RecordedDataset):
                     "imu timestamp", f"{path}:{lines[i]}: IMU timestamp {int(ns[i])} ns is not increasing"
                 )
             good &= order
-        for i in np.flatnonzero(~np.isfinite(data).all(axis=1))[:1]:
+        for i in np.flatnonzero(~np.isfinite(data).all(axis=1)):
             self.skips.problem("bad imu", f"{path}:{lines[int(i)]}: non-finite IMU sample")
         ns, data = ns[good], data[good]
         if ns.size == 0:
@@ -247,6 +247,7 @@ class EurocDataset(RecordedDataset):
         p = self.params
         span = self.odometry.span()
         assert span is not None
+        self.yielded = self.trimmed = 0
         for i, (t, path) in enumerate(zip(self.timestamps, self.image_paths, strict=True)):
             t = float(t)
             if t < span[0] - p.max_time_diff or t > span[1] + p.max_time_diff:

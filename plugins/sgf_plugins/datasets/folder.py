@@ -246,6 +246,7 @@ class FolderDataset(RecordedDataset):
 
     def frames(self) -> Iterator[Frame]:
         """The usable frames in time order, images decoded lazily."""
+        self.yielded = 0
         for i in np.flatnonzero(self.keep):
             i = int(i)
             path = self.images[i]

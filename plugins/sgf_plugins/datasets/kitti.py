@@ -168,6 +168,7 @@ class KittiDataset(RecordedDataset):
 
     def frames(self) -> Iterator[Frame]:
         """The sequence's frames in order, images decoded lazily."""
+        self.yielded = 0
         for i, path in enumerate(self.images):
             image = self.image_source(partial(read_image_file, path), f"frame {i} ({path})")
             if image is None:

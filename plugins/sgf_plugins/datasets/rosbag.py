@@ -222,7 +222,7 @@ def decode_raw_image(msg: Any, what: str) -> np.ndarray:
         return (image16 >> 8).astype(np.uint8)
     image = rows.reshape(height, width, channels) if channels > 1 else rows
     if conversion is None:
-        return np.ascontiguousarray(image)
+        return image.copy()  # own, writable memory rather than a view of the message buffer
     return cv2.cvtColor(np.ascontiguousarray(image), conversion)
 
 
@@ -237,13 +237,60 @@ def decode_compressed_image(msg: Any, what: str) -> np.ndarray:
 # -- the adapter ------------------------------------------------------------------------------
 
 
+class _PoseCollector:
+    """Poses of one topic, checked for finite values and increasing stamps as they arrive."""
+
+    def __init__(self, topic: str, what: str) -> None:
+        self.topic = topic
+        self.what = what
+        self.stamps: list[int] = []
+        self.poses: list[np.ndarray] = []
+
+    def add(self, dataset: RosbagDataset, ns: int, msg: Any, msgtype: str) -> None:
+        """Take one message (bad ones are reported through the dataset's skip log)."""
+        pose = pose_of_message(msg, msgtype)
+        if not finite_pose(pose):
+            dataset.skips.problem(
+                "bad pose", f"{self.topic}: {self.what} pose at t={ns / 1e9:.6f} s is not finite (NaN or inf)"
+            )
+            return
+        if dataset._ordered(self.topic, ns, self.stamps[-1] if self.stamps else None):
+            self.stamps.append(ns)
+            self.poses.append(pose)
+
+    def series(self) -> PoseSeries:
+        """The collected poses."""
+        ts = _seconds(np.asarray(self.stamps, dtype=np.int64))
+        return PoseSeries(ts, np.asarray(self.poses).reshape(-1, 4, 4), self.what)
+
+
 @dataclass
 class _ImuSamples:
+    """IMU messages of one topic: orientation when published, angular velocity, specific force."""
+
     ns: list[int] = field(default_factory=list)
     orientation: list[np.ndarray] = field(default_factory=list)
     has_orientation: list[bool] = field(default_factory=list)
     gyro: list[np.ndarray] = field(default_factory=list)
     accel: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, dataset: RosbagDataset, ns: int, msg: Any) -> None:
+        """Take one message (bad ones are reported through the dataset's skip log)."""
+        topic = dataset.params.imu_topic
+        q = np.array([msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w])
+        gyro = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
+        accel = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
+        has_q = float(msg.orientation_covariance[0]) != -1.0 and quaternion_is_unit(q)
+        if not (has_q or (np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel)))):
+            dataset.skips.problem("bad imu", f"{topic}: IMU message at t={ns / 1e9:.6f} s is not finite")
+            return
+        if not dataset._ordered(topic, ns, self.ns[-1] if self.ns else None):
+            return
+        self.ns.append(ns)
+        self.orientation.append(q)
+        self.has_orientation.append(has_q)
+        self.gyro.append(gyro)
+        self.accel.append(accel)
 
 
 class RosbagDataset(RecordedDataset):
@@ -267,12 +314,27 @@ class RosbagDataset(RecordedDataset):
             gt_type = self._topic(reader, "ground_truth_topic", POSE_TYPES, required=False)
             info_type = self._topic(reader, "camera_info_topic", CAMERA_INFO_TYPES, required=False)
             self.image_count = int(reader.topics[params.image_topic].msgcount)
-            self.odometry = self._poses(reader, params.odometry_topic, "odometry")
+            # One pass over the small topics (a second pass would read an MCAP file's chunks again).
+            odometry = _PoseCollector(params.odometry_topic, "odometry")
+            ground_truth = _PoseCollector(params.ground_truth_topic, "ground truth") if gt_type else None
+            imu = _ImuSamples() if imu_type else None
+            info: Any = None
+            topics = {params.odometry_topic, params.ground_truth_topic, params.imu_topic, params.camera_info_topic}
+            for topic, _, ns, msg, msgtype in self._messages(reader, topics - {""}):
+                if topic == params.odometry_topic:
+                    odometry.add(self, ns, msg, msgtype)
+                if ground_truth is not None and topic == params.ground_truth_topic:
+                    ground_truth.add(self, ns, msg, msgtype)
+                if imu is not None and topic == params.imu_topic:
+                    imu.add(self, ns, msg)
+                if info is None and info_type is not None and topic == params.camera_info_topic:
+                    info = msg
+            self.odometry = odometry.series()
             if len(self.odometry) == 0:
                 raise DataError(f"{self.path}: topic {params.odometry_topic} has no usable odometry message")
-            self.ground_truth = self._poses(reader, params.ground_truth_topic, "ground truth") if gt_type else None
-            self.attitude = self._attitude(reader) if imu_type else None
-            calibration = self._calibration(reader, info_type is not None)
+            self.ground_truth = ground_truth.series() if ground_truth is not None else None
+            self.attitude = self._attitude(imu) if imu is not None else None
+            calibration = self._calibration(reader, info_type is not None, info)
         finally:
             reader.close()
         self.calibration = self.prepare_calibration(calibration)
@@ -305,21 +367,24 @@ class RosbagDataset(RecordedDataset):
             raise DataError(f"dataset.{key}={topic}: the topic has no messages in {self.path}")
         return str(msgtype)
 
-    def _messages(self, reader: Any, topic: str) -> Iterator[tuple[int, int, Any, str]]:
-        """``(position, ns, message, type)`` of a topic; undecodable messages are reported (strict) or skipped."""
-        connections = [c for c in reader.connections if c.topic == topic]
-        for position, (connection, bag_ns, raw) in enumerate(reader.messages(connections=connections)):
+    def _messages(self, reader: Any, topics: set[str]) -> Iterator[tuple[str, int, int, Any, str]]:
+        """``(topic, position, ns, message, type)`` of some topics in bag order; bad messages are reported."""
+        connections = [c for c in reader.connections if c.topic in topics]
+        positions = dict.fromkeys(topics, -1)
+        for connection, bag_ns, raw in reader.messages(connections=connections):
+            topic = connection.topic
+            positions[topic] += 1
             try:
                 msg = reader.deserialize(raw, connection.msgtype)
                 ns = bag_ns if self.params.stamps == "bag" else _stamp_ns(msg)
             except Exception as exc:
                 self.skips.problem(
                     "corrupt message",
-                    f"{topic}: message {position} (received at t={bag_ns / 1e9:.6f} s) cannot be decoded "
+                    f"{topic}: message {positions[topic]} (received at t={bag_ns / 1e9:.6f} s) cannot be decoded "
                     f"({type(exc).__name__}: {exc}); the bag is corrupt or truncated there",
                 )
                 continue
-            yield position, ns, msg, connection.msgtype
+            yield topic, positions[topic], ns, msg, connection.msgtype
 
     def _ordered(self, topic: str, ns: int, last: int | None) -> bool:
         """Whether a stamp comes after the previous one; reports duplicates and disorder."""
@@ -333,39 +398,8 @@ class RosbagDataset(RecordedDataset):
         )
         return False
 
-    def _poses(self, reader: Any, topic: str, what: str) -> PoseSeries:
-        stamps: list[int] = []
-        poses: list[np.ndarray] = []
-        for _, ns, msg, msgtype in self._messages(reader, topic):
-            pose = pose_of_message(msg, msgtype)
-            if not finite_pose(pose):
-                self.skips.problem("bad pose", f"{topic}: {what} pose at t={ns / 1e9:.6f} s is not finite (NaN or inf)")
-                continue
-            if not self._ordered(topic, ns, stamps[-1] if stamps else None):
-                continue
-            stamps.append(ns)
-            poses.append(pose)
-        ts = np.asarray(stamps, dtype=np.int64)
-        return PoseSeries(_seconds(ts), np.asarray(poses).reshape(-1, 4, 4), what)
-
-    def _attitude(self, reader: Any) -> ValueSeries | None:
+    def _attitude(self, samples: _ImuSamples) -> ValueSeries | None:
         p = self.params
-        samples = _ImuSamples()
-        for _, ns, msg, _ in self._messages(reader, p.imu_topic):
-            q = np.array([msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w])
-            gyro = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
-            accel = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
-            has_q = float(msg.orientation_covariance[0]) != -1.0 and quaternion_is_unit(q)
-            if not (has_q or (np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel)))):
-                self.skips.problem("bad imu", f"{p.imu_topic}: IMU message at t={ns / 1e9:.6f} s is not finite")
-                continue
-            if not self._ordered(p.imu_topic, ns, samples.ns[-1] if samples.ns else None):
-                continue
-            samples.ns.append(ns)
-            samples.orientation.append(q)
-            samples.has_orientation.append(has_q)
-            samples.gyro.append(gyro)
-            samples.accel.append(accel)
         if not samples.ns:
             return None
         ts = _seconds(np.asarray(samples.ns, dtype=np.int64))
@@ -388,7 +422,7 @@ class RosbagDataset(RecordedDataset):
             values = roll_pitch_from_inertial(ts, gyro, accel, p.imu_gain, imu_to_base)
         return ValueSeries(ts, values, "imu roll/pitch")
 
-    def _calibration(self, reader: Any, has_info: bool) -> Calibration:
+    def _calibration(self, reader: Any, has_info: bool, info: Any) -> Calibration:
         p = self.params
         if p.calibration_file:
             calibration = read_calibration_yaml(Path(p.calibration_file).expanduser())
@@ -401,21 +435,21 @@ class RosbagDataset(RecordedDataset):
                 f"in the bag: {', '.join(infos) or 'none'}) or dataset.calibration_file=<calibration.yaml>"
             )
         camera_to_base = require_mounting(p, self.name)
-        for _, _, msg, _ in self._messages(reader, p.camera_info_topic):
-            k = getattr(msg, "k", None)
-            k = getattr(msg, "K", None) if k is None else k
-            d = getattr(msg, "d", None)
-            d = getattr(msg, "D", None) if d is None else d
-            return calibration_from_camera_info(
-                int(msg.width),
-                int(msg.height),
-                np.asarray(k, dtype=np.float64).tolist(),
-                np.asarray(d, dtype=np.float64).tolist(),
-                str(msg.distortion_model),
-                camera_to_base,
-                f"{p.camera_info_topic} in {self.path}",
-            )
-        raise DataError(f"{p.camera_info_topic}: no readable CameraInfo message in {self.path}")
+        if info is None:
+            raise DataError(f"{p.camera_info_topic}: no readable CameraInfo message in {self.path}")
+        k = getattr(info, "k", None)
+        k = getattr(info, "K", None) if k is None else k
+        d = getattr(info, "d", None)
+        d = getattr(info, "D", None) if d is None else d
+        return calibration_from_camera_info(
+            int(info.width),
+            int(info.height),
+            np.asarray(k, dtype=np.float64).tolist(),
+            np.asarray(d, dtype=np.float64).tolist(),
+            str(info.distortion_model),
+            camera_to_base,
+            f"{p.camera_info_topic} in {self.path}",
+        )
 
     # -- the Dataset contract -----------------------------------------------------------------
 
@@ -450,11 +484,11 @@ class RosbagDataset(RecordedDataset):
         p = self.params
         span = self.odometry.span()
         assert span is not None
-        self.trimmed = 0
+        self.yielded = self.trimmed = 0
         reader = open_bag(self.path, p.typestore)
         try:
             last: int | None = None
-            for index, ns, msg, msgtype in self._messages(reader, p.image_topic):
+            for _, index, ns, msg, msgtype in self._messages(reader, {p.image_topic}):
                 if not self._ordered(p.image_topic, ns, last):
                     continue
                 last = ns
