@@ -121,3 +121,23 @@ def test_kitti_through_hydra_overrides(shared_data: Path, tmp_path: Path):
         "poses_00_first6.txt",
         "times_00_first6.txt",
     ]
+
+
+def test_metrics_name_the_recorded_sequence(shared_data: Path, tmp_path: Path):
+    root = shared_data / "kitti00_first6"
+    overrides = [
+        "dataset=kitti",
+        f"dataset.path={root}",
+        f"dataset.poses={root / 'poses_00_first6.txt'}",
+        f"dataset.times={root / 'times_00_first6.txt'}",
+        "dataset.intrinsics={fx:718.856,fy:718.856,cx:607.1928,cy:185.2157}",
+        "dataset.sequence=kitti_00_start",
+        "pipeline=[dataset,enhance]",
+        "run.progress=false",
+        "run.plots=false",
+    ]
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=overrides)
+    metrics = Pipeline.from_config(cfg, run_dir=tmp_path / "run").run()
+    assert metrics["sequence"] == "kitti_00_start"
+    assert metrics["stages"]["dataset"] == "kitti"
