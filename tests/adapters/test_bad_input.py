@@ -352,3 +352,28 @@ def test_bag_nan_odometry(tmp_path: Path):
     context = RunContext(run_dir=None)
     lenient.finalize(context)
     assert context.metrics["dataset"]["skipped"] == 2
+
+
+def test_bag_unset_header_stamps(tmp_path: Path):
+    from rosbags.typesys import Stores, get_typestore
+
+    types = get_typestore(Stores.ROS2_HUMBLE).types
+    frames = make_frames(5, seed=6)
+    zero = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id="c")
+    extra = [
+        (
+            "/camera/unstamped",
+            "sensor_msgs/msg/Image",
+            f.ns,
+            types["sensor_msgs/msg/Image"](
+                header=zero, height=120, width=160, encoding="rgb8", is_bigendian=0, step=480, data=f.image.reshape(-1)
+            ),
+        )
+        for f in frames
+    ]
+    bag = write_bag(tmp_path / "bag", frames, calibration(), "ros2_sqlite3", extra=extra)
+    with pytest.raises(DataError, match=r"/camera/unstamped: message 0 has header.stamp 0 .*dataset\.stamps=bag"):
+        list(RosbagDataset(_bag_params(bag, image_topic="/camera/unstamped")).frames())
+    got = list(RosbagDataset(_bag_params(bag, image_topic="/camera/unstamped", stamps="bag")).frames())
+    assert [f.timestamp for f in got] == pytest.approx([f.t for f in frames], abs=1e-6)
+    assert all(np.array_equal(g.image, f.image) for g, f in zip(got, frames, strict=True))

@@ -39,6 +39,7 @@ from sgf_plugins.datasets._common import (
     MountingParams,
     RecordedDataset,
     decode_image_bytes,
+    describe_dir,
     finite_pose,
     mounting_matrix,
     require_mounting,
@@ -116,8 +117,6 @@ def open_bag(path: str | Path, typestore: str = "ros2_humble") -> Any:
 
     bag = Path(path).expanduser()
     if not bag.exists():
-        from sgf_plugins.datasets._common import describe_dir
-
         raise DataError(f"bag not found: {describe_dir(bag)}")
     if bag.is_dir() and not (bag / "metadata.yaml").is_file():
         files = sorted(p.name for p in bag.iterdir())
@@ -254,7 +253,7 @@ class _PoseCollector:
                 "bad pose", f"{self.topic}: {self.what} pose at t={ns / 1e9:.6f} s is not finite (NaN or inf)"
             )
             return
-        if dataset._ordered(self.topic, ns, self.stamps[-1] if self.stamps else None):
+        if dataset.check_order(self.topic, ns, self.stamps[-1] if self.stamps else None):
             self.stamps.append(ns)
             self.poses.append(pose)
 
@@ -284,7 +283,7 @@ class _ImuSamples:
         if not (has_q or (np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel)))):
             dataset.skips.problem("bad imu", f"{topic}: IMU message at t={ns / 1e9:.6f} s is not finite")
             return
-        if not dataset._ordered(topic, ns, self.ns[-1] if self.ns else None):
+        if not dataset.check_order(topic, ns, self.ns[-1] if self.ns else None):
             return
         self.ns.append(ns)
         self.orientation.append(q)
@@ -384,9 +383,14 @@ class RosbagDataset(RecordedDataset):
                     f"({type(exc).__name__}: {exc}); the bag is corrupt or truncated there",
                 )
                 continue
+            if ns == 0 and self.params.stamps == "header":
+                raise DataError(
+                    f"{topic}: message {positions[topic]} has header.stamp 0 (its publisher leaves the stamp unset); "
+                    "use the recorder's receive times with dataset.stamps=bag"
+                )
             yield topic, positions[topic], ns, msg, connection.msgtype
 
-    def _ordered(self, topic: str, ns: int, last: int | None) -> bool:
+    def check_order(self, topic: str, ns: int, last: int | None) -> bool:
         """Whether a stamp comes after the previous one; reports duplicates and disorder."""
         if last is None or ns > last:
             return True
@@ -489,7 +493,7 @@ class RosbagDataset(RecordedDataset):
         try:
             last: int | None = None
             for _, index, ns, msg, msgtype in self._messages(reader, {p.image_topic}):
-                if not self._ordered(p.image_topic, ns, last):
+                if not self.check_order(p.image_topic, ns, last):
                     continue
                 last = ns
                 t = float(_seconds(np.asarray([ns], dtype=np.int64))[0])
