@@ -240,7 +240,7 @@ def write_kitti(
 # -- EuRoC ----------------------------------------------------------------------------------
 
 
-def _seconds_from_ns(ns: np.ndarray) -> np.ndarray:
+def seconds_from_ns(ns: np.ndarray) -> np.ndarray:
     """Seconds of integer nanoseconds, without losing the digits a float64 product would."""
     ns = np.asarray(ns, dtype=np.int64)
     return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
@@ -286,7 +286,7 @@ def read_euroc_csv(path: str | os.PathLike[str], duplicates: Duplicates = "error
         else:
             poses[i, :3, :3] = np.nan
         poses[i, :3, 3] = v[:3]
-    return _checked(p, _seconds_from_ns(ns), poses, lines, duplicates)
+    return _checked(p, seconds_from_ns(ns), poses, lines, duplicates)
 
 
 def write_euroc_csv(path: str | os.PathLike[str], trajectory: Trajectory) -> None:
