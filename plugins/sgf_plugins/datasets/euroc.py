@@ -34,7 +34,7 @@ from sgf_pipeline.calibration_io import read_euroc_sensor_yaml
 from sgf_pipeline.geometry import invert
 from sgf_pipeline.imu import roll_pitch_from_inertial
 from sgf_pipeline.timesync import PoseSeries, ValueSeries
-from sgf_pipeline.trajectory import TrajectoryError, read_euroc_csv, read_trajectory
+from sgf_pipeline.trajectory import TrajectoryError, read_euroc_csv, read_trajectory, seconds_from_ns
 from sgf_pipeline.types import Frame
 from sgf_plugins.datasets._common import (
     MountingParams,
@@ -83,10 +83,6 @@ def _read_csv_ns(path: Path, min_columns: int, what: str) -> tuple[np.ndarray, l
     return np.asarray(stamps, dtype=np.int64), rows, lines
 
 
-def _seconds(ns: np.ndarray) -> np.ndarray:
-    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
-
-
 class EurocDataset(RecordedDataset):
     """A recording in the EuRoC/ASL folder layout."""
 
@@ -115,7 +111,7 @@ class EurocDataset(RecordedDataset):
             Calibration(intrinsics=camera.intrinsics, distortion=camera.distortion, camera_to_base=camera_to_base)
         )
         self.frame_ns, self.image_paths = self._camera_rows(cam_dir)
-        self.timestamps = _seconds(self.frame_ns)
+        self.timestamps = seconds_from_ns(self.frame_ns)
         self.ground_truth = self._ground_truth()
         self.odometry = self._odometry()
         self.attitude = self._attitude()
@@ -225,7 +221,7 @@ class EurocDataset(RecordedDataset):
             if isinstance(node, dict) and "data" in node:
                 imu_to_body = np.asarray(node["data"], dtype=np.float64).reshape(4, 4)
         imu_to_base = self.body_to_base @ imu_to_body
-        ts = _seconds(ns)
+        ts = seconds_from_ns(ns)
         roll_pitch = roll_pitch_from_inertial(ts, data[:, 0:3], data[:, 3:6], self.params.imu_gain, imu_to_base)
         return ValueSeries(ts, roll_pitch, "imu roll/pitch")
 

@@ -34,6 +34,7 @@ from sgf_pipeline.folder_format import read_calibration_yaml
 from sgf_pipeline.geometry import rotation_from_quaternion
 from sgf_pipeline.imu import roll_pitch_from_inertial, roll_pitch_of_base
 from sgf_pipeline.timesync import PoseSeries, ValueSeries
+from sgf_pipeline.trajectory import seconds_from_ns
 from sgf_pipeline.types import Frame
 from sgf_plugins.datasets._common import (
     MountingParams,
@@ -259,7 +260,7 @@ class _PoseCollector:
 
     def series(self) -> PoseSeries:
         """The collected poses."""
-        ts = _seconds(np.asarray(self.stamps, dtype=np.int64))
+        ts = seconds_from_ns(np.asarray(self.stamps, dtype=np.int64))
         return PoseSeries(ts, np.asarray(self.poses).reshape(-1, 4, 4), self.what)
 
 
@@ -406,7 +407,7 @@ class RosbagDataset(RecordedDataset):
         p = self.params
         if not samples.ns:
             return None
-        ts = _seconds(np.asarray(samples.ns, dtype=np.int64))
+        ts = seconds_from_ns(np.asarray(samples.ns, dtype=np.int64))
         imu_to_base = None if p.imu_to_base is None else np.asarray(p.imu_to_base, dtype=np.float64)
         if imu_to_base is not None and imu_to_base.shape not in ((3, 3), (4, 4)):
             raise DataError(f"dataset.imu_to_base must be 3x3 or 4x4, got shape {imu_to_base.shape}")
@@ -496,7 +497,7 @@ class RosbagDataset(RecordedDataset):
                 if not self.check_order(p.image_topic, ns, last):
                     continue
                 last = ns
-                t = float(_seconds(np.asarray([ns], dtype=np.int64))[0])
+                t = float(seconds_from_ns(np.asarray([ns], dtype=np.int64))[0])
                 if t < span[0] - p.max_time_diff or t > span[1] + p.max_time_diff:
                     self.trimmed += 1
                     continue
@@ -531,11 +532,6 @@ class RosbagDataset(RecordedDataset):
         """Skips and frames outside the odometry's span into metrics.json."""
         super().finalize(context)
         context.metrics["dataset"]["trimmed"] = self.trimmed
-
-
-def _seconds(ns: np.ndarray) -> np.ndarray:
-    ns = np.asarray(ns, dtype=np.int64)
-    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
 
 
 def quaternion_is_unit(q: np.ndarray) -> bool:
