@@ -12,6 +12,21 @@ Layout of a sequence folder::
     groundtruth.tum     optional: TUM poses of the base in the world frame
     masks/000000.png    optional: uint16 PNG of marking instance ids (0 = none), per image
     truth.json          optional: marking table, passes and revisit pairs (synthetic worlds)
+
+Rules the reader holds a folder to (docs/datasets.md has the full description):
+
+* Frames are the images in name order; frame ``i`` is the ``i``-th image, and every per-image
+  file (timestamps, odometry, IMU) has exactly one row per image, at the image's timestamp
+  (to 1e-6 s). Timestamps increase strictly.
+* Poses are of the robot's base (x forward, y left, z up, origin on the ground under the robot).
+  ``distortion.model`` is ``none``, ``radtan`` (OpenCV k1 k2 p1 p2 [k3 [k4 k5 k6]]) or
+  ``equidistant`` (k1..k4); the reader hands on undistorted images.
+* ``groundtruth.tum`` may instead come at its own rate (motion capture, LiDAR SLAM): it is then
+  interpolated at the image timestamps.
+* A mask's file name is the image's stem with ``.png``; a frame without one has no mask.
+* ``sequence.yaml`` may be left out of a hand-made folder (the name is then the folder's); when
+  present its ``frames`` must equal the number of images.
+* Nothing is ever written into a folder that is read.
 """
 
 from __future__ import annotations

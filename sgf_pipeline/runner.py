@@ -237,6 +237,8 @@ class Pipeline:
         self.info.total_frames = len(self.dataset)
         for node in self.order:
             node.stage.begin(self.context)
+        if self.context.sequence:  # the dataset's own name for the recording (else the variant's)
+            self.info.sequence = self.context.sequence
         if self.run_dir is not None:
             self.run_dir.mkdir(parents=True, exist_ok=True)
         self.plugins.manager.hook.sgf_run_start(run=self.info)

@@ -1,15 +1,39 @@
-"""Timed pose sequences and their file formats (TUM)."""
+"""Timed pose sequences and their file formats: TUM, KITTI (with a times file) and EuRoC state CSV.
+
+Every reader checks what evo would silently accept or reject late: each line's field count,
+finite numbers, strictly increasing timestamps; errors name the file and line. Writers are
+atomic. ``read_trajectory``/``write_trajectory`` pick the format from a name or the file.
+
+Formats:
+
+* TUM: ``timestamp tx ty tz qx qy qz qw`` (seconds; ``#`` comments).
+* KITTI: 12 numbers per line, the row-major 3x4 pose; no timestamps in the file. The times
+  come from a separate file (one number per line, KITTI's ``times.txt``); without one the
+  timestamps are the row numbers 0, 1, 2, ... so that two KITTI files pair up row by row.
+* EuRoC: ``#timestamp [ns],p_RS_R_x [m],p_RS_R_y,p_RS_R_z,q_RS_w [],q_RS_x,q_RS_y,q_RS_z[,...]``
+  (integer nanoseconds, quaternion w first; the velocity and bias columns of
+  ``state_groundtruth_estimate0/data.csv`` are read past and not written).
+"""
 
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from sgf_pipeline.geometry import quaternion_from_rotation, rotation_from_quaternion
 from sgf_pipeline.io import atomic_write_text
+
+TrajectoryFormat = Literal["tum", "kitti", "euroc"]
+Duplicates = Literal["error", "drop"]
+#: The formats ``read_trajectory`` and ``write_trajectory`` know.
+FORMATS: tuple[TrajectoryFormat, ...] = ("tum", "kitti", "euroc")
+log = logging.getLogger("sgf_pipeline")
+_EUROC_HEADER = "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"
 
 
 class TrajectoryError(ValueError):
@@ -53,6 +77,101 @@ class Trajectory:
         return float(np.linalg.norm(np.diff(self.positions, axis=0), axis=1).sum()) if len(self) > 1 else 0.0
 
 
+# -- parsing helpers ------------------------------------------------------------------------
+
+
+def _table(path: Path, separators: str, columns: tuple[int, ...], what: str) -> tuple[np.ndarray, list[int]]:
+    """Numeric rows of a text file (``#`` comments and blank lines skipped) and their line numbers."""
+    if not path.is_file():
+        raise TrajectoryError(f"{what} file not found: {path}")
+    rows: list[list[float]] = []
+    lines: list[int] = []
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError:
+        raise TrajectoryError(f"{path}: not a text file (is it an image or a bag?)") from None
+    for number, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#") or line.startswith("%"):
+            continue
+        for sep in separators:
+            line = line.replace(sep, " ")
+        fields = line.split()
+        if len(fields) not in columns:
+            want = " or ".join(map(str, columns))
+            raise TrajectoryError(f"{path}:{number}: a {what} line has {want} fields, got {len(fields)}: {line[:80]!r}")
+        try:
+            rows.append([float(f) for f in fields])
+        except ValueError:
+            raise TrajectoryError(f"{path}:{number}: not a number in {line[:80]!r}") from None
+        lines.append(number)
+    if not rows:
+        raise TrajectoryError(f"{path}: no poses")
+    width = len(rows[0])
+    if any(len(r) != width for r in rows):
+        raise TrajectoryError(f"{path}: lines have different numbers of fields")
+    return np.asarray(rows, dtype=np.float64), lines
+
+
+def _checked(
+    path: Path, timestamps: np.ndarray, poses: np.ndarray, lines: list[int], duplicates: Duplicates = "error"
+) -> Trajectory:
+    """A Trajectory, with errors that name the file's line instead of the row."""
+    if duplicates == "drop" and timestamps.size > 1:
+        repeated = np.flatnonzero(np.diff(timestamps) == 0) + 1
+        if repeated.size:
+            log.warning(
+                "%s: dropped %d pose(s) whose timestamp repeats the previous line's (line(s) %s)",
+                path,
+                repeated.size,
+                [lines[i] for i in repeated[:5]],
+            )
+            keep = np.ones(timestamps.size, dtype=bool)
+            keep[repeated] = False
+            timestamps, poses = timestamps[keep], poses[keep]
+            lines = [n for n, k in zip(lines, keep, strict=True) if k]
+    elif duplicates != "error" and duplicates != "drop":
+        raise TrajectoryError(f"duplicates must be 'error' or 'drop', got {duplicates!r}")
+    finite = np.isfinite(poses).all(axis=(1, 2)) & np.isfinite(timestamps)
+    if not finite.all():
+        bad = [lines[i] for i in np.flatnonzero(~finite)[:5]]
+        raise TrajectoryError(f"{path}: non-finite pose (NaN or inf) on line(s) {bad}")
+    steps = np.diff(timestamps)
+    if np.any(steps <= 0):
+        row = int(np.flatnonzero(steps <= 0)[0]) + 1
+        kind = "duplicated" if steps[row - 1] == 0 else "out of order"
+        raise TrajectoryError(
+            f"{path}:{lines[row]}: timestamp {float(timestamps[row])!r} is {kind} (previous "
+            f"{float(timestamps[row - 1])!r} on line {lines[row - 1]}); timestamps must increase strictly"
+            + ("; pass duplicates='drop' to keep the first of equal timestamps" if kind == "duplicated" else "")
+        )
+    return Trajectory(timestamps, poses)
+
+
+def parse_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    """Timestamps, (N, 4, 4) poses and line numbers of a TUM file, unchecked for order and NaN.
+
+    For readers that skip bad rows of a long recording instead of refusing the file.
+    """
+    p = Path(path)
+    data, lines = _table(p, ",", (8,), "TUM (t x y z qx qy qz qw)")
+    poses = np.tile(np.eye(4), (len(data), 1, 1))
+    for i, row in enumerate(data):
+        if np.all(np.isfinite(row[4:8])) and np.linalg.norm(row[4:8]) > 0:
+            poses[i, :3, :3] = rotation_from_quaternion(row[4:8])
+        else:
+            poses[i, :3, :3] = np.nan
+        poses[i, :3, 3] = row[1:4]
+    return data[:, 0].copy(), poses, lines
+
+
+def _format_seconds(t: float) -> str:
+    return f"{t:.9f}"
+
+
+# -- TUM ------------------------------------------------------------------------------------
+
+
 def write_tum(path: str | os.PathLike[str], trajectory: Trajectory) -> None:
     """Write ``timestamp tx ty tz qx qy qz qw`` lines atomically."""
     lines = []
@@ -63,33 +182,197 @@ def write_tum(path: str | os.PathLike[str], trajectory: Trajectory) -> None:
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 
-def read_tum(path: str | os.PathLike[str]) -> Trajectory:
-    """Read a TUM trajectory (``#`` comments allowed)."""
+def read_tum(path: str | os.PathLike[str], duplicates: Duplicates = "error") -> Trajectory:
+    """Read a TUM trajectory (``#`` comments allowed; ``duplicates="drop"`` keeps the first of equal stamps)."""
+    p = Path(path)
+    timestamps, poses, lines = parse_tum(p)
+    return _checked(p, timestamps, poses, lines, duplicates)
+
+
+# -- KITTI ----------------------------------------------------------------------------------
+
+
+def read_times(path: str | os.PathLike[str]) -> np.ndarray:
+    """A KITTI ``times.txt``: one timestamp (s) per line, strictly increasing."""
+    p = Path(path)
+    data, lines = _table(p, ",", (1,), "times")
+    ts = data[:, 0].copy()
+    if not np.all(np.isfinite(ts)):
+        raise TrajectoryError(f"{p}: non-finite timestamp on line {lines[int(np.flatnonzero(~np.isfinite(ts))[0])]}")
+    steps = np.diff(ts)
+    if np.any(steps <= 0):
+        row = int(np.flatnonzero(steps <= 0)[0]) + 1
+        kind = "duplicated" if steps[row - 1] == 0 else "out of order"
+        raise TrajectoryError(
+            f"{p}:{lines[row]}: timestamp {float(ts[row])!r} is {kind}; timestamps must increase strictly"
+        )
+    return ts
+
+
+def read_kitti(path: str | os.PathLike[str], times: str | os.PathLike[str] | np.ndarray | None = None) -> Trajectory:
+    """Read KITTI poses (3x4 row-major per line); timestamps from ``times`` or else the row numbers."""
+    p = Path(path)
+    data, lines = _table(p, ",", (12,), "KITTI pose (12 numbers, row-major 3x4)")
+    poses = np.tile(np.eye(4), (len(data), 1, 1))
+    poses[:, :3, :4] = data.reshape(-1, 3, 4)
+    if times is None:
+        ts = np.arange(len(data), dtype=np.float64)
+    else:
+        ts = times if isinstance(times, np.ndarray) else read_times(times)
+        if len(ts) != len(data):
+            raise TrajectoryError(
+                f"{p} has {len(data)} poses but the times ({times if not isinstance(times, np.ndarray) else 'array'}) "
+                f"have {len(ts)}; give the times file of this sequence"
+            )
+    return _checked(p, np.asarray(ts, dtype=np.float64), poses, lines)
+
+
+def write_kitti(
+    path: str | os.PathLike[str], trajectory: Trajectory, times_path: str | os.PathLike[str] | None = None
+) -> None:
+    """Write KITTI poses (and, if ``times_path`` is given, the timestamps beside them) atomically."""
+    rows = [" ".join(f"{v:.9e}" for v in pose[:3, :4].reshape(-1)) for pose in trajectory.poses]
+    atomic_write_text(path, "\n".join(rows) + "\n")
+    if times_path is not None:
+        atomic_write_text(times_path, "\n".join(_format_seconds(t) for t in trajectory.timestamps) + "\n")
+
+
+# -- EuRoC ----------------------------------------------------------------------------------
+
+
+def seconds_from_ns(ns: np.ndarray) -> np.ndarray:
+    """Seconds of integer nanoseconds, without losing the digits a float64 product would."""
+    ns = np.asarray(ns, dtype=np.int64)
+    return (ns // 1_000_000_000).astype(np.float64) + (ns % 1_000_000_000).astype(np.float64) * 1e-9
+
+
+def _ns_from_seconds(t: float) -> int:
+    whole = int(np.floor(t))
+    return whole * 1_000_000_000 + round((t - whole) * 1e9)
+
+
+def read_euroc_csv(path: str | os.PathLike[str], duplicates: Duplicates = "error") -> Trajectory:
+    """Read an EuRoC/ASL state CSV (ns timestamps, position, quaternion w x y z, optional extra columns)."""
     p = Path(path)
     if not p.is_file():
-        raise TrajectoryError(f"trajectory file not found: {p}")
-    rows = []
+        raise TrajectoryError(f"EuRoC CSV file not found: {p}")
+    rows: list[tuple[int, list[float]]] = []
+    lines: list[int] = []
     for number, line in enumerate(p.read_text().splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
-        fields = line.replace(",", " ").split()
-        if len(fields) != 8:
-            raise TrajectoryError(f"{p}:{number}: a TUM line has 8 fields (t x y z qx qy qz qw), got {len(fields)}")
+        fields = [f.strip() for f in line.split(",")]
+        if len(fields) < 8:
+            raise TrajectoryError(
+                f"{p}:{number}: an EuRoC state line has at least 8 comma-separated fields "
+                f"(t[ns], x, y, z, qw, qx, qy, qz), got {len(fields)}"
+            )
         try:
-            rows.append([float(f) for f in fields])
-        except ValueError as exc:
-            raise TrajectoryError(f"{p}:{number}: {exc}") from None
+            stamp = int(fields[0]) if fields[0].lstrip("-").isdigit() else int(float(fields[0]))
+            rows.append((stamp, [float(f) for f in fields[1:8]]))
+        except ValueError:
+            raise TrajectoryError(f"{p}:{number}: not a number in {line[:80]!r}") from None
+        lines.append(number)
     if not rows:
         raise TrajectoryError(f"{p}: no poses")
-    data = np.asarray(rows)
-    poses = np.tile(np.eye(4), (len(data), 1, 1))
-    for i, row in enumerate(data):
-        if not np.all(np.isfinite(row)):
-            raise TrajectoryError(f"{p}: non-finite value in pose {i}")
-        poses[i, :3, :3] = rotation_from_quaternion(row[4:8])
-        poses[i, :3, 3] = row[1:4]
+    ns = np.array([r[0] for r in rows], dtype=np.int64)
+    values = np.array([r[1] for r in rows], dtype=np.float64)
+    poses = np.tile(np.eye(4), (len(rows), 1, 1))
+    for i, v in enumerate(values):
+        q = v[3:7]
+        if np.all(np.isfinite(q)) and np.linalg.norm(q) > 0:
+            poses[i, :3, :3] = rotation_from_quaternion(np.array([q[1], q[2], q[3], q[0]]))
+        else:
+            poses[i, :3, :3] = np.nan
+        poses[i, :3, 3] = v[:3]
+    return _checked(p, seconds_from_ns(ns), poses, lines, duplicates)
+
+
+def write_euroc_csv(path: str | os.PathLike[str], trajectory: Trajectory) -> None:
+    """Write an EuRoC/ASL state CSV (position and quaternion w x y z) atomically."""
+    lines = [_EUROC_HEADER]
+    for t, pose in zip(trajectory.timestamps, trajectory.poses, strict=True):
+        q = quaternion_from_rotation(pose[:3, :3])
+        x, y, z = pose[:3, 3]
+        lines.append(
+            f"{_ns_from_seconds(float(t))},{x:.9f},{y:.9f},{z:.9f},{q[3]:.9f},{q[0]:.9f},{q[1]:.9f},{q[2]:.9f}"
+        )
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+# -- any format -----------------------------------------------------------------------------
+
+
+def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat:
+    """The format of a trajectory file: ``.tum``, ``.kitti``, ``.csv`` (EuRoC) by name, else from its first line."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix == ".tum":
+        return "tum"
+    if suffix == ".kitti":
+        return "kitti"
+    if suffix == ".csv":
+        return "euroc"
+    if not p.is_file():
+        raise TrajectoryError(f"trajectory file not found: {p}")
+    with p.open("rb") as fh:
+        head = fh.read(65536)
     try:
-        return Trajectory(data[:, 0], poses)
-    except TrajectoryError as exc:
-        raise TrajectoryError(f"{p}: {exc}") from None
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        raise TrajectoryError(f"{p}: not a text file, so not a trajectory") from None
+    for line in text.splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        if "," in line and len(line.split(",")) >= 8:
+            return "euroc"
+        n = len(line.replace(",", " ").split())
+        if n == 8:
+            return "tum"
+        if n == 12:
+            return "kitti"
+        raise TrajectoryError(
+            f"{p}: cannot tell the format from a line of {n} fields; TUM lines have 8, KITTI lines 12, "
+            "EuRoC CSV lines 8 or more comma-separated; name the format explicitly"
+        )
+    raise TrajectoryError(f"{p}: no poses")
+
+
+def read_trajectory(
+    path: str | os.PathLike[str],
+    format: TrajectoryFormat | Literal["auto"] = "auto",
+    times: str | os.PathLike[str] | None = None,
+    duplicates: Duplicates = "error",
+) -> Trajectory:
+    """Read a trajectory in any known format (``times``: the KITTI times file, if any).
+
+    ``duplicates="drop"`` keeps the first of poses with equal timestamps (real motion-capture files
+    have them; evo accepts them) instead of refusing the file.
+    """
+    fmt = detect_format(path) if format == "auto" else format
+    if fmt == "tum":
+        return read_tum(path, duplicates)
+    if fmt == "kitti":
+        return read_kitti(path, times)
+    if fmt == "euroc":
+        return read_euroc_csv(path, duplicates)
+    raise TrajectoryError(f"unknown trajectory format {format!r}; known: auto, {', '.join(FORMATS)}")
+
+
+def write_trajectory(
+    path: str | os.PathLike[str],
+    trajectory: Trajectory,
+    format: TrajectoryFormat = "tum",
+    times_path: str | os.PathLike[str] | None = None,
+) -> None:
+    """Write a trajectory in one of the known formats (KITTI writes ``times_path`` if given)."""
+    if format == "tum":
+        write_tum(path, trajectory)
+    elif format == "kitti":
+        write_kitti(path, trajectory, times_path)
+    elif format == "euroc":
+        write_euroc_csv(path, trajectory)
+    else:
+        raise TrajectoryError(f"unknown trajectory format {format!r}; known: {', '.join(FORMATS)}")

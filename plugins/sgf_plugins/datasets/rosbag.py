@@ -1,0 +1,545 @@
+"""``dataset=rosbag``: ROS 1 bags and ROS 2 bags (sqlite3 or MCAP), read with ``rosbags`` (no ROS install).
+
+Topics are chosen in the config. The camera topic drives the frames (``sensor_msgs/Image`` or
+``CompressedImage``); at each image's timestamp the other streams are sampled (see
+:mod:`sgf_pipeline.timesync`): odometry (``nav_msgs/Odometry``, ``PoseStamped``,
+``PoseWithCovarianceStamped`` or ``TransformStamped``: the pose of the robot's base), IMU roll and
+pitch (``sensor_msgs/Imu``: from its orientation, or from gyro and accelerometer by a
+complementary filter when the driver publishes no orientation), and ground truth (any of the
+pose types). Camera frames before the first or after the last odometry message are left out and
+counted as ``trimmed``. Intrinsics and distortion come from a ``CameraInfo`` topic or from a
+folder-format ``calibration.yaml``; the camera's mounting on the base from the config.
+
+Timestamps are the messages' ``header.stamp`` (the sensor's time) unless ``stamps: bag``
+chooses the time the recorder received them.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from sgf_pipeline import DataError, RunContext, StageRegistry, hookimpl
+from sgf_pipeline.calibration import Calibration
+from sgf_pipeline.calibration_io import calibration_from_camera_info
+from sgf_pipeline.folder_format import read_calibration_yaml
+from sgf_pipeline.geometry import rotation_from_quaternion
+from sgf_pipeline.imu import roll_pitch_from_inertial, roll_pitch_of_base
+from sgf_pipeline.timesync import PoseSeries, ValueSeries
+from sgf_pipeline.trajectory import seconds_from_ns
+from sgf_pipeline.types import Frame
+from sgf_plugins.datasets._common import (
+    MountingParams,
+    RecordedDataset,
+    decode_image_bytes,
+    describe_dir,
+    finite_pose,
+    mounting_matrix,
+    require_mounting,
+)
+
+log = logging.getLogger("sgf_pipeline.datasets")
+
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+POSE_TYPES = (
+    "nav_msgs/msg/Odometry",
+    "geometry_msgs/msg/PoseStamped",
+    "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "geometry_msgs/msg/TransformStamped",
+)
+IMU_TYPES = ("sensor_msgs/msg/Imu",)
+CAMERA_INFO_TYPES = ("sensor_msgs/msg/CameraInfo",)
+
+#: Raw image encodings: channels, bytes per channel, and the OpenCV conversion to RGB (None: keep).
+_ENCODINGS: dict[str, tuple[int, int, int | None]] = {
+    "mono8": (1, 1, None),
+    "8uc1": (1, 1, None),
+    "mono16": (1, 2, None),
+    "16uc1": (1, 2, None),
+    "rgb8": (3, 1, None),
+    "bgr8": (3, 1, cv2.COLOR_BGR2RGB),
+    "8uc3": (3, 1, cv2.COLOR_BGR2RGB),
+    "rgba8": (4, 1, cv2.COLOR_RGBA2RGB),
+    "bgra8": (4, 1, cv2.COLOR_BGRA2RGB),
+    "8uc4": (4, 1, cv2.COLOR_BGRA2RGB),
+    "bayer_rggb8": (1, 1, cv2.COLOR_BayerBG2RGB),
+    "bayer_bggr8": (1, 1, cv2.COLOR_BayerRG2RGB),
+    "bayer_gbrg8": (1, 1, cv2.COLOR_BayerGR2RGB),
+    "bayer_grbg8": (1, 1, cv2.COLOR_BayerGB2RGB),
+    "yuv422": (2, 1, cv2.COLOR_YUV2RGB_UYVY),
+    "uyvy": (2, 1, cv2.COLOR_YUV2RGB_UYVY),
+    "yuv422_yuy2": (2, 1, cv2.COLOR_YUV2RGB_YUY2),
+    "yuyv": (2, 1, cv2.COLOR_YUV2RGB_YUY2),
+}
+SUPPORTED_ENCODINGS = tuple(_ENCODINGS)
+_COMPRESSED = ("jpeg", "jpg", "png")
+
+
+class RosbagParams(MountingParams):
+    """Options of the ROS bag reader (topics, association, calibration)."""
+
+    image_topic: str = Field("", description="camera topic (sensor_msgs/Image or CompressedImage); required")
+    odometry_topic: str = Field("", description="odometry topic (Odometry, PoseStamped, TransformStamped); required")
+    imu_topic: str = Field("", description="sensor_msgs/Imu topic for roll and pitch (empty: none)")
+    ground_truth_topic: str = Field("", description="ground-truth pose topic (empty: none)")
+    camera_info_topic: str = Field("", description="sensor_msgs/CameraInfo topic (intrinsics, distortion)")
+    calibration_file: str = Field(
+        "", description="folder-format calibration.yaml used instead of camera_info_topic and the mounting"
+    )
+    imu_to_base: list[list[float]] | None = Field(
+        None, description="3x3 or 4x4 pose of the IMU frame in the base frame"
+    )
+    imu_orientation: Literal["auto", "message", "filter"] = Field(
+        "auto", description="roll/pitch from the Imu orientation, from gyro+accel (filter), or auto"
+    )
+    imu_gain: float = Field(1.0, ge=0.0, description="complementary filter gain (1/s) when imu_orientation=filter")
+    max_time_diff: float = Field(0.02, gt=0.0, description="s; furthest odometry/IMU/ground-truth sample from an image")
+    interpolate: bool = Field(True, description="interpolate poses between samples (else take the nearest)")
+    stamps: Literal["header", "bag"] = Field("header", description="use header.stamp or the recorder's receive time")
+    typestore: str = Field("ros2_humble", description="message definitions for bags that carry none (old ROS 2)")
+    sequence: str = Field("", description="sequence name in reports (default: the bag's name)")
+
+
+# -- opening and listing ----------------------------------------------------------------------
+
+
+def open_bag(path: str | Path, typestore: str = "ros2_humble") -> Any:
+    """An opened ``rosbags`` AnyReader (close it), with clear errors for missing and broken bags."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    bag = Path(path).expanduser()
+    if not bag.exists():
+        raise DataError(f"bag not found: {describe_dir(bag)}")
+    if bag.is_dir() and not (bag / "metadata.yaml").is_file():
+        files = sorted(p.name for p in bag.iterdir())
+        inner = [f for f in files if f.endswith((".mcap", ".db3", ".bag"))]
+        hint = f"; pass the bag file itself ({', '.join(inner)})" if inner else ""
+        raise DataError(f"{bag} is a folder without metadata.yaml, so not a ROS 2 bag (it holds: {files[:10]}){hint}")
+    if bag.is_file() and bag.suffix != ".bag":
+        with bag.open("rb") as fh:
+            if fh.read(13) == b"#ROSBAG V2.0\n":
+                raise DataError(f"{bag} is a ROS 1 bag; its name must end in .bag to be read as one: rename it")
+    try:
+        store = get_typestore(Stores(typestore))
+    except ValueError:
+        raise DataError(
+            f"unknown typestore {typestore!r}; choose one of {', '.join(s.value for s in Stores if s.value != 'empty')}"
+        ) from None
+    try:
+        reader = AnyReader([bag], default_typestore=store)
+        reader.open()
+    except Exception as exc:
+        raise DataError(
+            f"cannot open bag {bag}: {type(exc).__name__}: {exc}. The file may be truncated or corrupt (an "
+            "interrupted recording?); `rosbag reindex` (ROS 1) or `ros2 bag reindex` (ROS 2) may repair it"
+        ) from None
+    return reader
+
+
+@dataclass(frozen=True)
+class TopicRow:
+    """One topic of a bag: name, message type, count and mean rate."""
+
+    topic: str
+    msgtype: str
+    count: int
+    rate_hz: float | None
+
+
+def topic_rows(reader: Any) -> list[TopicRow]:
+    """The topics of an opened bag, sorted by name."""
+    duration = reader.duration / 1e9 if reader.message_count > 1 else 0.0
+    rows = []
+    for name, info in sorted(reader.topics.items()):
+        count = int(info.msgcount)
+        rate = (count - 1) / duration if duration > 0 and count > 1 else None
+        rows.append(TopicRow(name, info.msgtype or "?", count, rate))
+    return rows
+
+
+def describe_topics(reader: Any, types: tuple[str, ...] = ()) -> str:
+    """``/a (type, n msgs), ...``: the bag's topics, those of ``types`` first."""
+    rows = topic_rows(reader)
+    if types:
+        rows.sort(key=lambda r: (r.msgtype not in types, r.topic))
+    return ", ".join(f"{r.topic} ({r.msgtype}, {r.count} msgs)" for r in rows) or "no topics"
+
+
+# -- message fields ---------------------------------------------------------------------------
+
+
+def _stamp_ns(msg: Any) -> int:
+    stamp = msg.header.stamp
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def _pose_matrix(position: Any, orientation: Any) -> np.ndarray:
+    q = np.array([orientation.x, orientation.y, orientation.z, orientation.w], dtype=np.float64)
+    pose = np.eye(4)
+    norm = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else 0.0
+    pose[:3, :3] = rotation_from_quaternion(q) if norm > 1e-6 else np.nan
+    pose[:3, 3] = (position.x, position.y, position.z)
+    return pose
+
+
+def pose_of_message(msg: Any, msgtype: str) -> np.ndarray:
+    """The 4x4 pose carried by an Odometry, PoseStamped, PoseWithCovarianceStamped or TransformStamped."""
+    if msgtype == "nav_msgs/msg/Odometry" or msgtype == "geometry_msgs/msg/PoseWithCovarianceStamped":
+        return _pose_matrix(msg.pose.pose.position, msg.pose.pose.orientation)
+    if msgtype == "geometry_msgs/msg/PoseStamped":
+        return _pose_matrix(msg.pose.position, msg.pose.orientation)
+    if msgtype == "geometry_msgs/msg/TransformStamped":
+        return _pose_matrix(msg.transform.translation, msg.transform.rotation)
+    raise DataError(f"{msgtype} carries no pose; use one of {', '.join(POSE_TYPES)}")
+
+
+def decode_raw_image(msg: Any, what: str) -> np.ndarray:
+    """A ``sensor_msgs/Image`` as uint8 RGB (H, W, 3) or grey (H, W)."""
+    encoding = str(msg.encoding).lower()
+    if encoding not in _ENCODINGS:
+        raise DataError(f"{what}: unknown image encoding {msg.encoding!r}; supported: {', '.join(SUPPORTED_ENCODINGS)}")
+    channels, depth, conversion = _ENCODINGS[encoding]
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    row_bytes = width * channels * depth
+    data = np.asarray(msg.data, dtype=np.uint8)
+    if height <= 0 or width <= 0 or step < row_bytes:
+        raise DataError(f"{what}: inconsistent image header (height {height}, width {width}, step {step}, {encoding})")
+    if data.size < step * height:
+        raise DataError(f"{what}: truncated image: {data.size} bytes for {height} rows of {step} bytes")
+    rows = data[: step * height].reshape(height, step)[:, :row_bytes]
+    if depth == 2:
+        dtype = ">u2" if msg.is_bigendian else "<u2"
+        image16 = np.ascontiguousarray(rows).view(dtype).reshape(height, width)
+        return (image16 >> 8).astype(np.uint8)
+    image = rows.reshape(height, width, channels) if channels > 1 else rows
+    if conversion is None:
+        return image.copy()  # own, writable memory rather than a view of the message buffer
+    return cv2.cvtColor(np.ascontiguousarray(image), conversion)
+
+
+def decode_compressed_image(msg: Any, what: str) -> np.ndarray:
+    """A ``sensor_msgs/CompressedImage`` (JPEG or PNG) as uint8 RGB or grey."""
+    fmt = str(msg.format).lower()
+    if "compresseddepth" in fmt or (fmt and not any(k in fmt for k in _COMPRESSED)):
+        raise DataError(f"{what}: unknown compressed image format {msg.format!r}; supported: JPEG and PNG")
+    return decode_image_bytes(np.asarray(msg.data, dtype=np.uint8), what)
+
+
+# -- the adapter ------------------------------------------------------------------------------
+
+
+class _PoseCollector:
+    """Poses of one topic, checked for finite values and increasing stamps as they arrive."""
+
+    def __init__(self, topic: str, what: str) -> None:
+        self.topic = topic
+        self.what = what
+        self.stamps: list[int] = []
+        self.poses: list[np.ndarray] = []
+
+    def add(self, dataset: RosbagDataset, ns: int, msg: Any, msgtype: str) -> None:
+        """Take one message (bad ones are reported through the dataset's skip log)."""
+        pose = pose_of_message(msg, msgtype)
+        if not finite_pose(pose):
+            dataset.skips.problem(
+                "bad pose", f"{self.topic}: {self.what} pose at t={ns / 1e9:.6f} s is not finite (NaN or inf)"
+            )
+            return
+        if dataset.check_order(self.topic, ns, self.stamps[-1] if self.stamps else None):
+            self.stamps.append(ns)
+            self.poses.append(pose)
+
+    def series(self) -> PoseSeries:
+        """The collected poses."""
+        ts = seconds_from_ns(np.asarray(self.stamps, dtype=np.int64))
+        return PoseSeries(ts, np.asarray(self.poses).reshape(-1, 4, 4), self.what)
+
+
+@dataclass
+class _ImuSamples:
+    """IMU messages of one topic: orientation when published, angular velocity, specific force."""
+
+    ns: list[int] = field(default_factory=list)
+    orientation: list[np.ndarray] = field(default_factory=list)
+    has_orientation: list[bool] = field(default_factory=list)
+    gyro: list[np.ndarray] = field(default_factory=list)
+    accel: list[np.ndarray] = field(default_factory=list)
+
+    def add(self, dataset: RosbagDataset, ns: int, msg: Any) -> None:
+        """Take one message (bad ones are reported through the dataset's skip log)."""
+        topic = dataset.params.imu_topic
+        q = np.array([msg.orientation.x, msg.orientation.y, msg.orientation.z, msg.orientation.w])
+        gyro = np.array([msg.angular_velocity.x, msg.angular_velocity.y, msg.angular_velocity.z])
+        accel = np.array([msg.linear_acceleration.x, msg.linear_acceleration.y, msg.linear_acceleration.z])
+        has_q = float(msg.orientation_covariance[0]) != -1.0 and quaternion_is_unit(q)
+        if not (has_q or (np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel)))):
+            dataset.skips.problem("bad imu", f"{topic}: IMU message at t={ns / 1e9:.6f} s is not finite")
+            return
+        if not dataset.check_order(topic, ns, self.ns[-1] if self.ns else None):
+            return
+        self.ns.append(ns)
+        self.orientation.append(q)
+        self.has_orientation.append(has_q)
+        self.gyro.append(gyro)
+        self.accel.append(accel)
+
+
+class RosbagDataset(RecordedDataset):
+    """A ROS 1 or ROS 2 (sqlite3, MCAP) bag: camera, odometry, IMU and ground-truth topics."""
+
+    name = "rosbag"
+    Params = RosbagParams
+    params: RosbagParams
+
+    def __init__(self, params: RosbagParams) -> None:
+        super().__init__(params)
+        if not params.path:
+            raise DataError("dataset=rosbag needs the bag: dataset.path=<file.bag | ROS 2 bag folder | file.mcap>")
+        self.path = Path(params.path).expanduser()
+        self.trimmed = 0
+        reader = open_bag(self.path, params.typestore)
+        try:
+            self.image_type = self._topic(reader, "image_topic", IMAGE_TYPES, required=True)
+            self._topic(reader, "odometry_topic", POSE_TYPES, required=True)
+            imu_type = self._topic(reader, "imu_topic", IMU_TYPES, required=False)
+            gt_type = self._topic(reader, "ground_truth_topic", POSE_TYPES, required=False)
+            info_type = self._topic(reader, "camera_info_topic", CAMERA_INFO_TYPES, required=False)
+            self.image_count = int(reader.topics[params.image_topic].msgcount)
+            # One pass over the small topics (a second pass would read an MCAP file's chunks again).
+            odometry = _PoseCollector(params.odometry_topic, "odometry")
+            ground_truth = _PoseCollector(params.ground_truth_topic, "ground truth") if gt_type else None
+            imu = _ImuSamples() if imu_type else None
+            info: Any = None
+            topics = {params.odometry_topic, params.ground_truth_topic, params.imu_topic, params.camera_info_topic}
+            for topic, _, ns, msg, msgtype in self._messages(reader, topics - {""}):
+                if topic == params.odometry_topic:
+                    odometry.add(self, ns, msg, msgtype)
+                if ground_truth is not None and topic == params.ground_truth_topic:
+                    ground_truth.add(self, ns, msg, msgtype)
+                if imu is not None and topic == params.imu_topic:
+                    imu.add(self, ns, msg)
+                if info is None and info_type is not None and topic == params.camera_info_topic:
+                    info = msg
+            self.odometry = odometry.series()
+            if len(self.odometry) == 0:
+                raise DataError(f"{self.path}: topic {params.odometry_topic} has no usable odometry message")
+            self.ground_truth = ground_truth.series() if ground_truth is not None else None
+            self.attitude = self._attitude(imu) if imu is not None else None
+            calibration = self._calibration(reader, info_type is not None, info)
+        finally:
+            reader.close()
+        self.calibration = self.prepare_calibration(calibration)
+
+    # -- setup ------------------------------------------------------------------------------
+
+    def _topic(self, reader: Any, key: str, types: tuple[str, ...], required: bool) -> str | None:
+        topic = getattr(self.params, key)
+        if not topic:
+            if required:
+                candidates = [r.topic for r in topic_rows(reader) if r.msgtype in types]
+                raise DataError(
+                    f"dataset.{key} is not set; topics of type {' or '.join(t.split('/')[-1] for t in types)} in "
+                    f"{self.path}: {', '.join(candidates) or 'none'} (all topics: {describe_topics(reader)})"
+                )
+            return None
+        topics = reader.topics
+        if topic not in topics:
+            raise DataError(
+                f"dataset.{key}={topic}: no such topic in {self.path}. Topics in the bag: "
+                f"{describe_topics(reader, types)}"
+            )
+        msgtype = topics[topic].msgtype
+        if msgtype not in types:
+            raise DataError(
+                f"dataset.{key}={topic} carries {msgtype}, but it must be one of {', '.join(types)}. Topics of "
+                f"those types: {', '.join(r.topic for r in topic_rows(reader) if r.msgtype in types) or 'none'}"
+            )
+        if topics[topic].msgcount == 0:
+            raise DataError(f"dataset.{key}={topic}: the topic has no messages in {self.path}")
+        return str(msgtype)
+
+    def _messages(self, reader: Any, topics: set[str]) -> Iterator[tuple[str, int, int, Any, str]]:
+        """``(topic, position, ns, message, type)`` of some topics in bag order; bad messages are reported."""
+        connections = [c for c in reader.connections if c.topic in topics]
+        positions = dict.fromkeys(topics, -1)
+        for connection, bag_ns, raw in reader.messages(connections=connections):
+            topic = connection.topic
+            positions[topic] += 1
+            try:
+                msg = reader.deserialize(raw, connection.msgtype)
+                ns = bag_ns if self.params.stamps == "bag" else _stamp_ns(msg)
+            except Exception as exc:
+                self.skips.problem(
+                    "corrupt message",
+                    f"{topic}: message {positions[topic]} (received at t={bag_ns / 1e9:.6f} s) cannot be decoded "
+                    f"({type(exc).__name__}: {exc}); the bag is corrupt or truncated there",
+                )
+                continue
+            if ns == 0 and self.params.stamps == "header":
+                raise DataError(
+                    f"{topic}: message {positions[topic]} has header.stamp 0 (its publisher leaves the stamp unset); "
+                    "use the recorder's receive times with dataset.stamps=bag"
+                )
+            yield topic, positions[topic], ns, msg, connection.msgtype
+
+    def check_order(self, topic: str, ns: int, last: int | None) -> bool:
+        """Whether a stamp comes after the previous one; reports duplicates and disorder."""
+        if last is None or ns > last:
+            return True
+        kind = "duplicated timestamp" if ns == last else "timestamp out of order"
+        self.skips.problem(
+            kind,
+            f"{topic}: header stamp {ns / 1e9:.9f} s is not after the previous message's {last / 1e9:.9f} s "
+            "(stamps: bag uses the recorder's clock instead)",
+        )
+        return False
+
+    def _attitude(self, samples: _ImuSamples) -> ValueSeries | None:
+        p = self.params
+        if not samples.ns:
+            return None
+        ts = seconds_from_ns(np.asarray(samples.ns, dtype=np.int64))
+        imu_to_base = None if p.imu_to_base is None else np.asarray(p.imu_to_base, dtype=np.float64)
+        if imu_to_base is not None and imu_to_base.shape not in ((3, 3), (4, 4)):
+            raise DataError(f"dataset.imu_to_base must be 3x3 or 4x4, got shape {imu_to_base.shape}")
+        use_message = p.imu_orientation == "message" or (p.imu_orientation == "auto" and all(samples.has_orientation))
+        if use_message:
+            if not all(samples.has_orientation):
+                raise DataError(
+                    f"{p.imu_topic}: {samples.has_orientation.count(False)} IMU messages carry no orientation "
+                    "(orientation_covariance[0] = -1 or a zero quaternion); use dataset.imu_orientation=filter"
+                )
+            values = np.array([roll_pitch_of_base(q, imu_to_base) for q in samples.orientation])
+        else:
+            gyro = np.asarray(samples.gyro)
+            accel = np.asarray(samples.accel)
+            if not (np.all(np.isfinite(gyro)) and np.all(np.isfinite(accel))):
+                raise DataError(f"{p.imu_topic}: non-finite gyro or accelerometer values; the filter needs both")
+            values = roll_pitch_from_inertial(ts, gyro, accel, p.imu_gain, imu_to_base)
+        return ValueSeries(ts, values, "imu roll/pitch")
+
+    def _calibration(self, reader: Any, has_info: bool, info: Any) -> Calibration:
+        p = self.params
+        if p.calibration_file:
+            calibration = read_calibration_yaml(Path(p.calibration_file).expanduser())
+            mounting = mounting_matrix(p, self.name)
+            return calibration if mounting is None else calibration.model_copy(update={"camera_to_base": mounting})
+        if not has_info:
+            infos = [r.topic for r in topic_rows(reader) if r.msgtype in CAMERA_INFO_TYPES]
+            raise DataError(
+                "dataset=rosbag: no camera calibration. Give dataset.camera_info_topic=<topic> (CameraInfo topics "
+                f"in the bag: {', '.join(infos) or 'none'}) or dataset.calibration_file=<calibration.yaml>"
+            )
+        camera_to_base = require_mounting(p, self.name)
+        if info is None:
+            raise DataError(f"{p.camera_info_topic}: no readable CameraInfo message in {self.path}")
+        k = getattr(info, "k", None)
+        k = getattr(info, "K", None) if k is None else k
+        d = getattr(info, "d", None)
+        d = getattr(info, "D", None) if d is None else d
+        return calibration_from_camera_info(
+            int(info.width),
+            int(info.height),
+            np.asarray(k, dtype=np.float64).tolist(),
+            np.asarray(d, dtype=np.float64).tolist(),
+            str(info.distortion_model),
+            camera_to_base,
+            f"{p.camera_info_topic} in {self.path}",
+        )
+
+    # -- the Dataset contract -----------------------------------------------------------------
+
+    def __len__(self) -> int:
+        """Number of image messages (frames outside the odometry's span are dropped on the way)."""
+        return self.image_count
+
+    def begin(self, context: RunContext) -> None:
+        """Calibration, rate and name into the run context."""
+        context.calibration = self.calibration
+        context.sequence = self.params.sequence or self.path.stem
+        if len(self.odometry) > 1:
+            span = self.odometry.span()
+            assert span is not None
+            if span[1] > span[0] and self.image_count > 1:
+                context.rate_hz = float((self.image_count - 1) / (span[1] - span[0]))
+
+    def _image_loader(self, msg: Any, msgtype: str, what: str) -> Callable[[], np.ndarray]:
+        if msgtype == "sensor_msgs/msg/CompressedImage":
+            return lambda: decode_compressed_image(msg, "image data")
+        encoding = str(msg.encoding).lower()
+        if encoding not in _ENCODINGS:
+            # Every frame of the topic would fail the same way: an error, whatever `strict` says.
+            raise DataError(
+                f"dataset={self.name}: {what}: unknown image encoding {msg.encoding!r}; supported: "
+                f"{', '.join(SUPPORTED_ENCODINGS)}"
+            )
+        return lambda: decode_raw_image(msg, "image data")
+
+    def frames(self) -> Iterator[Frame]:
+        """Image messages in time order with odometry, IMU roll/pitch and ground truth at their stamps."""
+        p = self.params
+        span = self.odometry.span()
+        assert span is not None
+        self.yielded = self.trimmed = 0
+        reader = open_bag(self.path, p.typestore)
+        try:
+            last: int | None = None
+            for _, index, ns, msg, msgtype in self._messages(reader, {p.image_topic}):
+                if not self.check_order(p.image_topic, ns, last):
+                    continue
+                last = ns
+                t = float(seconds_from_ns(np.asarray([ns], dtype=np.int64))[0])
+                if t < span[0] - p.max_time_diff or t > span[1] + p.max_time_diff:
+                    self.trimmed += 1
+                    continue
+                odometry = self.odometry.at(t, p.max_time_diff, p.interpolate)
+                if odometry is None:
+                    self.skips.problem(
+                        "no odometry",
+                        f"no {p.odometry_topic} message within {p.max_time_diff} s of image {index} (t={t:.6f} s); "
+                        "raise dataset.max_time_diff if the odometry is slow",
+                    )
+                    continue
+                what = f"{p.image_topic} message {index} (t={t:.6f} s)"
+                image = self.image_source(self._image_loader(msg, msgtype, what), what)
+                if image is None:
+                    continue
+                roll_pitch = None if self.attitude is None else self.attitude.at(t, p.max_time_diff, True)
+                gt = None if self.ground_truth is None else self.ground_truth.at(t, p.max_time_diff, p.interpolate)
+                self.yielded += 1
+                yield Frame(
+                    index=index,
+                    timestamp=t,
+                    image=image,
+                    odometry=odometry,
+                    calibration=self.calibration,
+                    imu_roll_pitch=None if roll_pitch is None else (float(roll_pitch[0]), float(roll_pitch[1])),
+                    ground_truth=gt,
+                )
+        finally:
+            reader.close()
+
+    def finalize(self, context: RunContext) -> None:
+        """Skips and frames outside the odometry's span into metrics.json."""
+        super().finalize(context)
+        context.metrics["dataset"]["trimmed"] = self.trimmed
+
+
+def quaternion_is_unit(q: np.ndarray) -> bool:
+    """Whether ``(x, y, z, w)`` is a finite unit quaternion (to 1 %)."""
+    return bool(np.all(np.isfinite(q)) and math.isclose(float(np.linalg.norm(q)), 1.0, abs_tol=1e-2))
+
+
+@hookimpl
+def sgf_register_stages(registry: StageRegistry) -> None:
+    """Register the ROS bag dataset."""
+    registry.add(RosbagDataset)
