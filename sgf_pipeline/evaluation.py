@@ -42,6 +42,7 @@ class ErrorStatistics:
         """Plain-data form for JSON."""
         return asdict(self)
 
+
 # evo logs every result table at INFO; the project reports its own numbers.
 logging.getLogger("evo").setLevel(logging.WARNING)
 
