@@ -40,7 +40,7 @@ class SelectedView:
 
 def _group_colour(group_id: int) -> tuple[int, int, int]:
     hue = (group_id * 47) % 180
-    hsv = np.uint8([[[hue, 220, 255]]])
+    hsv = np.array([[[hue, 220, 255]]], dtype=np.uint8)
     r, g, b = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0]
     return int(r), int(g), int(b)
 
@@ -165,9 +165,9 @@ def plot_groups(path: Path, views: list[SelectedView], groups: int = 6, members:
         ax.axis("off")
     for r, group in enumerate(largest):
         for c, view in enumerate(group[:members]):
-            ys, xs = (view.outline[:, 1], view.outline[:, 0]) if len(view.outline) else (None, None)
             crop = view.crop
-            if ys is not None:
+            if len(view.outline):
+                ys, xs = view.outline[:, 1], view.outline[:, 0]
                 pad = 20
                 y0, y1 = max(0, ys.min() - pad), min(crop.shape[0], ys.max() + pad)
                 x0, x1 = max(0, xs.min() - pad), min(crop.shape[1], xs.max() + pad)
