@@ -51,7 +51,7 @@ def default_markings(length: float = 36.0, period: float = 3.0) -> list[Marking]
     """Markings along the route, one group every ``period`` m: stripes, a bar, a tilted plate."""
     out: list[Marking] = []
     next_id = 1
-    for k, x0 in enumerate(np.arange(1.0, length, period)):
+    for k, x0 in enumerate(float(x) for x in np.arange(1.0, length, period)):
         side = 1.0 if k % 2 == 0 else -1.0
         for j in range(3):  # three crosswalk stripes across the path
             out.append(_rectangle(next_id, x0 + 0.45 * j, 0.9 * side, 0.22, 1.2, 0.0))

@@ -138,7 +138,7 @@ def test_visible_mask_excludes_ground_behind_the_camera() -> None:
     grid = BevGrid(0.05, -6.0, 6.0, -3.0, 3.0)
     h = bev_to_image_homography(calibration, grid)
     mask = visible_mask(h, grid, 640, 480)
-    x, _ = grid.pixel_to_ground(0.0, np.arange(grid.height, dtype=np.float64))
+    x, _ = grid.pixel_to_ground(np.zeros(grid.height), np.arange(grid.height, dtype=np.float64))
     depth = (np.stack([np.zeros(grid.height), np.arange(grid.height), np.ones(grid.height)], axis=1) @ h.T)[:, 2]
     assert not mask[depth <= 0].any()
     assert mask[np.argmin(np.abs(x))].any()  # the ground under the camera is seen

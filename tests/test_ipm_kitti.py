@@ -99,7 +99,8 @@ def test_the_curb_and_the_long_crack_come_out_straight_along_the_motion(kitti) -
     dark = cv2.morphologyEx(grey, cv2.MORPH_BLACKHAT, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (9, 9)))
 
     def band(left: float, right: float) -> slice:
-        return slice(round(grid.ground_to_pixel(0.0, left)[0]), round(grid.ground_to_pixel(0.0, right)[0]))
+        u, _ = grid.ground_to_pixel(np.zeros(2), np.array([left, right]))
+        return slice(round(float(u[0])), round(float(u[1])))
 
     curb_band, crack_band = band(5.4, 4.2), band(1.5, 0.6)
     # The left curb: the road (dark, right) meets the kerb stone (bright, left): the strongest

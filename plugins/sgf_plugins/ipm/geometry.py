@@ -135,44 +135,29 @@ def bev_to_image_homography(
 def visible_mask(homography: np.ndarray, grid: BevGrid, image_width: int, image_height: int) -> np.ndarray:
     """BEV pixels whose centre maps in front of the camera and inside ``[0, W-1] x [0, H-1]`` of the image.
 
-    Every condition is linear in the BEV column for a fixed row, so each row's visible pixels are
-    one interval: the mask costs a few vector operations per row, not a projection per pixel.
+    Every condition is linear in the BEV column ``u`` for a fixed row ``v`` (``a u + b(v) >= 0``), so
+    each row's visible pixels are one interval: the mask costs a few vector operations per row,
+    not a projection per pixel.
     """
+    h = np.asarray(homography, dtype=np.float64)
+    w1, h1 = image_width - 1.0, image_height - 1.0
+    # Rows of h applied to (u, v, 1): s (image x times depth), t (image y times depth), w (depth).
+    # Conditions: w - MIN_DEPTH >= 0, s >= 0, (W-1) w - s >= 0, t >= 0, (H-1) w - t >= 0.
+    forms = np.array([h[2], h[0], w1 * h[2] - h[0], h[1], h1 * h[2] - h[1]])
+    forms[0, 2] -= MIN_DEPTH
+    a = forms[:, 0]
     rows = np.arange(grid.height, dtype=np.float64)
-    h = homography
-    # For the pixel (u, v): s = h0.(u,v,1), t = h1.(u,v,1), w = h2.(u,v,1) (depth along the optical axis).
-    slope = np.stack([h[0, 0] + 0 * rows, h[1, 0] + 0 * rows, h[2, 0] + 0 * rows])
-    offset = np.stack([h[0, 1] * rows + h[0, 2], h[1, 1] * rows + h[1, 2], h[2, 1] * rows + h[2, 2]])
-    # Conditions a*u + b >= 0: w - MIN_DEPTH, s, (W-1) w - s, t, (H-1) w - t.
-    a = np.stack(
-        [
-            slope[2],
-            slope[0],
-            (image_width - 1) * slope[2] - slope[0],
-            slope[1],
-            (image_height - 1) * slope[2] - slope[1],
-        ]
-    )
-    b = np.stack(
-        [
-            offset[2] - MIN_DEPTH,
-            offset[0],
-            (image_width - 1) * offset[2] - offset[0],
-            offset[1],
-            (image_height - 1) * offset[2] - offset[1],
-        ]
-    )
+    b = forms[:, 1:2] * rows + forms[:, 2:3]  # (5, rows)
     lo = np.zeros(grid.height)
     hi = np.full(grid.height, grid.width - 1.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bound = -b / a
-    positive = a > 0
-    negative = a < 0
-    lo = np.maximum(lo, np.where(positive, bound, -np.inf).max(axis=0))
-    hi = np.minimum(hi, np.where(negative, bound, np.inf).min(axis=0))
-    never = ((a == 0) & (b < 0)).any(axis=0)
+    for k in range(5):
+        if a[k] > 0.0:
+            lo = np.maximum(lo, -b[k] / a[k])
+        elif a[k] < 0.0:
+            hi = np.minimum(hi, -b[k] / a[k])
+        else:
+            hi = np.where(b[k] < 0.0, -1.0, hi)
     first = np.ceil(lo - 1e-9)
     last = np.floor(hi + 1e-9)
-    last[never] = -1.0
     cols = np.arange(grid.width, dtype=np.float64)
-    return (cols[None, :] >= first[:, None]) & (cols[None, :] <= last[:, None])
+    return (cols >= first[:, None]) & (cols <= last[:, None])

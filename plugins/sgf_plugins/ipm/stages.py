@@ -113,8 +113,7 @@ class InversePerspectiveMapping(Stage):
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=0,
         )
-        bev[~valid] = 0
-        return bev, valid
+        return cv2.bitwise_and(bev, bev, mask=valid.view(np.uint8)), valid  # zero outside the view
 
     def warp_ids(
         self, ids: np.ndarray, homography: np.ndarray, valid: np.ndarray, image_shape: tuple[int, ...]
@@ -131,8 +130,7 @@ class InversePerspectiveMapping(Stage):
             borderMode=cv2.BORDER_CONSTANT,
             borderValue=0,
         )
-        out[~valid] = 0
-        return out
+        return cv2.bitwise_and(out, out, mask=valid.view(np.uint8))
 
     def _check(self, calibration: Calibration, pixels: np.ndarray) -> None:
         intr = calibration.intrinsics
