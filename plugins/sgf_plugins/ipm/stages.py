@@ -57,7 +57,13 @@ class IpmParams(StageParams):
 
 
 class InversePerspectiveMapping(Stage):
-    """Plain IPM: the calibrated camera's view of a flat ground, resampled onto a metric BEV grid."""
+    """Plain IPM: the calibrated camera's view of a flat ground, resampled onto a metric BEV grid.
+
+    The BEV's pixel <-> ground mapping is exactly its ``BevGrid`` (eq. 3-4 and eq. 9): ground
+    coordinates in the robot's base frame on the ground plane. ``Bev.instance_ids`` is the frame's
+    ground-truth instance mask warped with the same homography (nearest neighbour), so BEV masks
+    align pixel for pixel. One ``cv2.warpPerspective`` per frame, or kornia with ``backend=kornia``.
+    """
 
     kind = "ipm"
     name = "plain"
@@ -198,6 +204,9 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
     difference: ``theta = pitch - pitch_ref`` in eq. 2 (positive nose down, like ``alpha``) and
     ``psi = -(roll - roll_ref)`` in eq. 1 (eq. 1's rotation sense in image coordinates). A speed
     bump is compensated by its own pitch; a slope becomes the reference after half a queue.
+    ``Bev.roll`` and ``Bev.pitch`` carry the compensated relative roll and pitch; the BEV shows the
+    ground plane under the robot as seen at the reference attitude, so ground points lifted from
+    it (eq. 9) belong with the planar part (x, y, yaw) of the robot's pose.
     """
 
     name = "mc"
