@@ -131,7 +131,8 @@ def report(t: dict[str, float]) -> str:
     lines = [
         "## ipm",
         "",
-        f"{machine()}; {datetime.date.today().isoformat()}. `python bench/bench_ipm.py` (median of batches).",
+        f"{machine()}; {datetime.date.today().isoformat()}; load average {os.getloadavg()[0]:.1f} (shared machine: "
+        "figures are noisy). `python bench/bench_ipm.py` (median of batches).",
         "640x480 RGB camera image -> default BEV 256x256 (0.02 m/px, x 0.5-5.62 m, y +-2.56 m); cv2 on one thread.",
         "",
         "| per frame | ms | x cv2.remap |",
