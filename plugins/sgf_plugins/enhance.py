@@ -6,19 +6,21 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from sgf_pipeline import Stage, StageParams, StageRegistry, hookimpl
+from sgf_pipeline import DataError, Stage, StageParams, StageRegistry, hookimpl
 from sgf_pipeline.types import CameraImage, Frame
 
 
 def as_rgb(image: np.ndarray) -> np.ndarray:
     """An (H, W, 3) uint8 view of a grey or RGB image."""
+    if image.dtype != np.uint8:
+        raise DataError(f"camera images must be uint8 (grey or RGB), got dtype {image.dtype}")
     if image.ndim == 2:
         return np.repeat(image[:, :, None], 3, axis=2)
     if image.ndim == 3 and image.shape[2] == 3:
         return image
     if image.ndim == 3 and image.shape[2] == 1:
         return np.repeat(image, 3, axis=2)
-    raise ValueError(f"expected an (H, W) or (H, W, 3) image, got shape {image.shape}")
+    raise DataError(f"expected an (H, W) or (H, W, 3) image, got shape {image.shape}")
 
 
 class NoEnhancement(Stage):
@@ -55,7 +57,7 @@ class ClaheEnhancement(Stage):
     def process(self, frame: Frame) -> CameraImage:
         """The frame's image with equalised local contrast."""
         image = frame.image
-        if image.ndim == 2:
+        if image.ndim == 2 and image.dtype == np.uint8:
             return CameraImage(as_rgb(self._clahe.apply(image)), frame.index)
         lab = cv2.cvtColor(as_rgb(image), cv2.COLOR_RGB2LAB)
         lab[:, :, 0] = self._clahe.apply(np.ascontiguousarray(lab[:, :, 0]))

@@ -1,0 +1,84 @@
+"""The reference attitude of MC-IPM: a robust average over a queue of the last N poses (paper Sec. III-A)."""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+ReferenceCenter = Literal["median", "mean"]
+
+
+@dataclass(frozen=True)
+class ReferenceAttitude:
+    """The reference roll and pitch (rad) and how many queued poses were averaged into it."""
+
+    roll: float
+    pitch: float
+    inliers: int
+    queued: int
+
+
+class PoseQueue:
+    """The last ``size`` attitudes and their average without pitch outliers (paper: N=50, d_theta=0.025 rad).
+
+    The paper stores N poses, averages them, and leaves out of the average the poses whose pitch
+    differs by more than ``d_theta`` -- from what, it does not say. Here that is a choice
+    (``center``), and the steps are:
+
+    1. push the current ``(roll, pitch)``; the queue keeps the last ``size`` of them;
+    2. centre ``c``: the median of the queued pitches (``median``, default), or their mean (``mean``,
+       the literal "average, then exclude" reading, which a long slope drags between two levels);
+    3. inliers: the queued poses with ``|pitch - c| <= pitch_threshold`` (and, when
+       ``roll_threshold`` is set, ``|roll - median roll| <= roll_threshold``);
+    4. reference: the mean roll and mean pitch of the inliers (the centre itself if none).
+
+    With the median, a disturbance shorter than half the queue (a speed bump, a crack) never moves
+    the reference: its poses are outliers and the relative pitch is the bump's own. A slope that
+    lasts longer than half the queue becomes the majority: the centre jumps to it, the flat poses
+    become the outliers, and the reference follows the slope, so a constant slope is not
+    compensated away. The transition takes ``size // 2 + 1`` poses.
+    """
+
+    def __init__(
+        self,
+        size: int = 50,
+        pitch_threshold: float = 0.025,
+        center: ReferenceCenter = "median",
+        roll_threshold: float | None = None,
+    ) -> None:
+        if size < 1:
+            raise ValueError(f"the pose queue needs at least one pose, got size={size}")
+        self.size = size
+        self.pitch_threshold = pitch_threshold
+        self.center = center
+        self.roll_threshold = roll_threshold
+        self._poses: deque[tuple[float, float]] = deque(maxlen=size)
+
+    def __len__(self) -> int:
+        return len(self._poses)
+
+    def reset(self) -> None:
+        """Forget every queued pose."""
+        self._poses.clear()
+
+    def push(self, roll: float, pitch: float) -> None:
+        """Append the current attitude (the oldest leaves a full queue)."""
+        self._poses.append((float(roll), float(pitch)))
+
+    def reference(self) -> ReferenceAttitude:
+        """The robust average attitude of the queue (steps 2-4 of the class docstring)."""
+        if not self._poses:
+            raise ValueError("the pose queue is empty: push the current attitude first")
+        poses = np.asarray(self._poses, dtype=np.float64)
+        rolls, pitches = poses[:, 0], poses[:, 1]
+        center = float(np.median(pitches)) if self.center == "median" else float(pitches.mean())
+        keep = np.abs(pitches - center) <= self.pitch_threshold
+        if self.roll_threshold is not None:
+            keep &= np.abs(rolls - np.median(rolls)) <= self.roll_threshold
+        count = int(keep.sum())
+        if count == 0:
+            return ReferenceAttitude(float(np.median(rolls)), center, 0, len(poses))
+        return ReferenceAttitude(float(rolls[keep].mean()), float(pitches[keep].mean()), count, len(poses))

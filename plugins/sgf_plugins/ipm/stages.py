@@ -1,0 +1,260 @@
+"""The IPM stages: plain inverse perspective mapping and motion-compensated IPM (paper Sec. III-A)."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import cv2
+import numpy as np
+from pydantic import Field, model_validator
+
+from sgf_pipeline import ConfigError, DataError, RunContext, Stage, StageParams
+from sgf_pipeline.calibration import Calibration
+from sgf_pipeline.geometry import rpy_from_rotation
+from sgf_pipeline.types import Bev, BevGrid, CameraImage, Frame
+from sgf_plugins.ipm.geometry import RollAxis, bev_to_image_homography, visible_mask
+from sgf_plugins.ipm.reference import PoseQueue, ReferenceAttitude, ReferenceCenter
+
+_INTERPOLATION = {"linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST, "cubic": cv2.INTER_CUBIC}
+
+
+class IpmParams(StageParams):
+    """The metric BEV grid (the virtual camera of eq. 3-4) and how the image is resampled into it."""
+
+    resolution: float = Field(0.02, gt=0.0, description="metres per BEV pixel")
+    x_min: float = Field(0.5, description="near edge of the BEV, metres ahead of the base origin")
+    x_max: float = Field(5.62, description="far edge of the BEV, metres ahead of the base origin")
+    y_min: float = Field(-2.56, description="right edge of the BEV (metres, y is left)")
+    y_max: float = Field(2.56, description="left edge of the BEV (metres, y is left)")
+    interpolation: Literal["linear", "nearest", "cubic"] = Field(
+        "linear", description="image resampling (cubic: cv2 backend only)"
+    )
+    backend: Literal["cv2", "kornia"] = Field(
+        "cv2", description="cv2: one warpPerspective per frame; kornia: torch warp (batched, differentiable, GPU)"
+    )
+    device: str = Field("auto", description="kornia backend device: auto (cuda when available), cpu, cuda, cuda:1, ...")
+
+    @model_validator(mode="after")
+    def _check_grid(self) -> IpmParams:
+        for low, high, axis in ((self.x_min, self.x_max, "x"), (self.y_min, self.y_max, "y")):
+            if high <= low:
+                raise ValueError(f"{axis}_max ({high}) must be greater than {axis}_min ({low})")
+            cells = (high - low) / self.resolution
+            if abs(cells - round(cells)) > 1e-6 * max(1.0, cells):
+                raise ValueError(
+                    f"the {axis} extent {high - low:g} m is not a whole number of {self.resolution:g} m pixels "
+                    f"({cells:.4f}); adjust {axis}_min/{axis}_max or resolution"
+                )
+        if self.backend == "kornia" and self.interpolation == "cubic":
+            raise ValueError("interpolation=cubic is available with backend=cv2 only; use linear or nearest")
+        return self
+
+    @property
+    def grid(self) -> BevGrid:
+        """The BEV grid these parameters describe."""
+        return BevGrid(self.resolution, self.x_min, self.x_max, self.y_min, self.y_max)
+
+
+class InversePerspectiveMapping(Stage):
+    """Plain IPM: the calibrated camera's view of a flat ground, resampled onto a metric BEV grid.
+
+    The BEV's pixel <-> ground mapping is exactly its ``BevGrid`` (eq. 3-4 and eq. 9): ground
+    coordinates in the robot's base frame on the ground plane. ``Bev.instance_ids`` is the frame's
+    ground-truth instance mask warped with the same homography (nearest neighbour), so BEV masks
+    align pixel for pixel. One ``cv2.warpPerspective`` per frame, or kornia with ``backend=kornia``.
+    """
+
+    kind = "ipm"
+    name = "plain"
+    output = "bev"
+    Params = IpmParams
+
+    def __init__(self, params: IpmParams) -> None:
+        super().__init__(params)
+        self.params: IpmParams = params
+        self.grid = params.grid
+        self._checked: Calibration | None = None
+        self._device: str | None = None
+
+    def begin(self, context: RunContext) -> None:
+        """Forget the calibration checked on the previous sequence."""
+        self._checked = None
+
+    def compensation(self, frame: Frame) -> tuple[float, float]:
+        """``(psi, theta)`` of eq. 1-2 for this frame: none for plain IPM."""
+        return 0.0, 0.0
+
+    def homography(self, calibration: Calibration, psi: float = 0.0, theta: float = 0.0) -> np.ndarray:
+        """BEV index coordinates -> image pixels for this stage's grid (eq. 1-4)."""
+        return bev_to_image_homography(calibration, self.grid, psi, theta)
+
+    def process(self, frame: Frame, image: CameraImage) -> Bev:
+        """The metric BEV of the frame's (enhanced) image."""
+        pixels = image.pixels
+        calibration = frame.calibration
+        self._check(calibration, pixels)
+        psi, theta = self.compensation(frame)
+        h = self.homography(calibration, psi, theta)
+        bev, valid = self.warp(pixels, h)
+        ids = frame.truth_ids()
+        instance_ids = None if ids is None else self.warp_ids(ids, h, valid, pixels.shape[:2])
+        return Bev(bev, valid, self.grid, frame.index, frame.timestamp, instance_ids, roll=-psi, pitch=theta)
+
+    def warp(self, pixels: np.ndarray, homography: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Resample an image into the BEV; pixels outside the visible ground are zero."""
+        if self.params.backend == "kornia":
+            from sgf_plugins.ipm.kornia_backend import resolve_device, warp_image
+
+            if self._device is None:
+                self._device = resolve_device(self.params.device)
+            return warp_image(pixels, homography, self.grid, self.params.interpolation, self._device)
+        height, width = pixels.shape[:2]
+        valid = visible_mask(homography, self.grid, width, height)
+        bev = cv2.warpPerspective(
+            pixels,
+            homography,
+            (self.grid.width, self.grid.height),
+            flags=_INTERPOLATION[self.params.interpolation] | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
+        return cv2.bitwise_and(bev, bev, mask=valid.view(np.uint8)), valid  # zero outside the view
+
+    def warp_ids(
+        self, ids: np.ndarray, homography: np.ndarray, valid: np.ndarray, image_shape: tuple[int, ...]
+    ) -> np.ndarray:
+        """Warp per-pixel instance ids with the same mapping, nearest neighbour (0 outside the view)."""
+        if ids.shape[:2] != tuple(image_shape[:2]):
+            raise DataError(f"instance id mask {ids.shape[:2]} does not match the image {tuple(image_shape[:2])}")
+        source = ids.astype(np.int32) if ids.dtype not in (np.uint16, np.int32) else ids
+        out = cv2.warpPerspective(
+            source,
+            homography,
+            (self.grid.width, self.grid.height),
+            flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=0,
+        )
+        return cv2.bitwise_and(out, out, mask=valid.view(np.uint8))
+
+    def _check(self, calibration: Calibration, pixels: np.ndarray) -> None:
+        intr = calibration.intrinsics
+        if pixels.ndim not in (2, 3) or pixels.shape[:2] != (intr.height, intr.width):
+            raise DataError(
+                f"image of shape {pixels.shape} does not match the calibration's {intr.width}x{intr.height} "
+                "(the intrinsics must belong to the image the IPM receives)"
+            )
+        if calibration is self._checked:
+            return
+        if calibration.height <= 0.0:
+            raise DataError(f"the camera is {calibration.height:.3f} m above the ground; IPM needs it above (> 0)")
+        valid = visible_mask(self.homography(calibration), self.grid, intr.width, intr.height)
+        if not valid.any():
+            g = self.grid
+            raise ConfigError(
+                f"no pixel of the BEV region x in [{g.x_min:g}, {g.x_max:g}] m, y in [{g.y_min:g}, {g.y_max:g}] m "
+                f"is visible from the camera ({calibration.height:.2f} m high, tilted {calibration.tilt:.3f} rad "
+                f"down, nearest visible ground about {_nearest_visible(calibration):.2f} m ahead); "
+                "set ipm.x_min/x_max/y_min/y_max to a region the camera sees"
+            )
+        self._checked = calibration
+
+
+def _nearest_visible(calibration: Calibration) -> float:
+    """Distance ahead of the camera of the ground seen by the bottom image row (inf when none)."""
+    intr = calibration.intrinsics
+    depression = calibration.tilt + math.atan((intr.height - 1 - intr.cy) / intr.fy)
+    if depression <= 0.0:
+        return math.inf
+    return calibration.height / math.tan(min(depression, math.pi / 2 - 1e-9)) + calibration.camera_to_base_matrix[0, 3]
+
+
+class MotionCompensatedIpmParams(IpmParams):
+    """MC-IPM: the grid of plain IPM, plus the pose queue and the attitude it compensates."""
+
+    queue_size: int = Field(50, ge=1, description="N: poses in the queue whose robust average is the reference")
+    pitch_threshold: float = Field(
+        0.025, gt=0.0, description="d_theta (rad): queued poses whose pitch is further from the centre are left out"
+    )
+    reference_center: ReferenceCenter = Field(
+        "median", description="centre the pitch threshold is measured from: median (robust) or mean (literal)"
+    )
+    roll_threshold: float | None = Field(
+        None, gt=0.0, description="also leave out poses whose roll is this far (rad) from the median; null = paper"
+    )
+    attitude: Literal["auto", "imu", "odometry"] = Field(
+        "auto", description="roll/pitch source: imu, odometry pose, or auto (IMU when the frame has it)"
+    )
+    roll_axis: RollAxis = Field(
+        "optical",
+        description="optical: eq. 1 as printed (image rotation about the principal point); "
+        "base: roll about the robot's forward axis (exact for a tilted camera)",
+    )
+    compensate_roll: bool = Field(True, description="apply eq. 1 (roll); false for an ablation")
+    compensate_pitch: bool = Field(True, description="apply theta in eq. 2 (pitch); false for an ablation")
+
+
+class MotionCompensatedIPM(InversePerspectiveMapping):
+    """MC-IPM: IPM compensated by the roll and pitch of the robot relative to a reference attitude (eq. 1-4).
+
+    Per frame: read the attitude (IMU roll/pitch, or the odometry pose's), push it into the pose
+    queue, take the queue's robust average as the reference (:class:`PoseQueue`: median-centred,
+    poses with a pitch further than ``pitch_threshold`` from it left out), and compensate the
+    difference: ``theta = pitch - pitch_ref`` in eq. 2 (positive nose down, like ``alpha``) and
+    ``psi = -(roll - roll_ref)`` in eq. 1 (eq. 1's rotation sense in image coordinates). A speed
+    bump is compensated by its own pitch; a slope becomes the reference after half a queue.
+    ``Bev.roll`` and ``Bev.pitch`` carry the compensated relative roll and pitch; the BEV shows the
+    ground plane under the robot as seen at the reference attitude, so ground points lifted from
+    it (eq. 9) belong with the planar part (x, y, yaw) of the robot's pose.
+    """
+
+    name = "mc"
+    Params = MotionCompensatedIpmParams
+
+    def __init__(self, params: MotionCompensatedIpmParams) -> None:
+        super().__init__(params)
+        self.params: MotionCompensatedIpmParams = params
+        self.queue = PoseQueue(
+            params.queue_size, params.pitch_threshold, params.reference_center, params.roll_threshold
+        )
+        self.last_reference: ReferenceAttitude | None = None
+
+    def begin(self, context: RunContext) -> None:
+        """Empty the pose queue: a new sequence starts with no reference."""
+        super().begin(context)
+        self.queue.reset()
+        self.last_reference = None
+
+    def attitude(self, frame: Frame) -> tuple[float, float]:
+        """The frame's ``(roll, pitch)`` in rad from the configured source."""
+        source = self.params.attitude
+        if source == "imu" or (source == "auto" and frame.imu_roll_pitch is not None):
+            if frame.imu_roll_pitch is None:
+                raise DataError(
+                    f"frame {frame.index} has no IMU roll/pitch but ipm.attitude=imu; "
+                    "use ipm.attitude=auto (odometry fallback) or ipm.attitude=odometry"
+                )
+            roll, pitch = frame.imu_roll_pitch
+            return float(roll), float(pitch)
+        odometry = np.asarray(frame.odometry, dtype=np.float64)
+        if odometry.shape != (4, 4) or not np.all(np.isfinite(odometry)):
+            raise DataError(f"frame {frame.index}: the odometry pose must be a finite 4x4 matrix")
+        roll, pitch, _ = rpy_from_rotation(odometry[:3, :3])
+        return roll, pitch
+
+    def compensation(self, frame: Frame) -> tuple[float, float]:
+        """``(psi, theta)`` of eq. 1-2: the current attitude relative to the queue's reference."""
+        roll, pitch = self.attitude(frame)
+        if not (math.isfinite(roll) and math.isfinite(pitch)):
+            raise DataError(f"frame {frame.index}: roll/pitch must be finite, got ({roll}, {pitch})")
+        self.queue.push(roll, pitch)
+        reference = self.queue.reference()
+        self.last_reference = reference
+        psi = -(roll - reference.roll) if self.params.compensate_roll else 0.0
+        theta = pitch - reference.pitch if self.params.compensate_pitch else 0.0
+        return psi, theta
+
+    def homography(self, calibration: Calibration, psi: float = 0.0, theta: float = 0.0) -> np.ndarray:
+        """BEV index coordinates -> image pixels, compensated by ``psi`` and ``theta`` (eq. 1-4)."""
+        return bev_to_image_homography(calibration, self.grid, psi, theta, self.params.roll_axis)

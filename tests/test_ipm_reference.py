@@ -1,0 +1,73 @@
+"""The MC-IPM reference attitude: queue of N poses, pitch outliers left out (paper: N=50, d_theta=0.025)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from sgf_plugins.ipm import PoseQueue
+
+
+def _fill(queue: PoseQueue, pitches, roll: float = 0.0) -> None:
+    for p in pitches:
+        queue.push(roll, p)
+
+
+def test_a_bump_does_not_move_the_reference() -> None:
+    queue = PoseQueue(50, 0.025)
+    _fill(queue, [0.002, -0.001] * 20)
+    for p in (-0.06, -0.04, 0.03, 0.06, 0.04):  # the bump: front wheels up, then down
+        queue.push(0.0, p)
+        reference = queue.reference()
+        assert reference.pitch == pytest.approx(0.0005, abs=1e-12)  # mean of the 40 flat poses only
+        assert reference.inliers == 40
+        assert p - reference.pitch == pytest.approx(p - 0.0005)  # theta is the bump's own pitch
+
+
+def test_a_slope_becomes_the_reference_after_half_a_queue() -> None:
+    queue = PoseQueue(50, 0.025)
+    _fill(queue, [0.0] * 50)
+    references = []
+    for _ in range(40):
+        queue.push(0.0, -0.08)  # uphill
+        references.append(queue.reference().pitch)
+    assert np.allclose(references[:24], 0.0)  # up to 24 of 50 poses on the slope: still the flat
+    assert references[24] == pytest.approx(-0.04)  # 25 of 50: the median lies between, no inlier
+    assert np.allclose(references[25:], -0.08)  # from N/2 + 1 poses on: the slope
+
+
+def test_the_literal_mean_centre_is_dragged_between_levels() -> None:
+    """center=mean (average first, then exclude) follows the slope later than the median (documented choice)."""
+    median, mean = PoseQueue(50, 0.025, "median"), PoseQueue(50, 0.025, "mean")
+    for q in (median, mean):
+        _fill(q, [0.0] * 50)
+    followed = {}
+    for name, q in (("median", median), ("mean", mean)):
+        for k in range(1, 51):
+            q.push(0.0, -0.08)
+            if abs(q.reference().pitch + 0.08) < 1e-9:
+                followed[name] = k
+                break
+    assert followed["median"] == 26
+    assert followed["mean"] > followed["median"]
+
+
+def test_roll_is_averaged_over_the_pitch_inliers_and_optionally_filtered() -> None:
+    plain, filtered = PoseQueue(10, 0.025), PoseQueue(10, 0.025, roll_threshold=0.02)
+    for q in (plain, filtered):
+        _fill(q, [0.0] * 9, roll=0.01)
+        q.push(0.05, 0.0)  # a crack under one wheel: roll only
+    assert plain.reference().roll == pytest.approx((9 * 0.01 + 0.05) / 10)
+    assert filtered.reference().roll == pytest.approx(0.01)
+    assert filtered.reference().inliers == 9
+
+
+def test_queue_keeps_the_last_n_and_resets() -> None:
+    queue = PoseQueue(3, 0.025)
+    _fill(queue, [0.1, 0.0, 0.0, 0.0])
+    assert len(queue) == 3 and queue.reference().pitch == 0.0
+    queue.reset()
+    assert len(queue) == 0
+    with pytest.raises(ValueError, match="empty"):
+        queue.reference()
+    with pytest.raises(ValueError, match="at least one"):
+        PoseQueue(0)
