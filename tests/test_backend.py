@@ -225,3 +225,31 @@ def test_loop_config_file_holds_the_defaults() -> None:
     assert raw.pop("name") == "icp"
     assert set(raw) == set(IcpLoopParams.model_fields)
     assert IcpLoopParams.model_validate(raw) == IcpLoopParams()
+
+
+def test_isam2_survives_a_long_straight_drive_and_anchors_in_a_map_at_its_end(tmp_path: Path) -> None:
+    from backend_world import GRID, drifting_odometry
+
+    from sgf_pipeline.sgf_map import MapGroup, MapView, SgfMap, save_map
+
+    # A straight 2.5 km without a loop: the far end is so uncertain that iSAM2's Cholesky
+    # factorization calls the system indeterminate after ~1.9 km (hence factorization: qr).
+    n = 2500
+    gt = np.stack([pose_from_xy_yaw(float(k), 0.0, 0.0) for k in range(n)])
+    odometry = drifting_odometry(gt, np.random.default_rng(4), 0.01, math.radians(0.1), 0.0, 0.0)
+    points = np.array([[2.0, 0.0], [2.5, 0.1], [3.0, -0.1], [2.2, 0.4]])
+    view = MapView(7, 123, 0.0, gt[-1], points, points.mean(0), np.zeros((10, 90)), np.zeros(10), GRID)
+    save_map(tmp_path / "map.safetensors", SgfMap((MapGroup(7, False, (view,)),), CALIBRATION))
+    backend = Isam2Backend(Isam2Params(save_map=False, prior_map=str(tmp_path / "map.safetensors")))
+    backend.begin(RunContext(run_dir=None, calibration=CALIBRATION))
+    cov = np.diag([0.05**2, 0.05**2, math.radians(1.0) ** 2])
+    anchor = LoopConstraints((LoopConstraint(123, n - 1, np.eye(4), cov, 7, False, 0.01, 1.0, from_map=True),))
+    estimate = None
+    for k in range(n):
+        frame = Frame(k, 0.1 * k, np.zeros((1, 1), np.uint8), odometry[k], CALIBRATION)
+        estimate = backend.process(frame=frame, loops=anchor if k == n - 1 else None)
+    assert estimate is not None
+    assert np.linalg.norm(odometry[-1][:2, 3] - gt[-1][:2, 3]) > 10.0
+    # the run now sits in the map frame: its last pose on the map's view pose
+    np.testing.assert_allclose(estimate.poses[n - 1][:2, 3], gt[-1][:2, 3], atol=0.1)
+    assert backend.graph.anchored and backend.graph.map_factors == 1

@@ -101,9 +101,14 @@ class LmParams(GraphParams):
 class Isam2Params(GraphParams):
     """Incremental smoothing and mapping (iSAM2), for online use."""
 
-    relinearize_threshold: float = Field(0.05, gt=0.0, description="relinearize a variable whose delta exceeds this")
+    factorization: Literal["qr", "cholesky"] = Field(
+        "qr", description="QR: robust on long loop-free drives, where Cholesky finds the system indeterminate"
+    )
+    relinearize_threshold: float = Field(0.1, gt=0.0, description="relinearize a variable whose delta exceeds this")
     relinearize_skip: int = Field(1, ge=1, description="check relinearization every this many updates")
-    loop_updates: int = Field(3, ge=0, description="extra iSAM2 updates on a frame that adds loops (big corrections)")
+    loop_updates: int = Field(
+        0, ge=0, description="extra iSAM2 updates on a frame that adds loops (each re-linearizes widely: costly)"
+    )
     final_batch: bool = Field(False, description="finish with a batch LM over the whole graph from iSAM2's estimate")
 
 
@@ -326,6 +331,7 @@ class Isam2Backend(_GraphBackend):
         settings = gtsam.ISAM2Params()
         settings.setRelinearizeThreshold(params.relinearize_threshold)
         settings.relinearizeSkip = params.relinearize_skip
+        settings.setFactorization(params.factorization.upper())
         return gtsam.ISAM2(settings)
 
     def process(self, frame: Frame, loops: LoopConstraints | None) -> PoseEstimate:
