@@ -398,4 +398,3 @@ def load_map(path: str | os.PathLike[str], calibration: Calibration | None = Non
     )
     sgf_map.check_calibration(calibration)
     return sgf_map
-
