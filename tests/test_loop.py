@@ -155,3 +155,29 @@ def test_an_sgf_of_an_unseen_frame_is_a_clear_error() -> None:
     bad = GroupAssignment(b, 0, False, 0.1, 0, 0.0, a, False)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="frame 99 reached the loop stage, which never saw that frame"):
         stage.process(frame=frames[1], assignments=GroupAssignments((bad,)), estimate=None)
+
+
+def test_two_different_shapes_in_one_group_give_no_factor() -> None:
+    frames = _straight_run(20, 0.4)
+    a = _view(frames[0], Marking(1, "arrow", (2.5, 0.0, 0.0)))
+    b = _view(frames[-1], Marking(2, "tee", (2.5, 0.0, 0.0)))
+    stage = IcpLoopClosing(IcpLoopParams(gate=False, extra_yaw_seeds=7))
+    found = [c for f in frames[:-1] for c in stage.process(frame=f, assignments=None, estimate=None).items]
+    mixed = GroupAssignment(b, 0, False, 0.6, 0, 0.4, a, False)  # type: ignore[arg-type]
+    found += stage.process(frame=frames[-1], assignments=GroupAssignments((mixed,)), estimate=None).items
+    assert found == []
+    assert stage.counts["icp"] == 1
+
+
+@pytest.mark.parametrize(("extra", "expected"), [(0, 0), (3, 1)])
+def test_extra_yaw_seeds_recover_from_a_wrong_column_shift(extra: int, expected: int) -> None:
+    frames = _straight_run(20, math.radians(100))
+    marking = Marking(1, "arrow", (2.5, 0.0, 0.3))
+    first, last = _view(frames[0], marking), _view(frames[-1], marking)
+    wrong = math.radians(100 - 90)  # a shift one quarter turn off
+    assignment = GroupAssignment(last, 0, False, 0.3, 2, wrong, first, False)  # type: ignore[arg-type]
+    stage = IcpLoopClosing(IcpLoopParams(extra_yaw_seeds=extra, seed_both_signs=False, min_separation_distance=5.0))
+    for f in frames[:-1]:
+        stage.process(frame=f, assignments=None, estimate=None)
+    loops = stage.process(frame=frames[-1], assignments=GroupAssignments((assignment,)), estimate=None).items
+    assert len(loops) == expected

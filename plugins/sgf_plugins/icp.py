@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 Metric = Literal["point_to_point", "point_to_line"]
 
@@ -40,6 +39,8 @@ def _perp(points: np.ndarray) -> np.ndarray:
 
 def line_normals(points: np.ndarray, neighbours: int) -> np.ndarray:
     """Unit normals (N, 2) of the local line through each point's ``neighbours`` nearest points (PCA)."""
+    from scipy.spatial import cKDTree
+
     k = min(max(neighbours, 2), len(points))
     _, idx = cKDTree(points).query(points, k=k)
     local = points[idx] - points[idx].mean(axis=1, keepdims=True)
@@ -85,6 +86,8 @@ class Icp2d:
         self.target = np.asarray(target, dtype=np.float64)
         if self.target.ndim != 2 or self.target.shape[1] != 2 or len(self.target) < 3:
             raise ValueError(f"ICP target must be (N>=3, 2) points, got shape {self.target.shape}")
+        from scipy.spatial import cKDTree  # imported here, so that listing plugins stays fast
+
         self.settings = settings
         self.tree = cKDTree(self.target)
         self.normals = line_normals(self.target, settings.normal_neighbours)
@@ -140,6 +143,8 @@ class Icp2d:
 
     def _evaluate(self, source: np.ndarray, transform: np.ndarray, converged: bool, iterations: int) -> IcpResult:
         """Fitness, two-way inlier ratio and the Hessian covariance of a final transform."""
+        from scipy.spatial import cKDTree
+
         cfg = self.settings
         moved = apply(transform, source)
         dist, rows = self.tree.query(moved, k=1)
