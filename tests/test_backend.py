@@ -253,3 +253,24 @@ def test_isam2_survives_a_long_straight_drive_and_anchors_in_a_map_at_its_end(tm
     # the run now sits in the map frame: its last pose on the map's view pose
     np.testing.assert_allclose(estimate.poses[n - 1][:2, 3], gt[-1][:2, 3], atol=0.1)
     assert backend.graph.anchored and backend.graph.map_factors == 1
+
+
+def test_pose2_keeps_the_odometry_height_roll_and_pitch(world) -> None:  # type: ignore[no-untyped-def]
+    from backend_world import World
+
+    from sgf_pipeline.geometry import rotation_rpy
+
+    frames = []
+    for f in world.frames:
+        tilt = np.eye(4)
+        tilt[:3, :3] = rotation_rpy(0.01, 0.03, 0.0)
+        tilt[2, 3] = 0.02 * f.index  # climbing
+        frames.append(Frame(f.index, f.timestamp, f.image, f.odometry @ tilt, CALIBRATION, ground_truth=f.ground_truth))
+    sloped = World(world.gt, np.stack([f.odometry for f in frames]), world.markings, frames, world.sgfs, world.truth)
+    context, estimates = feed(sloped, GtsamLmBackend(LmParams(save_map=False)), true_loops(world))
+    poses = context.trajectories["sgf"].poses
+    np.testing.assert_allclose(poses[:, 2, 3], 0.02 * np.arange(len(frames)), atol=1e-9)
+    roll, pitch, _ = rpy_from_rotation(poses[100][:3, :3])
+    assert (roll, pitch) == pytest.approx((0.01, 0.03), abs=1e-9)
+    np.testing.assert_allclose(estimates[-1].poses[len(frames) - 1], poses[-1], atol=1e-4)  # before the final LM
+    assert ate(poses, world.gt) < 0.15 * ate(world.odometry, world.gt)

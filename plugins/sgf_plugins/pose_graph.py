@@ -28,19 +28,24 @@ class PoseTable(Mapping[int, np.ndarray]):
 
     Snapshots share storage with the back-end: appending a pose never changes an older snapshot, and
     a re-optimised trajectory is written into a new buffer (copy on write), so a snapshot stays valid.
+    With ``lift``, each planar pose is returned composed with its frame's out-of-plane offset.
     """
 
-    def __init__(self, rows: dict[int, int], frames: list[int], buffer: np.ndarray, size: int) -> None:
+    def __init__(
+        self, rows: dict[int, int], frames: list[int], buffer: np.ndarray, size: int, lift: np.ndarray | None = None
+    ) -> None:
         self._rows = rows
         self._frames = frames
         self._buffer = buffer
         self._size = size
+        self._lift = lift
 
     def __getitem__(self, frame_index: int) -> np.ndarray:
         row = self._rows.get(frame_index)
         if row is None or row >= self._size:
             raise KeyError(frame_index)
-        return self._buffer[row].copy()
+        pose = self._buffer[row]
+        return pose @ self._lift[row] if self._lift is not None else pose.copy()
 
     def __contains__(self, frame_index: object) -> bool:
         row = self._rows.get(frame_index)  # type: ignore[call-overload]
@@ -54,25 +59,36 @@ class PoseTable(Mapping[int, np.ndarray]):
 
     def array(self) -> np.ndarray:
         """All poses as an (N, 4, 4) array, in frame order."""
-        return self._buffer[: self._size].copy()
+        poses = self._buffer[: self._size]
+        if self._lift is not None:
+            return np.einsum("nij,njk->nik", poses, self._lift[: self._size])
+        return poses.copy()
 
 
 class PoseStore:
-    """The growing, copy-on-write storage behind :class:`PoseTable` snapshots."""
+    """The growing, copy-on-write storage behind :class:`PoseTable` snapshots.
 
-    def __init__(self) -> None:
+    With ``lifted``, every frame also keeps an out-of-plane offset (height, roll, pitch of its
+    odometry), applied to its planar pose when read out, so a Pose2 graph keeps the odometry's
+    third dimension in the trajectory it publishes.
+    """
+
+    def __init__(self, lifted: bool = False) -> None:
         self.rows: dict[int, int] = {}
         self.frames: list[int] = []
         self.buffer = np.zeros((64, 4, 4))
+        self.lift: np.ndarray | None = np.zeros((64, 4, 4)) if lifted else None
         self.size = 0
 
-    def append(self, frame_index: int, pose: np.ndarray) -> None:
-        """Add the pose of a new frame."""
+    def append(self, frame_index: int, pose: np.ndarray, lift: np.ndarray | None = None) -> None:
+        """Add the pose of a new frame (and its out-of-plane offset, when the store is lifted)."""
         if self.size == len(self.buffer):
-            grown = np.zeros((2 * len(self.buffer), 4, 4))
-            grown[: self.size] = self.buffer[: self.size]
-            self.buffer = grown
+            self.buffer = _grown(self.buffer, self.size)
+        if self.lift is not None and self.size == len(self.lift):
+            self.lift = _grown(self.lift, self.size)
         self.buffer[self.size] = pose
+        if self.lift is not None:
+            self.lift[self.size] = np.eye(4) if lift is None else lift
         self.rows[frame_index] = self.size
         self.frames.append(frame_index)
         self.size += 1
@@ -91,12 +107,19 @@ class PoseStore:
 
     def snapshot(self) -> PoseTable:
         """A read-only view of the current poses."""
-        return PoseTable(self.rows, self.frames, self.buffer, self.size)
+        return PoseTable(self.rows, self.frames, self.buffer, self.size, self.lift)
 
     def get(self, frame_index: int) -> np.ndarray | None:
-        """The current pose of a frame, if it has one."""
+        """The current (planar, when lifted) pose of a frame, if it has one."""
         row = self.rows.get(frame_index)
         return None if row is None else self.buffer[row]
+
+
+def _grown(buffer: np.ndarray, size: int) -> np.ndarray:
+    """A buffer of twice the capacity holding the first ``size`` rows of ``buffer``."""
+    grown = np.zeros((2 * len(buffer), *buffer.shape[1:]))
+    grown[:size] = buffer[:size]
+    return grown
 
 
 @dataclass(frozen=True)
@@ -168,7 +191,7 @@ class PoseGraph:
         self.pose3 = pose == "pose3"
         self.noise = noise
         self.map_poses = dict(map_poses or {})
-        self.store = PoseStore()
+        self.store = PoseStore(lifted=not self.pose3)
         self.timestamps: list[float] = []
         self.factors: list[Any] = []
         self.values = gtsam.Values()
@@ -246,7 +269,10 @@ class PoseGraph:
         odometry = np.asarray(frame.odometry, dtype=np.float64)
         if odometry.shape != (4, 4) or not np.all(np.isfinite(odometry)):
             raise ValueError(f"frame {index}: odometry must be a finite 4x4 pose")
+        lift = None
         if not self.pose3:
+            # Pose2 corrects x, y, yaw; the odometry's height, roll and pitch ride along unchanged.
+            lift = invert(planar(odometry)) @ odometry
             odometry = planar(odometry)
         key = X(index)
         if self._last_odometry is None:
@@ -268,7 +294,7 @@ class PoseGraph:
             model = gtsam.noiseModel.Isotropic.Sigma(2, self.noise.imu_sigma_roll_pitch)
             self._add(gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.array([0.0, 0.0, 1.0])), model, gtsam.Unit3(up)))
         self._insert(key, initial)
-        self.store.append(index, self._matrix(self._gtsam_pose(initial)))
+        self.store.append(index, self._matrix(self._gtsam_pose(initial)), lift)
         self.timestamps.append(float(frame.timestamp))
         self._last_odometry = odometry
 
