@@ -69,7 +69,7 @@ _VIEW_TENSORS = (
 class MapDescriptor(SgfDescriptor):
     """An SGF descriptor from a prior map: ``sgf.frame_index`` is the map's frame, ``map_pose`` its pose there."""
 
-    map_pose: np.ndarray = field(default_factory=lambda: np.eye(4))
+    map_pose: np.ndarray
     ground_truth: np.ndarray | None = None
 
 
