@@ -253,10 +253,8 @@ class _GraphBackend(_Backend):
         """Timestamps, poses and the latest estimate of the processed frames."""
         if not self.graph.timestamps:
             return [], np.zeros((0, 4, 4)), None
-        estimate = self.estimate()
-        table = estimate.poses
-        array = table.array() if hasattr(table, "array") else np.stack([table[k] for k in table])
-        return self.graph.timestamps, array, estimate
+        table = self.graph.store.snapshot()
+        return self.graph.timestamps, table.array(), PoseEstimate(self.graph.store.frames[-1], table)
 
     def batch_optimize(self) -> None:
         """Levenberg-Marquardt over the whole graph from the current estimate."""
