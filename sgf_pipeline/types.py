@@ -217,7 +217,9 @@ class LoopConstraint:
     """A relative-pose constraint between two robot poses from an SGF match (eq. 11).
 
     ``relative`` is the 4x4 pose of ``frame_to``'s base in ``frame_from``'s base; ``covariance``
-    is 3x3 over the planar part ``(x, y, yaw)`` of that relative pose.
+    is 3x3 over the planar part ``(x, y, yaw)`` of that relative pose, in its local (right)
+    tangent space (GTSAM's ``Pose2`` convention). With ``from_map``, ``frame_from`` is a frame
+    of the prior SGF map (:mod:`sgf_pipeline.sgf_map`), not of this run: an inter-session factor.
     """
 
     frame_from: int
@@ -229,6 +231,7 @@ class LoopConstraint:
     fitness: float
     inlier_ratio: float
     instance_ids: tuple[int | None, int | None] = (None, None)
+    from_map: bool = False
 
 
 @dataclass(frozen=True)

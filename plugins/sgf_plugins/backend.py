@@ -1,0 +1,375 @@
+"""Back-ends of eq. 11: GTSAM batch Levenberg-Marquardt, iSAM2, and odometry only (the baseline).
+
+Every variant adds each processed frame's odometry, publishes a :class:`PoseEstimate` of every
+processed frame on every frame (online), writes the final trajectory as ``trajectory_sgf.tum``
+and, with ``save_map``, the run's SGF map (``sgf_map.safetensors``: the groups seen by the loop
+stage, from the optimized poses). With ``prior_map`` the run is localized on an earlier run's
+map: SGFs matched to it give inter-session factors to the map's frames, held by priors at their
+map poses, and the run's trajectory ends in the map's frame.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from sgf_pipeline import RunContext, Stage, StageParams, StageRegistry, hookimpl
+from sgf_pipeline.calibration import Calibration
+from sgf_pipeline.sgf_map import SgfMap, build_map, load_map, save_map
+from sgf_pipeline.trajectory import Trajectory
+from sgf_pipeline.types import Frame, LoopConstraints, PoseEstimate
+from sgf_plugins.pose_graph import NoiseSettings, PoseGraph, PoseStore, X
+
+log = logging.getLogger("sgf_pipeline")
+
+
+class BackendParams(StageParams):
+    """What every back-end writes at the end of a run."""
+
+    save_map: bool = Field(True, description="write the run's SGF map into the run directory")
+    map_file: str = Field("sgf_map.safetensors", description="file name of the saved SGF map")
+
+
+class GraphParams(BackendParams):
+    """The pose graph of eq. 11: pose type, noise models, robust kernel, prior map."""
+
+    pose: Literal["pose2", "pose3"] = Field("pose2", description="planar poses, or 3-D with IMU roll/pitch factors")
+    odometry_sigma_xy: float = Field(0.05, gt=0.0, description="odometry translation sigma over one metre (m/sqrt(m))")
+    odometry_sigma_yaw_deg: float = Field(
+        0.5, gt=0.0, description="odometry heading sigma over one metre (deg/sqrt(m))"
+    )
+    odometry_sigma_z: float = Field(0.02, gt=0.0, description="pose3: height sigma over one metre (m/sqrt(m))")
+    odometry_sigma_roll_pitch_deg: float = Field(
+        2.0, gt=0.0, description="pose3: roll/pitch sigma over one metre (deg/sqrt(m)); loose, the IMU observes them"
+    )
+    odometry_floor_xy: float = Field(0.005, gt=0.0, description="odometry translation sigma of a standstill (m)")
+    odometry_floor_yaw_deg: float = Field(0.05, gt=0.0, description="odometry heading sigma of a standstill (deg)")
+    imu_sigma_roll_pitch_deg: float = Field(0.5, gt=0.0, description="pose3: sigma of the IMU attitude factor (deg)")
+    loop_sigma_z: float = Field(0.05, gt=0.0, description="pose3: loop factor height sigma (m)")
+    loop_sigma_roll_pitch_deg: float = Field(1.0, gt=0.0, description="pose3: loop factor roll/pitch sigma (deg)")
+    loop_kernel: Literal["cauchy", "huber", "none"] = Field(
+        "cauchy", description="robust kernel on loop factors (cauchy ignores gross outliers, huber bounds them)"
+    )
+    loop_kernel_width: float = Field(
+        3.0,
+        gt=0.0,
+        description="kernel width in sigmas of the whitened loop error (a loop is closed from dead "
+        "reckoning while its error is below about twice this many sigmas of the odometry chain)",
+    )
+    prior_sigma_xy: float = Field(1e-3, gt=0.0, description="prior on the first pose (m), fixes the map frame")
+    prior_sigma_yaw_deg: float = Field(0.01, gt=0.0, description="prior on the first pose (deg)")
+    prior_map: str | None = Field(None, description="SGF map of an earlier run to localize on (inter-session factors)")
+    map_sigma_xy: float = Field(0.05, gt=0.0, description="prior sigma of a prior map's frame poses (m)")
+    map_sigma_yaw_deg: float = Field(0.5, gt=0.0, description="prior sigma of a prior map's frame poses (deg)")
+
+    def noise(self) -> NoiseSettings:
+        """The noise models in the graph's units (radians)."""
+        r = math.radians
+        return NoiseSettings(
+            odometry_sigma_xy=self.odometry_sigma_xy,
+            odometry_sigma_yaw=r(self.odometry_sigma_yaw_deg),
+            odometry_sigma_z=self.odometry_sigma_z,
+            odometry_sigma_roll_pitch=r(self.odometry_sigma_roll_pitch_deg),
+            odometry_floor_xy=self.odometry_floor_xy,
+            odometry_floor_yaw=r(self.odometry_floor_yaw_deg),
+            imu_sigma_roll_pitch=r(self.imu_sigma_roll_pitch_deg),
+            loop_sigma_z=self.loop_sigma_z,
+            loop_sigma_roll_pitch=r(self.loop_sigma_roll_pitch_deg),
+            loop_kernel=self.loop_kernel,
+            loop_kernel_width=self.loop_kernel_width,
+            prior_sigma_xy=self.prior_sigma_xy,
+            prior_sigma_yaw=r(self.prior_sigma_yaw_deg),
+            map_sigma_xy=self.map_sigma_xy,
+            map_sigma_yaw=r(self.map_sigma_yaw_deg),
+        )
+
+
+class LmParams(GraphParams):
+    """Batch Levenberg-Marquardt over the whole graph."""
+
+    optimize_every_loop: bool = Field(True, description="re-optimize the whole graph on every frame that adds loops")
+    max_iterations: int = Field(100, ge=1, description="LM iterations per optimisation")
+    relative_error_tol: float = Field(1e-6, gt=0.0, description="LM stops when the error improves by less (relative)")
+
+
+class Isam2Params(GraphParams):
+    """Incremental smoothing and mapping (iSAM2), for online use."""
+
+    factorization: Literal["qr", "cholesky"] = Field(
+        "qr", description="QR: robust on long loop-free drives, where Cholesky finds the system indeterminate"
+    )
+    relinearize_threshold: float = Field(0.1, gt=0.0, description="relinearize a variable whose delta exceeds this")
+    relinearize_skip: int = Field(1, ge=1, description="check relinearization every this many updates")
+    loop_updates: int = Field(
+        0, ge=0, description="extra iSAM2 updates on a frame that adds loops (each re-linearizes widely: costly)"
+    )
+    final_batch: bool = Field(False, description="finish with a batch LM over the whole graph from iSAM2's estimate")
+
+
+class _Backend(Stage):
+    """What the back-ends share: per-frame bookkeeping, the trajectory, metrics and the saved map."""
+
+    kind = "backend"
+    output = "estimate"
+
+    def __init__(self, params: BackendParams) -> None:
+        super().__init__(params)
+        self.begin(RunContext(run_dir=None))
+
+    def begin(self, context: RunContext) -> None:
+        """Forget the previous sequence."""
+        self.ground_truth: dict[int, np.ndarray] = {}
+        self.calibration: Calibration | None = context.calibration
+        self.loops_received = 0
+        self.update_seconds: list[float] = []
+
+    def _note(self, frame: Frame) -> None:
+        if frame.ground_truth is not None:
+            self.ground_truth[frame.index] = np.asarray(frame.ground_truth, dtype=np.float64)
+        if self.calibration is None:
+            self.calibration = frame.calibration
+
+    def poses(self) -> tuple[list[float], np.ndarray, PoseEstimate | None]:
+        """Timestamps, poses and the latest estimate of the processed frames."""
+        raise NotImplementedError
+
+    def finalize(self, context: RunContext) -> None:
+        """The optimized trajectory, back-end metrics and the run's SGF map."""
+        timestamps, poses, estimate = self.poses()
+        if len(timestamps) == 0 or estimate is None:
+            return
+        context.trajectories["sgf"] = Trajectory(np.asarray(timestamps), poses)
+        updates = np.asarray(self.update_seconds) * 1e3
+        metrics: dict[str, Any] = {
+            "variant": self.name,
+            "nodes": len(timestamps),
+            "loops_received": self.loops_received,
+            "update_ms_median": float(np.median(updates)) if updates.size else None,
+            "update_ms_max": float(updates.max()) if updates.size else None,
+        }
+        metrics.update(self.extra_metrics())
+        params = self.params
+        assert isinstance(params, BackendParams)
+        assignments = context.artifacts.get("group_assignments")
+        if params.save_map and context.run_dir is not None and assignments:
+            sgf_map = build_map(
+                assignments,
+                estimate.poses,
+                calibration=context.calibration or self.calibration,
+                sequence=context.sequence,
+                ground_truth=self.ground_truth,
+            )
+            path = Path(context.run_dir) / params.map_file
+            map_id = save_map(path, sgf_map)
+            metrics["map"] = {"file": params.map_file, "groups": len(sgf_map.groups), "views": len(sgf_map.views)}
+            context.artifacts["sgf_map"] = {"path": str(path), "map_id": map_id}
+        context.metrics.setdefault("backend", {}).update(metrics)
+
+    def extra_metrics(self) -> dict[str, Any]:
+        """Variant-specific metrics."""
+        return {}
+
+
+class OdometryBackend(_Backend):
+    """Odometry only, the baseline of Table 2: the estimate is the wheel odometry, loops are ignored."""
+
+    name = "none"
+    Params = BackendParams
+
+    def begin(self, context: RunContext) -> None:
+        """Forget the previous sequence."""
+        super().begin(context)
+        self.store = PoseStore()
+        self.timestamps: list[float] = []
+
+    def process(self, frame: Frame, loops: LoopConstraints | None) -> PoseEstimate:
+        """The odometry of every processed frame so far."""
+        t0 = time.perf_counter()
+        self._note(frame)
+        self.store.append(frame.index, np.asarray(frame.odometry, dtype=np.float64))
+        self.timestamps.append(float(frame.timestamp))
+        if loops is not None:
+            self.loops_received += len(loops.items)
+        self.update_seconds.append(time.perf_counter() - t0)
+        return PoseEstimate(frame.index, self.store.snapshot())
+
+    def poses(self) -> tuple[list[float], np.ndarray, PoseEstimate | None]:
+        """Timestamps, poses and the latest estimate of the processed frames."""
+        if not self.timestamps:
+            return [], np.zeros((0, 4, 4)), None
+        table = self.store.snapshot()
+        return self.timestamps, table.array(), PoseEstimate(self.store.frames[-1], table)
+
+
+class _GraphBackend(_Backend):
+    """A GTSAM pose graph (eq. 11), optionally on a prior SGF map."""
+
+    def __init__(self, params: GraphParams) -> None:
+        # A missing or broken prior map stops the pipeline while it is built, before any frame.
+        self.prior: SgfMap | None = load_map(params.prior_map) if params.prior_map else None
+        super().__init__(params)
+
+    def begin(self, context: RunContext) -> None:
+        """Start an empty graph on the prior map, checked against the run's calibration."""
+        super().begin(context)
+        params = self.params
+        assert isinstance(params, GraphParams)
+        self.map_poses: dict[int, np.ndarray] | None = None
+        self._map_checked = False
+        if self.prior is not None:
+            self.prior.check_calibration(context.calibration)
+            self.map_poses = self.prior.frame_poses
+            self._map_checked = context.calibration is not None
+        self.graph = PoseGraph(params.pose, params.noise(), self.map_poses)
+        self.optimizations = 0
+        self.optimize_seconds = 0.0
+
+    def _add(self, frame: Frame, loops: LoopConstraints | None) -> tuple[int, bool]:
+        """Add the frame and its loops to the graph; the number of loops and whether the run was anchored."""
+        self._note(frame)
+        if self.prior is not None and not self._map_checked:
+            self.prior.check_calibration(frame.calibration)
+            self._map_checked = True
+        self.graph.add_frame(frame)
+        anchored = False
+        count = 0
+        for loop in loops.items if loops is not None else ():
+            anchored |= self.graph.add_loop(loop)
+            count += 1
+        self.loops_received += count
+        return count, anchored
+
+    def estimate(self) -> PoseEstimate:
+        """The current estimate of every processed frame."""
+        return PoseEstimate(self.graph.store.frames[-1], self.graph.store.snapshot())
+
+    def poses(self) -> tuple[list[float], np.ndarray, PoseEstimate | None]:
+        """Timestamps, poses and the latest estimate of the processed frames."""
+        if not self.graph.timestamps:
+            return [], np.zeros((0, 4, 4)), None
+        table = self.graph.store.snapshot()
+        return self.graph.timestamps, table.array(), PoseEstimate(self.graph.store.frames[-1], table)
+
+    def batch_optimize(self) -> None:
+        """Levenberg-Marquardt over the whole graph from the current estimate."""
+        import gtsam
+
+        params = self.params
+        t0 = time.perf_counter()
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setMaxIterations(params.max_iterations if isinstance(params, LmParams) else 100)
+        lm.setRelativeErrorTol(params.relative_error_tol if isinstance(params, LmParams) else 1e-6)
+        result = gtsam.LevenbergMarquardtOptimizer(self.graph.graph(), self.graph.values, lm).optimize()
+        self.graph.set_values(result)
+        self.optimizations += 1
+        self.optimize_seconds += time.perf_counter() - t0
+
+    def extra_metrics(self) -> dict[str, Any]:
+        """Graph size, optimisations and the map anchoring."""
+        out: dict[str, Any] = {
+            "pose": "pose3" if self.graph.pose3 else "pose2",
+            "loop_factors": self.graph.loop_factors,
+            "map_factors": self.graph.map_factors,
+            "optimizations": self.optimizations,
+            "optimize_seconds": round(self.optimize_seconds, 4),
+            "final_error": self.graph.error(),
+        }
+        if self.prior is not None:
+            out["prior_map"] = {"map_id": self.prior.map_id, "anchored": self.graph.anchored}
+        return out
+
+
+class GtsamLmBackend(_GraphBackend):
+    """Batch Levenberg-Marquardt (GTSAM) at the end of the run, and on frames that add loops when asked."""
+
+    name = "gtsam_lm"
+    Params = LmParams
+
+    def process(self, frame: Frame, loops: LoopConstraints | None) -> PoseEstimate:
+        """Add the frame's odometry and loop factors; re-optimize on new loops if configured."""
+        t0 = time.perf_counter()
+        count, _ = self._add(frame, loops)
+        self.graph.take_new()  # batch optimisation uses the whole graph
+        params = self.params
+        assert isinstance(params, LmParams)
+        if count and params.optimize_every_loop:
+            self.batch_optimize()
+        self.update_seconds.append(time.perf_counter() - t0)
+        return self.estimate()
+
+    def finalize(self, context: RunContext) -> None:
+        """Final batch optimisation, then the trajectory, metrics and map."""
+        if self.graph.timestamps:
+            self.batch_optimize()
+        super().finalize(context)
+
+
+class Isam2Backend(_GraphBackend):
+    """Incremental smoothing and mapping (GTSAM iSAM2): one update per processed frame."""
+
+    name = "isam2"
+    Params = Isam2Params
+
+    def begin(self, context: RunContext) -> None:
+        """Start an empty graph and solver."""
+        super().begin(context)
+        self.isam = self._solver()
+
+    def _solver(self) -> Any:
+        import gtsam
+
+        params = self.params
+        assert isinstance(params, Isam2Params)
+        settings = gtsam.ISAM2Params()
+        settings.setRelinearizeThreshold(params.relinearize_threshold)
+        settings.relinearizeSkip = params.relinearize_skip
+        settings.setFactorization(params.factorization.upper())
+        return gtsam.ISAM2(settings)
+
+    def process(self, frame: Frame, loops: LoopConstraints | None) -> PoseEstimate:
+        """One iSAM2 update with the frame's factors; the full estimate is refreshed when loops arrive."""
+        t0 = time.perf_counter()
+        count, anchored = self._add(frame, loops)
+        if anchored:
+            self.isam = self._solver()  # the run moved into the map frame: start the solver over
+        factors, values = self.graph.take_new()
+        self.isam.update(factors, values)
+        if count:
+            params = self.params
+            assert isinstance(params, Isam2Params)
+            for _ in range(params.loop_updates):
+                self.isam.update()
+            self.graph.set_values(self.isam.calculateEstimate())
+        else:
+            key = X(frame.index)
+            value = self.isam.calculateEstimatePose3(key) if self.graph.pose3 else self.isam.calculateEstimatePose2(key)
+            self.graph.set_latest(value)
+        self.update_seconds.append(time.perf_counter() - t0)
+        return self.estimate()
+
+    def finalize(self, context: RunContext) -> None:
+        """The final iSAM2 estimate (optionally refined by batch LM), then the trajectory, metrics and map."""
+        if self.graph.timestamps:
+            t0 = time.perf_counter()
+            self.isam.update()
+            self.graph.set_values(self.isam.calculateEstimate())
+            self.optimize_seconds += time.perf_counter() - t0
+            params = self.params
+            assert isinstance(params, Isam2Params)
+            if params.final_batch:
+                self.batch_optimize()
+        super().finalize(context)
+
+
+@hookimpl
+def sgf_register_stages(registry: StageRegistry) -> None:
+    """Register the back-end variants."""
+    registry.add(OdometryBackend)
+    registry.add(GtsamLmBackend)
+    registry.add(Isam2Backend)

@@ -1,0 +1,504 @@
+"""Loop closing with SGF factors (paper Sec. III-D): ICP between an SGF and its group's closest member.
+
+When a new SGF joins a group holding an SGF from an earlier pass (``GroupAssignment.matched``),
+their point sets are aligned by 2-D ICP seeded by the relative yaw of the best column shift
+(so reverse loops converge) and by the centroids. ``GroupAssignment.yaw`` is read as the
+rotation (rad, counter-clockwise) that turns the new SGF's points about their centroid onto
+the matched SGF's; with ``seed_both_signs`` the opposite sign is tried too, so the
+association's sign convention does not matter (one more ICP of ~300 points, a few ms).
+A converged alignment with a low RMS residual and a high two-way inlier ratio becomes a
+relative-pose constraint between the two frames, unless the current estimate says it cannot
+be the same place (the gate below). Symmetric groups (a round manhole) never give loop factors.
+
+The gate: the relative pose predicted by the previous frame's estimate (odometry before the
+back-end's first estimate) is compared with ICP's by a chi-square test whose covariance is
+ICP's plus a drift term that grows with ``d``, the distance the estimate has travelled since a
+loop closure last anchored the two poses: ``sigma_xy^2 = floor^2 + (scale d)^2 + sxy^2 d +
+syaw^2 d^3 / 3`` (translation random walk, heading random walk, scale error) and ``sigma_yaw^2
+= floor^2 + syaw^2 d``. ``d`` is the shortest odometry path between the two frames in a graph
+where each accepted loop that the estimate satisfies (the back-end has absorbed it) joins its
+two frames at no cost; a loop that the back-end did not absorb (``backend=none``, batch
+optimisation only at the end, a loop down-weighted by the robust kernel) anchors nothing, so
+the gate stays as loose as the dead-reckoned drift. This makes a look-alike marking elsewhere
+fail the test once the estimate is better than the distance between the look-alikes.
+
+On a prior SGF map (``matched`` is a :class:`~sgf_pipeline.sgf_map.MapDescriptor`), a match is
+an inter-session constraint (``from_map``). Before the run is anchored in the map frame there is
+no prediction: the first ``map_anchor_matches`` matches of different map groups must agree with
+each other (the map-implied relative pose between their frames against the run's own estimate,
+same test); afterwards map matches are gated like loops, the map acting as one anchored node.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field
+
+from sgf_pipeline import Previous, RunContext, Stage, StageParams, StageRegistry, hookimpl
+from sgf_pipeline.geometry import invert, wrap_angle, xy_yaw
+from sgf_pipeline.sgf_map import MapDescriptor
+from sgf_pipeline.types import (
+    Frame,
+    GroupAssignment,
+    GroupAssignments,
+    LoopConstraint,
+    LoopConstraints,
+    PoseEstimate,
+    RevisitPair,
+    SequenceTruth,
+)
+from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2_params
+
+_MAP = -1  # the prior map as one node of the anchoring graph
+
+
+class IcpLoopParams(StageParams):
+    """Parameters of ICP loop closing, its acceptance tests and the uncertainty gate."""
+
+    metric: Literal["point_to_point", "point_to_line"] = Field(
+        "point_to_point", description="ICP error: point_to_point suits filled SGF regions, point_to_line outlines"
+    )
+    max_iterations: int = Field(100, ge=1, description="ICP iterations per round (coarse, then inliers only)")
+    max_correspondence_distance: float = Field(0.5, gt=0.0, description="pairing distance of the coarse round (m)")
+    inlier_distance: float = Field(0.1, gt=0.0, description="a point is an inlier within this distance (m)")
+    tolerance: float = Field(1e-6, gt=0.0, description="converged when an ICP step is below this (m and rad)")
+    normal_neighbours: int = Field(
+        8, ge=3, description="neighbours of the target line normals (point_to_line, ICP covariance)"
+    )
+    min_points: int = Field(20, ge=3, description="fewer SGF points than this on either side: no ICP")
+    max_fitness: float = Field(0.025, gt=0.0, description="reject when the RMS inlier residual exceeds this (m)")
+    min_inlier_ratio: float = Field(
+        0.85, gt=0.0, le=1.0, description="reject when fewer points of either set have a partner within inlier_distance"
+    )
+    degenerate_sigma: float = Field(
+        0.05,
+        gt=0.0,
+        description="reject when ICP's Hessian leaves a direction this uncertain (m or rad): a bar, a line",
+    )
+    seed_both_signs: bool = Field(
+        True, description="also seed ICP with the negated column-shift yaw (robust to the shift's sign convention)"
+    )
+    extra_yaw_seeds: int = Field(0, ge=0, le=16, description="further seeds evenly spaced in yaw around the first")
+    ambiguity_ratio: float = Field(
+        1.25,
+        ge=1.0,
+        description="seeds within this factor of the best RMS are ambiguous; the one nearest the prediction wins",
+    )
+    min_separation_frames: int = Field(0, ge=0, description="the matched SGF must be at least this many frames earlier")
+    min_separation_time: float = Field(0.0, ge=0.0, description="...and this many seconds earlier")
+    min_separation_distance: float = Field(10.0, ge=0.0, description="...and this far back along the odometry path (m)")
+    covariance_floor_xy: float = Field(0.05, gt=0.0, description="added to ICP's translation sigma (m): IPM, sampling")
+    covariance_floor_yaw_deg: float = Field(1.0, gt=0.0, description="added to ICP's yaw sigma (deg)")
+    gate: bool = Field(True, description="chi-square test of the ICP pose against the estimate's prediction")
+    gate_probability: float = Field(0.999, gt=0.0, lt=1.0, description="chi-square (3 dof) acceptance probability")
+    gate_floor_xy: float = Field(0.5, gt=0.0, description="prediction sigma when freshly anchored (m)")
+    gate_floor_yaw_deg: float = Field(3.0, gt=0.0, description="prediction sigma when freshly anchored (deg)")
+    gate_sigma_xy: float = Field(0.05, ge=0.0, description="translation random walk of the drift (m per sqrt(m))")
+    gate_sigma_yaw_deg: float = Field(0.5, ge=0.0, description="heading random walk of the drift (deg per sqrt(m))")
+    gate_scale_error: float = Field(0.02, ge=0.0, description="odometry scale error (fraction of distance)")
+    map_anchor_matches: int = Field(
+        2, ge=1, description="consistent map matches (different groups) needed before a run is placed in the map"
+    )
+    map_pending: int = Field(16, ge=1, description="unconfirmed map matches kept while waiting for the anchor")
+    truth_tolerance_xy: float = Field(0.5, gt=0.0, description="a loop off the ground truth by more (m) is false")
+    truth_tolerance_yaw_deg: float = Field(5.0, gt=0.0, description="...or by more than this (deg)")
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    """A constraint that passed ICP, with what the gate and the map anchoring need."""
+
+    constraint: LoopConstraint
+    map_pose: np.ndarray | None
+    map_truth: np.ndarray | None
+    group_id: int
+
+
+def drift_covariance(distance: float, p: IcpLoopParams) -> np.ndarray:
+    """Covariance (x, y, yaw) of a relative pose predicted across ``distance`` metres since the last anchor."""
+    d = max(distance, 0.0)
+    s_yaw = math.radians(p.gate_sigma_yaw_deg)
+    var_xy = p.gate_floor_xy**2 + (p.gate_scale_error * d) ** 2 + p.gate_sigma_xy**2 * d + s_yaw**2 * d**3 / 3.0
+    var_yaw = math.radians(p.gate_floor_yaw_deg) ** 2 + s_yaw**2 * d
+    return np.diag([var_xy, var_xy, var_yaw])
+
+
+def pose_error(predicted: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """``(x, y, yaw)`` of ``measured`` seen from ``predicted``."""
+    x, y, yaw = xy_yaw(invert(predicted) @ measured)
+    return np.array([x, y, wrap_angle(yaw)])
+
+
+def mahalanobis2(error: np.ndarray, covariance: np.ndarray) -> float:
+    """Squared Mahalanobis distance of an error under a covariance."""
+    return float(error @ np.linalg.solve(covariance, error))
+
+
+class IcpLoopClosing(Stage):
+    """SGF loop constraints from ICP between group members, gated by the estimate's uncertainty (Sec. III-D)."""
+
+    kind = "loop"
+    name = "icp"
+    output = "loops"
+    Params = IcpLoopParams
+
+    def __init__(self, params: IcpLoopParams) -> None:
+        super().__init__(params)
+        self.p = params
+        self.settings = IcpSettings(
+            metric=params.metric,
+            max_iterations=params.max_iterations,
+            max_correspondence_distance=params.max_correspondence_distance,
+            inlier_distance=params.inlier_distance,
+            tolerance=params.tolerance,
+            normal_neighbours=params.normal_neighbours,
+        )
+        from scipy.stats import chi2  # imported here: scipy.stats takes seconds to import
+
+        self.threshold = float(chi2.ppf(params.gate_probability, df=3))
+        self.begin(RunContext(run_dir=None))
+
+    def begin(self, context: RunContext) -> None:
+        """Forget the previous sequence."""
+        self.truth: SequenceTruth | None = context.truth
+        self.odometry: dict[int, np.ndarray] = {}
+        self.distance: dict[int, float] = {}
+        self.time: dict[int, float] = {}
+        self.ground_truth: dict[int, np.ndarray] = {}
+        self.accepted: list[_Candidate] = []
+        self.pending: list[_Candidate] = []
+        self.assignments: list[GroupAssignment] = []
+        self.counts = {
+            "candidates": 0,
+            "symmetric": 0,
+            "separation": 0,
+            "too_few_points": 0,
+            "icp": 0,
+            "gate": 0,
+            "map_unconfirmed": 0,
+        }
+        self._last: int | None = None
+
+    # -- per frame --------------------------------------------------------------------------
+
+    def process(
+        self, frame: Frame, assignments: GroupAssignments | None, estimate: Previous[PoseEstimate]
+    ) -> LoopConstraints:
+        """Loop constraints of the SGFs assigned to groups on this frame."""
+        self._record(frame)
+        if assignments is None:
+            return LoopConstraints()
+        out: list[LoopConstraint] = []
+        for a in assignments.items:
+            self.assignments.append(a)
+            out.extend(self._close(a, estimate))
+        return LoopConstraints(tuple(out))
+
+    def _record(self, frame: Frame) -> None:
+        odometry = np.asarray(frame.odometry, dtype=np.float64)
+        step = 0.0
+        if self._last is not None:
+            step = float(np.linalg.norm(odometry[:3, 3] - self.odometry[self._last][:3, 3]))
+        self.distance[frame.index] = (self.distance[self._last] if self._last is not None else 0.0) + step
+        self.odometry[frame.index] = odometry
+        self.time[frame.index] = float(frame.timestamp)
+        if frame.ground_truth is not None:
+            self.ground_truth[frame.index] = np.asarray(frame.ground_truth, dtype=np.float64)
+        self._last = frame.index
+
+    def _known(self, frame_index: int) -> None:
+        if frame_index not in self.distance:
+            raise ValueError(
+                f"an SGF of frame {frame_index} reached the loop stage, which never saw that frame; "
+                "SGFs must come from frames processed earlier in this run"
+            )
+
+    def _close(self, a: GroupAssignment, estimate: PoseEstimate | None) -> list[LoopConstraint]:
+        """ICP, acceptance tests and gate for one assignment; the constraints to emit now."""
+        matched, query = a.matched, a.descriptor
+        if a.new_group or matched is None:
+            return []
+        self.counts["candidates"] += 1
+        if a.symmetric:
+            self.counts["symmetric"] += 1
+            return []
+        j = query.sgf.frame_index
+        self._known(j)
+        from_map = isinstance(matched, MapDescriptor)
+        i = matched.sgf.frame_index
+        if not from_map:
+            self._known(i)
+            p = self.p
+            if (
+                i >= j
+                or j - i < p.min_separation_frames
+                or self.time[j] - self.time[i] < p.min_separation_time
+                or self.distance[j] - self.distance[i] < p.min_separation_distance
+            ):
+                self.counts["separation"] += 1
+                return []
+        if min(len(query.points), len(matched.points)) < self.p.min_points:
+            self.counts["too_few_points"] += 1
+            return []
+        results = self._align(a)
+        if not results:
+            self.counts["icp"] += 1
+            return []
+        map_pose = np.asarray(matched.map_pose, dtype=np.float64) if isinstance(matched, MapDescriptor) else None
+        map_truth = matched.ground_truth if isinstance(matched, MapDescriptor) else None
+        anchored = from_map and self._map_anchored(estimate)
+        predicted = None
+        if not from_map:
+            predicted = (
+                invert(self._pose(i, estimate)) @ self._pose(j, estimate),
+                self._anchored_distance(i, j, estimate),
+            )
+        elif anchored:
+            assert map_pose is not None
+            predicted = (invert(map_pose) @ self._pose(j, estimate), self._anchored_distance(_MAP, j, estimate))
+        best = self._select(results, predicted)
+        candidate = _Candidate(self._constraint(a, best, from_map), map_pose, map_truth, a.group_id)
+        if predicted is not None and self.p.gate:
+            c = candidate.constraint
+            cov = c.covariance + drift_covariance(predicted[1], self.p)
+            if mahalanobis2(pose_error(predicted[0], c.relative), cov) > self.threshold:
+                self.counts["gate"] += 1
+                return []
+        if from_map and not anchored:
+            return self._confirm_map(candidate, estimate)
+        self.accepted.append(candidate)
+        return [candidate.constraint]
+
+    # -- ICP --------------------------------------------------------------------------------
+
+    def _align(self, a: GroupAssignment) -> list[IcpResult]:
+        """ICP from each yaw seed; the results that pass the acceptance tests."""
+        assert a.matched is not None
+        query, matched = a.descriptor, a.matched
+        yaws = [float(a.yaw)]
+        if self.p.seed_both_signs:
+            yaws.append(-float(a.yaw))
+        n = self.p.extra_yaw_seeds
+        yaws += [float(a.yaw) + 2.0 * math.pi * (k + 1) / (n + 1) for k in range(n)]
+        seeds: list[float] = []
+        for y in yaws:
+            if all(abs(wrap_angle(y - s)) > 1e-6 for s in seeds):
+                seeds.append(y)
+        icp = Icp2d(np.asarray(matched.points, dtype=np.float64), self.settings)
+        source = np.asarray(query.points, dtype=np.float64)
+        good = []
+        for yaw in seeds:
+            r = icp.align(source, centroid_seed(query.centroid, matched.centroid, yaw))
+            if (
+                r.converged
+                and r.fitness <= self.p.max_fitness
+                and r.inlier_ratio >= self.p.min_inlier_ratio
+                and np.all(np.isfinite(r.covariance))
+                and math.sqrt(float(np.linalg.eigvalsh(r.covariance).max())) <= self.p.degenerate_sigma
+            ):
+                good.append(r)
+        return good
+
+    def _select(self, results: list[IcpResult], predicted: tuple[np.ndarray, float] | None) -> IcpResult:
+        """The best fit; among near-equal fits (a twofold symmetric shape), the one nearest the prediction."""
+        best = min(results, key=lambda r: r.fitness)
+        near = [r for r in results if r.fitness <= best.fitness * self.p.ambiguity_ratio]
+        if predicted is None or len(near) == 1:
+            return best
+        target, distance = predicted
+        cov = drift_covariance(distance, self.p)
+        return min(near, key=lambda r: mahalanobis2(pose_error(target, _pose4(r)), cov + r.covariance))
+
+    def _constraint(self, a: GroupAssignment, r: IcpResult, from_map: bool) -> LoopConstraint:
+        """The relative pose of the query's frame in the matched frame, with the floored ICP covariance."""
+        assert a.matched is not None
+        floor = np.diag(
+            [
+                self.p.covariance_floor_xy**2,
+                self.p.covariance_floor_xy**2,
+                math.radians(self.p.covariance_floor_yaw_deg) ** 2,
+            ]
+        )
+        relative = _pose4(r)
+        return LoopConstraint(
+            frame_from=a.matched.sgf.frame_index,
+            frame_to=a.descriptor.sgf.frame_index,
+            relative=relative,
+            covariance=r.covariance + floor,
+            group_id=a.group_id,
+            reverse=abs(r.pose[2]) > math.pi / 2.0,
+            fitness=r.fitness,
+            inlier_ratio=r.inlier_ratio,
+            instance_ids=(a.matched.sgf.instance_id, a.descriptor.sgf.instance_id),
+            from_map=from_map,
+        )
+
+    # -- the estimate and the gate ------------------------------------------------------------
+
+    def _pose(self, k: int, estimate: PoseEstimate | None) -> np.ndarray:
+        """Frame ``k``'s pose in the estimate (dead-reckoned past its newest frame), or its odometry."""
+        if estimate is None:
+            return self.odometry[k]
+        if k in estimate.poses:
+            return np.asarray(estimate.poses[k])
+        last = estimate.frame_index
+        return np.asarray(estimate.poses[last]) @ invert(self.odometry[last]) @ self.odometry[k]
+
+    def _absorbed(self, c: _Candidate, estimate: PoseEstimate | None) -> bool:
+        """Whether the estimate satisfies an accepted constraint (so it anchors its two frames)."""
+        if estimate is None:
+            return False
+        k = c.constraint
+        start = c.map_pose if k.from_map else self._pose(k.frame_from, estimate)
+        assert start is not None
+        predicted = invert(start) @ self._pose(k.frame_to, estimate)
+        cov = k.covariance + drift_covariance(0.0, self.p)
+        return mahalanobis2(pose_error(predicted, k.relative), cov) <= self.threshold
+
+    def _map_anchored(self, estimate: PoseEstimate | None) -> bool:
+        """Whether the estimate is in the map frame (it satisfies an accepted map constraint)."""
+        return any(c.constraint.from_map and self._absorbed(c, estimate) for c in self.accepted)
+
+    def _anchored_distance(self, a: int, b: int, estimate: PoseEstimate | None) -> float:
+        """Shortest odometry path from ``a`` to ``b`` where absorbed loops (and the map) join frames at no cost."""
+        edges: list[tuple[int, int]] = []
+        for c in self.accepted:
+            if self._absorbed(c, estimate):
+                k = c.constraint
+                edges.append((_MAP if k.from_map else k.frame_from, k.frame_to))
+        frames = sorted({a, b, *(f for e in edges for f in e)} - {_MAP})
+        graph: dict[int, list[tuple[int, float]]] = {n: [] for n in [*frames, _MAP]}
+        for f, g in itertools.pairwise(frames):
+            w = abs(self.distance[g] - self.distance[f])
+            graph[f].append((g, w))
+            graph[g].append((f, w))
+        for f, g in edges:
+            graph[f].append((g, 0.0))
+            graph[g].append((f, 0.0))
+        best = {a: 0.0}
+        queue = [(0.0, a)]
+        while queue:
+            d, n = heapq.heappop(queue)
+            if n == b:
+                return d
+            if d > best.get(n, math.inf):
+                continue
+            for m, w in graph[n]:
+                if d + w < best.get(m, math.inf):
+                    best[m] = d + w
+                    heapq.heappush(queue, (d + w, m))
+        return math.inf
+
+    def _confirm_map(self, candidate: _Candidate, estimate: PoseEstimate | None) -> list[LoopConstraint]:
+        """Hold map matches until enough of them (different groups) agree on where the run is in the map."""
+        agreeing = [q for q in self.pending if q.group_id != candidate.group_id and self._agree(q, candidate, estimate)]
+        if len(agreeing) + 1 < self.p.map_anchor_matches:
+            self.counts["map_unconfirmed"] += 1
+            self.pending = [*self.pending, candidate][-self.p.map_pending :]
+            return []
+        confirmed = [*agreeing, candidate]
+        self.pending = [q for q in self.pending if all(q is not c for c in confirmed)]
+        self.counts["map_unconfirmed"] -= len(agreeing)
+        self.accepted.extend(confirmed)
+        return [c.constraint for c in confirmed]
+
+    def _agree(self, first: _Candidate, second: _Candidate, estimate: PoseEstimate | None) -> bool:
+        """Whether two map matches imply the run's relative pose between their frames, as the estimate has it."""
+        a, b = first.constraint, second.constraint
+        assert first.map_pose is not None and second.map_pose is not None
+        from_map = invert(first.map_pose @ a.relative) @ (second.map_pose @ b.relative)
+        own = invert(self._pose(a.frame_to, estimate)) @ self._pose(b.frame_to, estimate)
+        distance = self._anchored_distance(a.frame_to, b.frame_to, estimate)
+        cov = a.covariance + b.covariance + drift_covariance(distance, self.p)
+        return mahalanobis2(pose_error(own, from_map), cov) <= self.threshold
+
+    # -- evaluation ---------------------------------------------------------------------------
+
+    def _true(self, c: _Candidate) -> bool | None:
+        """Whether an accepted constraint joins the same marking at the true relative pose (None: unknown)."""
+        k = c.constraint
+        ids = k.instance_ids
+        if ids[0] is not None and ids[1] is not None and ids[0] != ids[1]:
+            return False
+        start = c.map_truth if k.from_map else self.ground_truth.get(k.frame_from)
+        end = self.ground_truth.get(k.frame_to)
+        if start is not None and end is not None:
+            x, y, yaw = pose_error(invert(start) @ end, k.relative)
+            return bool(
+                math.hypot(x, y) <= self.p.truth_tolerance_xy
+                and abs(yaw) <= math.radians(self.p.truth_tolerance_yaw_deg)
+            )
+        if ids[0] is not None and ids[1] is not None:
+            return True
+        return None
+
+    def finalize(self, context: RunContext) -> None:
+        """Loop metrics (Table 3: loops closed, reverse ones, false ones) and the accepted loops for plots."""
+        truths = [self._true(c) for c in self.accepted]
+        known = [t for t in truths if t is not None]
+        loops: dict[str, Any] = {
+            "accepted": len(self.accepted),
+            "accepted_reverse": sum(bool(c.constraint.reverse) for c in self.accepted),
+            "accepted_map": sum(bool(c.constraint.from_map) for c in self.accepted),
+            "false_closed": sum(not t for t in known) if known else None,
+            "rejected": {k: v for k, v in self.counts.items() if k != "candidates"},
+            "candidates": self.counts["candidates"],
+        }
+        truth = context.truth if context.truth is not None else self.truth
+        if truth is not None:
+            closed = [r for r in truth.revisits if self._closes(r, truths)]
+            loops["closed"] = len(closed)
+            loops["closed_reverse"] = sum(bool(r.reverse) for r in closed)
+        context.metrics.setdefault("loops", {}).update(loops)
+        context.artifacts["loops"] = [
+            {
+                "frame_from": c.constraint.frame_from,
+                "frame_to": c.constraint.frame_to,
+                "relative_xy_yaw": list(xy_yaw(c.constraint.relative)),
+                "group_id": c.group_id,
+                "reverse": c.constraint.reverse,
+                "fitness": c.constraint.fitness,
+                "inlier_ratio": c.constraint.inlier_ratio,
+                "instance_ids": list(c.constraint.instance_ids),
+                "from_map": c.constraint.from_map,
+                "true": None if t is None else bool(t),
+            }
+            for c, t in zip(self.accepted, truths, strict=True)
+        ]
+        context.artifacts["group_assignments"] = list(self.assignments)
+
+    def _closes(self, pair: RevisitPair, truths: list[bool | None]) -> bool:
+        """Whether an accepted, not false constraint joins the pair's two passes over its marking."""
+        for c, t in zip(self.accepted, truths, strict=True):
+            k = c.constraint
+            if (
+                not k.from_map
+                and t is not False
+                and k.instance_ids == (pair.instance_id, pair.instance_id)
+                and pair.first.contains(k.frame_from)
+                and pair.second.contains(k.frame_to)
+            ):
+                return True
+        return False
+
+
+def _pose4(r: IcpResult) -> np.ndarray:
+    """The 4x4 planar pose of an ICP result."""
+    x, y, yaw = se2_params(r.transform)
+    c, s = math.cos(yaw), math.sin(yaw)
+    pose = np.eye(4)
+    pose[:2, :2] = [[c, -s], [s, c]]
+    pose[:2, 3] = (x, y)
+    return pose
+
+
+@hookimpl
+def sgf_register_stages(registry: StageRegistry) -> None:
+    """Register the loop-closing variants."""
+    registry.add(IcpLoopClosing)

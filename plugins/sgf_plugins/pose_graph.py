@@ -1,0 +1,463 @@
+"""The pose graph of eq. 11 in GTSAM: processed frames as nodes, odometry and SGF loop factors.
+
+Nodes are the processed frames (``x<frame index>``) and, when localizing on a prior SGF map,
+the map's frames that SGFs were matched to (``m<map frame index>``, held by priors at their
+map poses). Poses are ``Pose2`` or ``Pose3`` (roll and pitch from the IMU as attitude factors).
+GTSAM is imported inside functions so that listing plugins stays fast.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from sgf_pipeline.geometry import invert, rotation_rpy, xy_yaw
+from sgf_pipeline.types import Frame, LoopConstraint
+
+PoseKind = Literal["pose2", "pose3"]
+FREE_ROLL_PITCH = 0.1  # rad, first-pose prior on roll and pitch (observed by the IMU, not a gauge)
+Kernel = Literal["cauchy", "huber", "none"]
+
+
+class PoseTable(Mapping[int, np.ndarray]):
+    """A read-only snapshot of the estimated poses by frame index (a :class:`PoseEstimate`'s ``poses``).
+
+    Snapshots share storage with the back-end: appending a pose never changes an older snapshot, and
+    a re-optimised trajectory is written into a new buffer (copy on write), so a snapshot stays valid.
+    With ``lift``, each planar pose is returned composed with its frame's out-of-plane offset.
+    """
+
+    def __init__(
+        self, rows: dict[int, int], frames: list[int], buffer: np.ndarray, size: int, lift: np.ndarray | None = None
+    ) -> None:
+        self._rows = rows
+        self._frames = frames
+        self._buffer = buffer
+        self._size = size
+        self._lift = lift
+
+    def __getitem__(self, frame_index: int) -> np.ndarray:
+        row = self._rows.get(frame_index)
+        if row is None or row >= self._size:
+            raise KeyError(frame_index)
+        pose = self._buffer[row]
+        return pose @ self._lift[row] if self._lift is not None else pose.copy()
+
+    def __contains__(self, frame_index: object) -> bool:
+        row = self._rows.get(frame_index)  # type: ignore[call-overload]
+        return row is not None and row < self._size
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._frames[: self._size])
+
+    def __len__(self) -> int:
+        return self._size
+
+    def array(self) -> np.ndarray:
+        """All poses as an (N, 4, 4) array, in frame order."""
+        poses = self._buffer[: self._size]
+        if self._lift is not None:
+            return np.einsum("nij,njk->nik", poses, self._lift[: self._size])
+        return poses.copy()
+
+
+class PoseStore:
+    """The growing, copy-on-write storage behind :class:`PoseTable` snapshots.
+
+    With ``lifted``, every frame also keeps an out-of-plane offset (height, roll, pitch of its
+    odometry), applied to its planar pose when read out, so a Pose2 graph keeps the odometry's
+    third dimension in the trajectory it publishes.
+    """
+
+    def __init__(self, lifted: bool = False) -> None:
+        self.rows: dict[int, int] = {}
+        self.frames: list[int] = []
+        self.buffer = np.zeros((64, 4, 4))
+        self.lift: np.ndarray | None = np.zeros((64, 4, 4)) if lifted else None
+        self.size = 0
+
+    def append(self, frame_index: int, pose: np.ndarray, lift: np.ndarray | None = None) -> None:
+        """Add the pose of a new frame (and its out-of-plane offset, when the store is lifted)."""
+        if self.size == len(self.buffer):
+            self.buffer = _grown(self.buffer, self.size)
+        if self.lift is not None and self.size == len(self.lift):
+            self.lift = _grown(self.lift, self.size)
+        self.buffer[self.size] = pose
+        if self.lift is not None:
+            self.lift[self.size] = np.eye(4) if lift is None else lift
+        self.rows[frame_index] = self.size
+        self.frames.append(frame_index)
+        self.size += 1
+
+    def set_latest(self, pose: np.ndarray) -> None:
+        """Overwrite the newest pose (no snapshot has seen it yet)."""
+        self.buffer[self.size - 1] = pose
+
+    def replace_all(self, poses: np.ndarray) -> None:
+        """Replace every pose (after an optimisation) in a new buffer."""
+        if poses.shape != (self.size, 4, 4):
+            raise ValueError(f"expected {self.size} poses, got {poses.shape[0]}")
+        buffer = np.zeros((max(64, 2 * self.size), 4, 4))
+        buffer[: self.size] = poses
+        self.buffer = buffer
+
+    def snapshot(self) -> PoseTable:
+        """A read-only view of the current poses."""
+        return PoseTable(self.rows, self.frames, self.buffer, self.size, self.lift)
+
+    def get(self, frame_index: int) -> np.ndarray | None:
+        """The current (planar, when lifted) pose of a frame, if it has one."""
+        row = self.rows.get(frame_index)
+        return None if row is None else self.buffer[row]
+
+
+def _grown(buffer: np.ndarray, size: int) -> np.ndarray:
+    """A buffer of twice the capacity holding the first ``size`` rows of ``buffer``."""
+    grown = np.zeros((2 * len(buffer), *buffer.shape[1:]))
+    grown[:size] = buffer[:size]
+    return grown
+
+
+@dataclass(frozen=True)
+class NoiseSettings:
+    """Noise models of eq. 11: odometry sigmas grow with the square root of the distance travelled."""
+
+    odometry_sigma_xy: float = 0.05
+    odometry_sigma_yaw: float = math.radians(0.5)
+    odometry_sigma_z: float = 0.02
+    odometry_sigma_roll_pitch: float = math.radians(2.0)
+    odometry_floor_xy: float = 0.005
+    odometry_floor_yaw: float = math.radians(0.05)
+    imu_sigma_roll_pitch: float = math.radians(0.5)
+    loop_sigma_z: float = 0.05
+    loop_sigma_roll_pitch: float = math.radians(1.0)
+    loop_kernel: Kernel = "cauchy"
+    loop_kernel_width: float = 3.0
+    prior_sigma_xy: float = 1e-3
+    prior_sigma_yaw: float = 1e-4
+    map_sigma_xy: float = 0.05
+    map_sigma_yaw: float = math.radians(0.5)
+
+
+def X(frame_index: int) -> int:
+    """GTSAM key of a processed frame's pose."""
+    import gtsam
+
+    return int(gtsam.symbol("x", frame_index))
+
+
+def M(map_frame: int) -> int:
+    """GTSAM key of a prior map frame's pose."""
+    import gtsam
+
+    return int(gtsam.symbol("m", map_frame))
+
+
+def planar(pose: np.ndarray) -> np.ndarray:
+    """The planar part of a 4x4 pose, as a 4x4 pose (z, roll and pitch dropped)."""
+    x, y, yaw = xy_yaw(pose)
+    out = np.eye(4)
+    out[:3, :3] = rotation_rpy(0.0, 0.0, yaw)
+    out[:2, 3] = (x, y)
+    return out
+
+
+def _orthonormal(rot: np.ndarray) -> np.ndarray:
+    """The nearest rotation matrix (guards against drift in composed poses)."""
+    u, _, vt = np.linalg.svd(rot)
+    r = u @ vt
+    if np.linalg.det(r) < 0:
+        u[:, -1] *= -1
+        r = u @ vt
+    return r
+
+
+class PoseGraph:
+    """The factors and current estimate of eq. 11, built frame by frame.
+
+    New factors and values are also collected apart (``take_new``) for incremental solvers. When
+    localizing on a prior map (``map_poses``), the run's frames start in the odometry frame under
+    a prior on the first pose; the first inter-session factor moves them into the map frame
+    (``anchor``) and drops that prior, since the map's poses then fix the gauge.
+    """
+
+    def __init__(self, pose: PoseKind, noise: NoiseSettings, map_poses: Mapping[int, np.ndarray] | None = None) -> None:
+        import gtsam
+
+        self.pose3 = pose == "pose3"
+        self.noise = noise
+        self.map_poses = dict(map_poses or {})
+        self.store = PoseStore(lifted=not self.pose3)
+        self.timestamps: list[float] = []
+        self.factors: list[Any] = []
+        self.values = gtsam.Values()
+        self.new_factors = gtsam.NonlinearFactorGraph()
+        self.new_values = gtsam.Values()
+        self.map_nodes: set[int] = set()
+        self.loop_factors = 0
+        self.map_factors = 0
+        self.anchored = not self.map_poses
+        self._prior: Any = None
+        self._last_odometry: np.ndarray | None = None
+
+    # -- gtsam conversions ------------------------------------------------------------------
+
+    def _gtsam_pose(self, pose: np.ndarray) -> Any:
+        import gtsam
+
+        if self.pose3:
+            return gtsam.Pose3(gtsam.Rot3(_orthonormal(pose[:3, :3])), np.asarray(pose[:3, 3], dtype=np.float64))
+        x, y, yaw = xy_yaw(pose)
+        return gtsam.Pose2(x, y, yaw)
+
+    def _matrix(self, value: Any) -> np.ndarray:
+        if self.pose3:
+            return np.asarray(value.matrix(), dtype=np.float64)
+        return planar_from_xyt(np.array([[value.x(), value.y(), value.theta()]]))[0]
+
+    def _diagonal(self, xy: float, yaw: float, z: float, roll_pitch: float) -> Any:
+        import gtsam
+
+        if self.pose3:
+            return gtsam.noiseModel.Diagonal.Sigmas(np.array([roll_pitch, roll_pitch, yaw, xy, xy, z]))
+        return gtsam.noiseModel.Diagonal.Sigmas(np.array([xy, xy, yaw]))
+
+    def _prior_factor(self, key: int, pose: np.ndarray, model: Any) -> Any:
+        import gtsam
+
+        factor = gtsam.PriorFactorPose3 if self.pose3 else gtsam.PriorFactorPose2
+        return factor(key, self._gtsam_pose(pose), model)
+
+    def _between_factor(self, key_a: int, key_b: int, relative: np.ndarray, model: Any) -> Any:
+        import gtsam
+
+        factor = gtsam.BetweenFactorPose3 if self.pose3 else gtsam.BetweenFactorPose2
+        return factor(key_a, key_b, self._gtsam_pose(relative), model)
+
+    def _add(self, factor: Any) -> None:
+        self.factors.append(factor)
+        self.new_factors.push_back(factor)
+
+    def _insert(self, key: int, pose: np.ndarray) -> None:
+        value = self._gtsam_pose(pose)
+        self.values.insert(key, value)
+        self.new_values.insert(key, value)
+
+    # -- building ---------------------------------------------------------------------------
+
+    def odometry_noise(self, relative: np.ndarray) -> Any:
+        """Odometry noise of a step: sigma^2 = floor^2 + (sigma over one metre)^2 * distance (a random walk)."""
+        n = self.noise
+        d = float(np.linalg.norm(relative[:3, 3]))
+        xy = math.sqrt(n.odometry_floor_xy**2 + n.odometry_sigma_xy**2 * d)
+        yaw = math.sqrt(n.odometry_floor_yaw**2 + n.odometry_sigma_yaw**2 * d)
+        z = math.sqrt(n.odometry_floor_xy**2 + n.odometry_sigma_z**2 * d)
+        rp = math.sqrt(n.odometry_floor_yaw**2 + n.odometry_sigma_roll_pitch**2 * d)
+        return self._diagonal(xy, yaw, z, rp)
+
+    def add_frame(self, frame: Frame) -> None:
+        """Add a processed frame's node, its odometry factor (eq. 11, first sum) and IMU attitude."""
+        import gtsam
+
+        index = frame.index
+        if index in self.store.rows:
+            raise ValueError(f"frame {index} was added to the pose graph twice")
+        odometry = np.asarray(frame.odometry, dtype=np.float64)
+        if odometry.shape != (4, 4) or not np.all(np.isfinite(odometry)):
+            raise ValueError(f"frame {index}: odometry must be a finite 4x4 pose")
+        lift = None
+        if not self.pose3:
+            # Pose2 corrects x, y, yaw; the odometry's height, roll and pitch ride along unchanged.
+            lift = invert(planar(odometry)) @ odometry
+            odometry = planar(odometry)
+        key = X(index)
+        if self._last_odometry is None:
+            initial = odometry
+            # Fixes the gauge in the odometry frame (when localizing, anchoring drops it for the map's).
+            # Roll and pitch are no gauge freedom: gravity (the IMU) observes them, so they stay loose.
+            n = self.noise
+            model = self._diagonal(n.prior_sigma_xy, n.prior_sigma_yaw, n.prior_sigma_xy, FREE_ROLL_PITCH)
+            self._prior = self._prior_factor(key, initial, model)
+            self._add(self._prior)
+        else:
+            relative = invert(self._last_odometry) @ odometry
+            previous = self.store.buffer[self.store.size - 1]
+            initial = previous @ relative
+            self._add(self._between_factor(X(self.store.frames[-1]), key, relative, self.odometry_noise(relative)))
+        if self.pose3 and frame.imu_roll_pitch is not None:
+            roll, pitch = frame.imu_roll_pitch
+            up = rotation_rpy(float(roll), float(pitch), 0.0).T @ np.array([0.0, 0.0, 1.0])
+            model = gtsam.noiseModel.Isotropic.Sigma(2, self.noise.imu_sigma_roll_pitch)
+            self._add(gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.array([0.0, 0.0, 1.0])), model, gtsam.Unit3(up)))
+        self._insert(key, initial)
+        self.store.append(index, self._matrix(self._gtsam_pose(initial)), lift)
+        self.timestamps.append(float(frame.timestamp))
+        self._last_odometry = odometry
+
+    def loop_noise(self, covariance: np.ndarray) -> Any:
+        """The loop factor's noise: the constraint's covariance under the robust kernel."""
+        import gtsam
+
+        cov = np.asarray(covariance, dtype=np.float64)
+        if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+            raise ValueError(f"a loop covariance must be a finite 3x3 matrix over (x, y, yaw), got {cov!r}")
+        cov = 0.5 * (cov + cov.T)
+        if np.linalg.eigvalsh(cov).min() <= 0.0:
+            raise ValueError("a loop covariance must be positive definite")
+        if self.pose3:
+            full = np.zeros((6, 6))
+            idx = [3, 4, 2]  # (x, y, yaw) inside Pose3's (roll, pitch, yaw, x, y, z) tangent
+            full[np.ix_(idx, idx)] = cov
+            full[0, 0] = full[1, 1] = self.noise.loop_sigma_roll_pitch**2
+            full[5, 5] = self.noise.loop_sigma_z**2
+            gaussian = gtsam.noiseModel.Gaussian.Covariance(full)
+        else:
+            gaussian = gtsam.noiseModel.Gaussian.Covariance(cov)
+        kernel = self.noise.loop_kernel
+        if kernel == "none":
+            return gaussian
+        width = self.noise.loop_kernel_width
+        estimator = (
+            gtsam.noiseModel.mEstimator.Cauchy.Create(width)
+            if kernel == "cauchy"
+            else gtsam.noiseModel.mEstimator.Huber.Create(width)
+        )
+        return gtsam.noiseModel.Robust.Create(estimator, gaussian)
+
+    def add_loop(self, loop: LoopConstraint) -> bool:
+        """Add an SGF loop factor (eq. 11, second sum); returns whether it anchored the run in the map."""
+        if loop.frame_to not in self.store.rows:
+            raise ValueError(f"loop constraint to frame {loop.frame_to}, which is not a processed frame")
+        relative = np.asarray(loop.relative, dtype=np.float64)
+        if relative.shape != (4, 4) or not np.all(np.isfinite(relative)):
+            raise ValueError("a loop constraint's relative pose must be a finite 4x4 matrix")
+        if not self.pose3:
+            relative = planar(relative)
+        noise = self.loop_noise(loop.covariance)
+        anchored = False
+        if loop.from_map:
+            if loop.frame_from not in self.map_poses:
+                raise ValueError(
+                    f"inter-session loop from map frame {loop.frame_from}, which the prior map does not hold "
+                    "(is the back-end's prior_map the map the association matched against?)"
+                )
+            key_from = M(loop.frame_from)
+            if loop.frame_from not in self.map_nodes:
+                self._add_map_node(loop.frame_from)
+            if not self.anchored:
+                self.anchor(self.map_poses[loop.frame_from] @ relative, loop.frame_to)
+                anchored = True
+            self.map_factors += 1
+        else:
+            if loop.frame_from not in self.store.rows:
+                raise ValueError(f"loop constraint from frame {loop.frame_from}, which is not a processed frame")
+            key_from = X(loop.frame_from)
+            self.loop_factors += 1
+        self._add(self._between_factor(key_from, X(loop.frame_to), relative, noise))
+        return anchored
+
+    def _add_map_node(self, map_frame: int) -> None:
+        n = self.noise
+        pose = self.map_poses[map_frame]
+        if not self.pose3:
+            pose = planar(pose)
+        model = self._diagonal(n.map_sigma_xy, n.map_sigma_yaw, n.map_sigma_xy, n.map_sigma_yaw)
+        self._add(self._prior_factor(M(map_frame), pose, model))
+        self._insert(M(map_frame), pose)
+        self.map_nodes.add(map_frame)
+
+    def anchor(self, pose_in_map: np.ndarray, frame_index: int) -> None:
+        """Move the run into the map frame so that ``frame_index`` lands on ``pose_in_map``; drop the first prior."""
+        import gtsam
+
+        current = self.store.get(frame_index)
+        assert current is not None
+        align = (pose_in_map if self.pose3 else planar(pose_in_map)) @ invert(current)
+        if not self.pose3:
+            align = planar(align)
+        poses = np.einsum("ij,njk->nik", align, self.store.buffer[: self.store.size])
+        self.store.replace_all(poses)
+        values = gtsam.Values()
+        for m in self.map_nodes:
+            pose = self.map_poses[m] if self.pose3 else planar(self.map_poses[m])
+            values.insert(M(m), self._gtsam_pose(pose))
+        for frame, pose in zip(self.store.frames, poses, strict=True):
+            values.insert(X(frame), self._gtsam_pose(pose))
+        self.values = values
+        self.factors = [f for f in self.factors if f is not self._prior]
+        self.anchored = True
+        self.rebuild_new()
+
+    def rebuild_new(self) -> None:
+        """Make every factor and value 'new' (an incremental solver must then start over)."""
+        import gtsam
+
+        graph = gtsam.NonlinearFactorGraph()
+        for f in self.factors:
+            graph.push_back(f)
+        self.new_factors = graph
+        self.new_values = gtsam.Values(self.values)
+
+    def take_new(self) -> tuple[Any, Any]:
+        """The factors and values added since the last call (for iSAM2)."""
+        import gtsam
+
+        graph, values = self.new_factors, self.new_values
+        self.new_factors = gtsam.NonlinearFactorGraph()
+        self.new_values = gtsam.Values()
+        return graph, values
+
+    def graph(self) -> Any:
+        """Every factor as one graph (for batch optimisation)."""
+        import gtsam
+
+        graph = gtsam.NonlinearFactorGraph()
+        for f in self.factors:
+            graph.push_back(f)
+        return graph
+
+    # -- estimates --------------------------------------------------------------------------
+
+    def session_poses(self, values: Any) -> np.ndarray:
+        """The (N, 4, 4) poses of the processed frames in ``values`` (map nodes left out)."""
+        import gtsam
+
+        if self.pose3:
+            rows = np.asarray(gtsam.utilities.extractPose3(values))
+            out = np.tile(np.eye(4), (len(rows), 1, 1))
+            out[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+            out[:, :3, 3] = rows[:, 9:12]
+        else:
+            out = planar_from_xyt(np.asarray(gtsam.utilities.extractPose2(values)))
+        # Keys 'm...' sort before 'x...', and frame indices increase with insertion.
+        out = out[len(out) - self.store.size :]
+        if len(out) != self.store.size:
+            raise RuntimeError(f"the solver returned {len(out)} poses for {self.store.size} frames")
+        return out
+
+    def set_values(self, values: Any) -> None:
+        """Adopt a new full estimate (after an optimisation)."""
+        self.values = values
+        self.store.replace_all(self.session_poses(values))
+
+    def set_latest(self, value: Any) -> None:
+        """Adopt a solver's estimate of the newest frame only."""
+        self.store.set_latest(self._matrix(value))
+
+    def error(self, values: Any | None = None) -> float:
+        """The total error of eq. 11 (robust kernels applied) at ``values`` (default: the current estimate)."""
+        return float(self.graph().error(self.values if values is None else values))
+
+
+def planar_from_xyt(xyt: np.ndarray) -> np.ndarray:
+    """(N, 4, 4) poses from (N, 3) rows of ``x, y, yaw``."""
+    xyt = np.asarray(xyt, dtype=np.float64).reshape(-1, 3)
+    c, s = np.cos(xyt[:, 2]), np.sin(xyt[:, 2])
+    out = np.tile(np.eye(4), (len(xyt), 1, 1))
+    out[:, 0, 0], out[:, 0, 1], out[:, 1, 0], out[:, 1, 1] = c, -s, s, c
+    out[:, 0, 3], out[:, 1, 3] = xyt[:, 0], xyt[:, 1]
+    return out

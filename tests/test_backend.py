@@ -1,0 +1,276 @@
+"""Back-ends of eq. 11: drift correction, online estimates, the robust kernel, gating, Pose3, outputs."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from backend_world import CALIBRATION, OracleAssociation, ate, make_world, run_stages
+from sgf_plugins.backend import (
+    BackendParams,
+    GtsamLmBackend,
+    Isam2Backend,
+    Isam2Params,
+    LmParams,
+    OdometryBackend,
+)
+from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams
+
+from sgf_pipeline.context import RunContext
+from sgf_pipeline.geometry import invert, pose_from_xy_yaw, rpy_from_rotation, xy_yaw
+from sgf_pipeline.sgf_map import load_map
+from sgf_pipeline.types import Frame, LoopConstraint, LoopConstraints
+
+DRIFT = (0.02, math.radians(0.4), 0.015, math.radians(0.15))  # xy/sqrt(m), yaw/sqrt(m), scale, yaw bias/m
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def world():  # type: ignore[no-untyped-def]
+    return make_world(seed=0, odometry_noise=DRIFT)
+
+
+def true_loops(world, delay: int = 2, noise: float = 0.02) -> dict[int, list[LoopConstraint]]:  # type: ignore[no-untyped-def]
+    """Loop constraints between the two frames of each revisit pair, measured from the ground truth."""
+    rng = np.random.default_rng(11)
+    cov = np.diag([0.05**2, 0.05**2, math.radians(1.0) ** 2])
+    out: dict[int, list[LoopConstraint]] = {}
+    for r in world.truth.revisits:
+        a, b = (r.first.start_frame + r.first.end_frame) // 2, (r.second.start_frame + r.second.end_frame) // 2
+        relative = invert(world.gt[a]) @ world.gt[b]
+        x, y, yaw = xy_yaw(relative)
+        noisy = pose_from_xy_yaw(x + rng.normal(0, noise), y + rng.normal(0, noise), yaw + rng.normal(0, 0.005))
+        ids = (r.instance_id, r.instance_id)
+        out.setdefault(b + delay, []).append(LoopConstraint(a, b, noisy, cov, 0, r.reverse, 0.01, 1.0, ids))
+    return out
+
+
+def feed(world, backend, loops: dict[int, list[LoopConstraint]], context: RunContext | None = None):  # type: ignore[no-untyped-def]
+    context = context or RunContext(run_dir=None, calibration=CALIBRATION)
+    backend.begin(context)
+    estimates = []
+    for frame in world.frames:
+        found = loops.get(frame.index)
+        estimates.append(backend.process(frame=frame, loops=LoopConstraints(tuple(found)) if found else None))
+    backend.finalize(context)
+    return context, estimates
+
+
+@pytest.mark.parametrize(
+    "backend",
+    [
+        GtsamLmBackend(LmParams(save_map=False)),
+        Isam2Backend(Isam2Params(save_map=False)),
+        GtsamLmBackend(LmParams(save_map=False, pose="pose3")),
+        Isam2Backend(Isam2Params(save_map=False, pose="pose3")),
+    ],
+    ids=["lm-pose2", "isam2-pose2", "lm-pose3", "isam2-pose3"],
+)
+def test_loop_factors_correct_the_drift_of_odometry(world, backend) -> None:  # type: ignore[no-untyped-def]
+    odometry_ate = ate(world.odometry, world.gt)
+    assert odometry_ate > 8.0
+    context, estimates = feed(world, backend, true_loops(world))
+    trajectory = context.trajectories["sgf"]
+    assert len(trajectory) == len(world.frames)
+    np.testing.assert_array_equal(trajectory.timestamps, [f.timestamp for f in world.frames])
+    sgf_ate = ate(trajectory.poses, world.gt)
+    assert sgf_ate < 0.15 * odometry_ate
+    assert context.metrics["backend"]["loop_factors"] == len(world.truth.revisits)
+    # online: the estimate of the last frame is what the final optimisation gives, give or take
+    assert ate(estimates[-1].poses.array(), world.gt) < 0.2 * odometry_ate
+
+
+def test_every_frame_gets_an_estimate_of_every_processed_frame_that_later_frames_do_not_change(world) -> None:  # type: ignore[no-untyped-def]
+    backend = GtsamLmBackend(LmParams(save_map=False))
+    loops = true_loops(world)
+    _, estimates = feed(world, backend, loops)
+    first_loop_frame = min(loops)
+    before = estimates[first_loop_frame - 1]
+    kept = {k: before.poses[k] for k in before.poses}
+    for k, estimate in enumerate(estimates):
+        assert estimate.frame_index == world.frames[k].index
+        assert len(estimate.poses) == k + 1
+        assert list(estimate.poses)[-1] == world.frames[k].index
+    assert world.frames[first_loop_frame].index not in before.poses
+    # a later optimisation moved the trajectory, but not the earlier snapshot
+    after = estimates[-1]
+    assert max(np.abs(after.poses[k] - kept[k]).max() for k in kept) > 1.0
+    assert all(np.array_equal(before.poses[k], kept[k]) for k in kept)
+    # before any loop, the estimate is dead reckoning from the first pose
+    np.testing.assert_allclose(before.poses[first_loop_frame - 1], world.odometry[first_loop_frame - 1], atol=1e-6)
+
+
+def test_no_backend_is_odometry(world) -> None:  # type: ignore[no-untyped-def]
+    context, estimates = feed(world, OdometryBackend(BackendParams(save_map=False)), true_loops(world))
+    np.testing.assert_array_equal(context.trajectories["sgf"].poses, world.odometry)
+    np.testing.assert_array_equal(estimates[10].poses[10], world.odometry[10])
+    assert context.metrics["backend"]["loops_received"] == len(world.truth.revisits)
+
+
+def look_alike_loop(world, a: int, b: int) -> LoopConstraint:  # type: ignore[no-untyped-def]
+    """What ICP reports when frame ``a`` sees marking 1 and frame ``b`` its look-alike, marking 5, 40 m away."""
+    markings = {m.instance_id: pose_from_xy_yaw(*m.pose) for m in world.markings}
+    seen_a = invert(world.gt[a]) @ markings[1]
+    seen_b = invert(world.gt[b]) @ markings[5]
+    cov = np.diag([0.05**2, 0.05**2, math.radians(1.0) ** 2])
+    return LoopConstraint(a, b, seen_a @ invert(seen_b), cov, 0, False, 0.01, 1.0, (1, 5))
+
+
+@pytest.mark.parametrize(("kernel", "moves"), [("cauchy", False), ("huber", True), ("none", True)])
+def test_the_cauchy_kernel_ignores_a_false_loop(world, kernel: str, moves: bool) -> None:  # type: ignore[no-untyped-def]
+    loops = true_loops(world)
+    clean, _ = feed(world, GtsamLmBackend(LmParams(save_map=False, loop_kernel=kernel)), loops)  # type: ignore[arg-type]
+    marking_5 = [r.second for r in world.truth.revisits if r.instance_id == 5][-1]
+    marking_1 = next(r.second for r in world.truth.revisits if r.instance_id == 1)
+    a, b = (marking_1.start_frame + marking_1.end_frame) // 2, (marking_5.start_frame + marking_5.end_frame) // 2
+    false = look_alike_loop(world, a, b)
+    assert np.linalg.norm((invert(world.gt[a]) @ world.gt[b])[:2, 3] - false.relative[:2, 3]) > 30.0
+    polluted = {k: list(v) for k, v in loops.items()}
+    polluted.setdefault(b + 3, []).append(false)
+    dirty, _ = feed(world, GtsamLmBackend(LmParams(save_map=False, loop_kernel=kernel)), polluted)  # type: ignore[arg-type]
+    moved = np.linalg.norm(dirty.trajectories["sgf"].positions - clean.trajectories["sgf"].positions, axis=1).max()
+    if moves:
+        assert moved > 2.0
+    else:
+        # a few centimetres: below the loops' own sigma (5 cm) and the odometry's noise over 10 m (6 cm)
+        assert moved < 0.05
+
+
+def test_the_gate_alone_keeps_look_alikes_out_of_the_graph() -> None:
+    world = make_world(seed=1, odometry_noise=(0.01, math.radians(0.3), 0.01, math.radians(0.05)))
+    no_kernel = LmParams(save_map=False, loop_kernel="none")
+    reference = run_stages(
+        world, IcpLoopClosing(IcpLoopParams()), GtsamLmBackend(no_kernel), OracleAssociation(world, by="instance")
+    )
+    gated = run_stages(world, IcpLoopClosing(IcpLoopParams()), GtsamLmBackend(no_kernel))
+    ungated = run_stages(world, IcpLoopClosing(IcpLoopParams(gate=False)), GtsamLmBackend(no_kernel))
+    ate_of = {
+        name: ate(run.context.trajectories["sgf"].poses, world.gt)  # type: ignore[attr-defined]
+        for name, run in (("reference", reference), ("gated", gated), ("ungated", ungated))
+    }
+    assert gated.context.metrics["loops"]["false_closed"] == 0  # type: ignore[attr-defined]
+    assert ungated.context.metrics["loops"]["false_closed"] == 4  # type: ignore[attr-defined]
+    assert ate_of["gated"] < 1.5 * ate_of["reference"]
+    assert ate_of["ungated"] > 5.0 * ate_of["reference"]
+
+
+def test_pose3_takes_roll_and_pitch_from_the_imu() -> None:
+    frames = []
+    for k in range(60):
+        pose = pose_from_xy_yaw(float(k), 0.2 * k, 0.1 * k)
+        frames.append(Frame(k, 0.1 * k, np.zeros((2, 2), np.uint8), pose, CALIBRATION, imu_roll_pitch=(0.05, -0.03)))
+    backend = Isam2Backend(Isam2Params(save_map=False, pose="pose3"))
+    backend.begin(RunContext(run_dir=None))
+    estimate = None
+    for f in frames:
+        estimate = backend.process(frame=f, loops=None)
+    assert estimate is not None
+    for k in (0, 30, 59):
+        roll, pitch, yaw = rpy_from_rotation(estimate.poses[k][:3, :3])
+        assert roll == pytest.approx(0.05, abs=0.003)
+        assert pitch == pytest.approx(-0.03, abs=0.003)
+        assert yaw == pytest.approx(math.remainder(0.1 * k, 2 * math.pi), abs=0.01)
+
+
+def test_bad_loop_constraints_are_clear_errors(world) -> None:  # type: ignore[no-untyped-def]
+    backend = GtsamLmBackend(LmParams(save_map=False))
+    backend.begin(RunContext(run_dir=None))
+    for f in world.frames[:5]:
+        backend.process(frame=f, loops=None)
+    cov = np.eye(3) * 0.01
+
+    def loop(a: int, b: int, covariance: np.ndarray = cov, from_map: bool = False) -> LoopConstraints:
+        return LoopConstraints((LoopConstraint(a, b, np.eye(4), covariance, 0, False, 0.0, 1.0, from_map=from_map),))
+
+    frame = world.frames[5]
+    with pytest.raises(ValueError, match="loop constraint to frame 50, which is not a processed frame"):
+        backend.process(frame=frame, loops=loop(0, 50))
+    with pytest.raises(ValueError, match="positive definite"):
+        backend.process(frame=world.frames[6], loops=loop(0, 3, np.zeros((3, 3))))
+    with pytest.raises(ValueError, match="map frame 0, which the prior map does not hold"):
+        backend.process(frame=world.frames[7], loops=loop(0, 3, from_map=True))
+
+
+def test_finalize_writes_the_trajectory_metrics_and_a_loadable_map(tmp_path: Path) -> None:
+    world = make_world(seed=2, laps=1.0)
+    run = run_stages(world, IcpLoopClosing(IcpLoopParams()), Isam2Backend(Isam2Params()), run_dir=tmp_path)
+    context = run.context
+    metrics = context.metrics["backend"]  # type: ignore[attr-defined]
+    assert metrics["variant"] == "isam2"
+    assert metrics["nodes"] == len(world.frames)
+    assert metrics["loop_factors"] == len(run.loops) > 0
+    assert metrics["map"]["views"] == sum(len(v) for v in world.sgfs.values())
+    sgf_map = load_map(tmp_path / "sgf_map.safetensors", calibration=CALIBRATION)
+    final = context.trajectories["sgf"]  # type: ignore[attr-defined]
+    by_frame = dict(zip([f.index for f in world.frames], final.poses, strict=True))
+    for view in sgf_map.views:
+        np.testing.assert_allclose(view.pose, by_frame[view.frame_index], atol=1e-9)
+        np.testing.assert_array_equal(view.ground_truth, world.gt[view.frame_index])
+
+
+@pytest.mark.parametrize("variant", ["gtsam_lm", "isam2", "none"])
+def test_config_files_hold_the_defaults(variant: str) -> None:
+    raw = yaml.safe_load((ROOT / "conf" / "backend" / f"{variant}.yaml").read_text())
+    assert raw.pop("name") == variant
+    model = {"gtsam_lm": LmParams, "isam2": Isam2Params, "none": BackendParams}[variant]
+    assert set(raw) == set(model.model_fields)
+    assert model.model_validate(raw) == model()
+
+
+def test_loop_config_file_holds_the_defaults() -> None:
+    raw = yaml.safe_load((ROOT / "conf" / "loop" / "icp.yaml").read_text())
+    assert raw.pop("name") == "icp"
+    assert set(raw) == set(IcpLoopParams.model_fields)
+    assert IcpLoopParams.model_validate(raw) == IcpLoopParams()
+
+
+def test_isam2_survives_a_long_straight_drive_and_anchors_in_a_map_at_its_end(tmp_path: Path) -> None:
+    from backend_world import GRID, drifting_odometry
+
+    from sgf_pipeline.sgf_map import MapGroup, MapView, SgfMap, save_map
+
+    # A straight 2.5 km without a loop: the far end is so uncertain that iSAM2's Cholesky
+    # factorization calls the system indeterminate after ~1.9 km (hence factorization: qr).
+    n = 2500
+    gt = np.stack([pose_from_xy_yaw(float(k), 0.0, 0.0) for k in range(n)])
+    odometry = drifting_odometry(gt, np.random.default_rng(4), 0.01, math.radians(0.1), 0.0, 0.0)
+    points = np.array([[2.0, 0.0], [2.5, 0.1], [3.0, -0.1], [2.2, 0.4]])
+    view = MapView(7, 123, 0.0, gt[-1], points, points.mean(0), np.zeros((10, 90)), np.zeros(10), GRID)
+    save_map(tmp_path / "map.safetensors", SgfMap((MapGroup(7, False, (view,)),), CALIBRATION))
+    backend = Isam2Backend(Isam2Params(save_map=False, prior_map=str(tmp_path / "map.safetensors")))
+    backend.begin(RunContext(run_dir=None, calibration=CALIBRATION))
+    cov = np.diag([0.05**2, 0.05**2, math.radians(1.0) ** 2])
+    anchor = LoopConstraints((LoopConstraint(123, n - 1, np.eye(4), cov, 7, False, 0.01, 1.0, from_map=True),))
+    estimate = None
+    for k in range(n):
+        frame = Frame(k, 0.1 * k, np.zeros((1, 1), np.uint8), odometry[k], CALIBRATION)
+        estimate = backend.process(frame=frame, loops=anchor if k == n - 1 else None)
+    assert estimate is not None
+    assert np.linalg.norm(odometry[-1][:2, 3] - gt[-1][:2, 3]) > 10.0
+    # the run now sits in the map frame: its last pose on the map's view pose
+    np.testing.assert_allclose(estimate.poses[n - 1][:2, 3], gt[-1][:2, 3], atol=0.1)
+    assert backend.graph.anchored and backend.graph.map_factors == 1
+
+
+def test_pose2_keeps_the_odometry_height_roll_and_pitch(world) -> None:  # type: ignore[no-untyped-def]
+    from backend_world import World
+
+    from sgf_pipeline.geometry import rotation_rpy
+
+    frames = []
+    for f in world.frames:
+        tilt = np.eye(4)
+        tilt[:3, :3] = rotation_rpy(0.01, 0.03, 0.0)
+        tilt[2, 3] = 0.02 * f.index  # climbing
+        frames.append(Frame(f.index, f.timestamp, f.image, f.odometry @ tilt, CALIBRATION, ground_truth=f.ground_truth))
+    sloped = World(world.gt, np.stack([f.odometry for f in frames]), world.markings, frames, world.sgfs, world.truth)
+    context, estimates = feed(sloped, GtsamLmBackend(LmParams(save_map=False)), true_loops(world))
+    poses = context.trajectories["sgf"].poses
+    np.testing.assert_allclose(poses[:, 2, 3], 0.02 * np.arange(len(frames)), atol=1e-9)
+    roll, pitch, _ = rpy_from_rotation(poses[100][:3, :3])
+    assert (roll, pitch) == pytest.approx((0.01, 0.03), abs=1e-9)
+    np.testing.assert_allclose(estimates[-1].poses[len(frames) - 1], poses[-1], atol=1e-4)  # before the final LM
+    assert ate(poses, world.gt) < 0.15 * ate(world.odometry, world.gt)

@@ -1,0 +1,183 @@
+"""Loop closing with SGF factors: constraints from ICP, rejection, the uncertainty gate, and Table 3 metrics."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+from backend_world import CALIBRATION, Marking, OracleAssociation, descriptor, make_world, run_stages
+from sgf_plugins.backend import GtsamLmBackend, LmParams
+from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, drift_covariance
+
+from sgf_pipeline.geometry import invert, pose_from_xy_yaw, xy_yaw
+from sgf_pipeline.types import Frame, GroupAssignment, GroupAssignments
+
+
+@pytest.fixture(scope="module")
+def world():  # type: ignore[no-untyped-def]
+    return make_world(seed=1)
+
+
+def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> None:  # type: ignore[no-untyped-def]
+    stage = IcpLoopClosing(IcpLoopParams())
+    run = run_stages(world, loop=stage, association=OracleAssociation(world, by="instance"))
+    asymmetric = [r for r in world.truth.revisits if not world.truth.markings[r.instance_id].symmetric]
+    assert len(run.loops) == len(asymmetric) == 8
+    floor = np.diag([0.05**2, 0.05**2, math.radians(1.0) ** 2])
+    for c in run.loops:
+        assert c.instance_ids[0] == c.instance_ids[1]
+        assert c.frame_from < c.frame_to and not c.from_map
+        truth = invert(world.gt[c.frame_from]) @ world.gt[c.frame_to]
+        x, y, yaw = xy_yaw(invert(truth) @ c.relative)
+        # within the covariance floor (5 cm, 1 deg): a yaw error moves the robot by its lever arm
+        assert math.hypot(x, y) < 0.05
+        assert abs(math.degrees(yaw)) < 1.0
+        assert c.reverse == (abs(xy_yaw(truth)[2]) > math.pi / 2)
+        assert np.all(np.diag(c.covariance) >= np.diag(floor))
+        assert np.allclose(c.covariance, c.covariance.T)
+        assert c.fitness < 0.025 and c.inlier_ratio > 0.85
+    loops = run.context.metrics["loops"]
+    assert loops["closed"] == 8
+    assert loops["closed_reverse"] == 4
+    assert loops["false_closed"] == 0
+    assert loops["rejected"]["symmetric"] == 2  # the manhole's two revisits
+    assert len(run.context.artifacts["loops"]) == 8
+    assert all(entry["true"] is True for entry in run.context.artifacts["loops"])
+    assert len(run.context.artifacts["group_assignments"]) == sum(len(v) for v in world.sgfs.values())
+
+
+def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> None:  # type: ignore[no-untyped-def]
+    # Grouped by design, the two arrows (30 m and 40 m apart in the world) share a group.
+    gated = run_stages(world, loop=IcpLoopClosing(IcpLoopParams()))
+    assert all(c.instance_ids[0] == c.instance_ids[1] for c in gated.loops)
+    assert gated.context.metrics["loops"]["false_closed"] == 0
+    assert gated.context.metrics["loops"]["rejected"]["gate"] == 4
+    ungated = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False)))
+    look_alikes = [c for c in ungated.loops if c.instance_ids[0] != c.instance_ids[1]]
+    assert len(look_alikes) == 4
+    assert ungated.context.metrics["loops"]["false_closed"] == 4
+    # look-alikes take the place of true loops in the arrow group: fewer pairs closed
+    assert ungated.context.metrics["loops"]["closed"] < 8
+
+
+def _straight_run(n: int, yaw_at_end: float) -> list[Frame]:
+    """Frames 1 m apart along x, and a last frame back at the origin turned by ``yaw_at_end``."""
+    poses = [pose_from_xy_yaw(float(k), 0.0, 0.0) for k in range(n)] + [pose_from_xy_yaw(0.3, 0.1, yaw_at_end)]
+    return [Frame(k, 0.5 * k, np.zeros((2, 2), np.uint8), p, CALIBRATION, ground_truth=p) for k, p in enumerate(poses)]
+
+
+def _view(frame: Frame, marking: Marking) -> object:
+    inv = invert(frame.odometry)
+    return descriptor(frame, marking, marking.world_points() @ inv[:2, :2].T + inv[:2, 3])
+
+
+@pytest.mark.parametrize(("both_signs", "expected"), [(True, 1), (False, 0)])
+def test_the_column_shift_yaw_is_tried_with_both_signs(both_signs: bool, expected: int) -> None:
+    frames = _straight_run(20, math.radians(100))
+    marking = Marking(1, "arrow", (2.5, 0.0, 0.3))
+    first, last = _view(frames[0], marking), _view(frames[-1], marking)
+    # the association's shift convention is the opposite of ours: it reports -100 degrees
+    assignment = GroupAssignment(last, 0, False, 0.1, -25, math.radians(-100), first, False)  # type: ignore[arg-type]
+    stage = IcpLoopClosing(IcpLoopParams(seed_both_signs=both_signs, min_separation_distance=5.0))
+    out = [stage.process(frame=f, assignments=None, estimate=None) for f in frames[:-1]]
+    out.append(stage.process(frame=frames[-1], assignments=GroupAssignments((assignment,)), estimate=None))
+    loops = [c for o in out for c in o.items]
+    assert len(loops) == expected
+    if loops:
+        truth = invert(frames[0].odometry) @ frames[-1].odometry
+        assert np.allclose(xy_yaw(loops[0].relative), xy_yaw(truth), atol=0.01)
+
+
+def test_an_sgf_matched_within_the_same_pass_is_not_a_loop() -> None:
+    frames = _straight_run(6, 0.0)
+    marking = Marking(1, "arrow", (4.0, 0.0, 0.0))
+    a, b = _view(frames[1], marking), _view(frames[3], marking)
+    assignment = GroupAssignment(b, 0, False, 0.1, 0, 0.0, a, False)  # type: ignore[arg-type]
+    for min_distance, expected in ((10.0, 0), (1.0, 1)):
+        stage = IcpLoopClosing(IcpLoopParams(min_separation_distance=min_distance))
+        found = []
+        for f in frames[:4]:
+            items = GroupAssignments((assignment,)) if f.index == 3 else None
+            found += stage.process(frame=f, assignments=items, estimate=None).items
+        assert len(found) == expected
+        assert stage.counts["separation"] == 1 - expected
+
+
+def test_symmetric_groups_never_give_loop_factors() -> None:
+    frames = _straight_run(20, 0.0)
+    marking = Marking(1, "arrow", (2.5, 0.0, 0.0))
+    a, b = _view(frames[0], marking), _view(frames[-1], marking)
+    stage = IcpLoopClosing(IcpLoopParams())
+    found = [c for f in frames[:-1] for c in stage.process(frame=f, assignments=None, estimate=None).items]
+    symmetric = GroupAssignment(b, 0, False, 0.1, 0, 0.0, a, True)  # type: ignore[arg-type]
+    found += stage.process(frame=frames[-1], assignments=GroupAssignments((symmetric,)), estimate=None).items
+    assert found == []
+    assert stage.counts["symmetric"] == 1
+
+
+def test_anchored_distance_shrinks_once_the_estimate_has_absorbed_a_loop(world) -> None:  # type: ignore[no-untyped-def]
+    stage = IcpLoopClosing(IcpLoopParams())
+    run = run_stages(world, loop=stage, backend=GtsamLmBackend(LmParams(save_map=False)))
+    estimate = run.estimates[-1]
+    first = min(run.loops, key=lambda c: c.frame_to)
+    a, b = first.frame_from + 3, first.frame_to + 4  # next to the loop's two frames
+    path = stage.distance[b] - stage.distance[a]
+    assert stage._anchored_distance(a, b, None) == pytest.approx(path)
+    assert path > 150.0
+    assert stage._anchored_distance(a, b, estimate) == pytest.approx(7.0, abs=0.5)
+    # an estimate that ignores the loop (odometry) anchors nothing
+    from sgf_pipeline.types import PoseEstimate
+
+    odometry = PoseEstimate(world.frames[-1].index, {f.index: f.odometry for f in world.frames})
+    assert stage._anchored_distance(a, b, odometry) == pytest.approx(path)
+
+
+def test_the_prediction_covariance_starts_at_the_floors_and_grows_with_distance() -> None:
+    p = IcpLoopParams()
+    zero = drift_covariance(0.0, p)
+    assert np.allclose(np.sqrt(np.diag(zero)), [0.5, 0.5, math.radians(3.0)])
+    sigmas = [np.sqrt(np.diag(drift_covariance(d, p))) for d in (10.0, 100.0, 1000.0)]
+    assert all(np.all(b > a) for a, b in itertools.pairwise(sigmas))
+    # after 1 km without an anchor, the heading is known to about 16 degrees, the position to ~160 m
+    assert math.degrees(sigmas[2][2]) == pytest.approx(15.9, abs=0.2)
+    assert sigmas[2][0] == pytest.approx(161.0, abs=2.0)
+
+
+def test_an_sgf_of_an_unseen_frame_is_a_clear_error() -> None:
+    frames = _straight_run(3, 0.0)
+    marking = Marking(1, "arrow", (2.5, 0.0, 0.0))
+    ghost = Frame(99, 60.0, np.zeros((2, 2), np.uint8), np.eye(4), CALIBRATION)
+    a, b = _view(frames[0], marking), _view(ghost, marking)
+    stage = IcpLoopClosing(IcpLoopParams())
+    stage.process(frame=frames[0], assignments=None, estimate=None)
+    bad = GroupAssignment(b, 0, False, 0.1, 0, 0.0, a, False)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="frame 99 reached the loop stage, which never saw that frame"):
+        stage.process(frame=frames[1], assignments=GroupAssignments((bad,)), estimate=None)
+
+
+def test_two_different_shapes_in_one_group_give_no_factor() -> None:
+    frames = _straight_run(20, 0.4)
+    a = _view(frames[0], Marking(1, "arrow", (2.5, 0.0, 0.0)))
+    b = _view(frames[-1], Marking(2, "tee", (2.5, 0.0, 0.0)))
+    stage = IcpLoopClosing(IcpLoopParams(gate=False, extra_yaw_seeds=7))
+    found = [c for f in frames[:-1] for c in stage.process(frame=f, assignments=None, estimate=None).items]
+    mixed = GroupAssignment(b, 0, False, 0.6, 0, 0.4, a, False)  # type: ignore[arg-type]
+    found += stage.process(frame=frames[-1], assignments=GroupAssignments((mixed,)), estimate=None).items
+    assert found == []
+    assert stage.counts["icp"] == 1
+
+
+@pytest.mark.parametrize(("extra", "expected"), [(0, 0), (3, 1)])
+def test_extra_yaw_seeds_recover_from_a_wrong_column_shift(extra: int, expected: int) -> None:
+    frames = _straight_run(20, math.radians(100))
+    marking = Marking(1, "arrow", (2.5, 0.0, 0.3))
+    first, last = _view(frames[0], marking), _view(frames[-1], marking)
+    wrong = math.radians(100 - 90)  # a shift one quarter turn off
+    assignment = GroupAssignment(last, 0, False, 0.3, 2, wrong, first, False)  # type: ignore[arg-type]
+    stage = IcpLoopClosing(IcpLoopParams(extra_yaw_seeds=extra, seed_both_signs=False, min_separation_distance=5.0))
+    for f in frames[:-1]:
+        stage.process(frame=f, assignments=None, estimate=None)
+    loops = stage.process(frame=frames[-1], assignments=GroupAssignments((assignment,)), estimate=None).items
+    assert len(loops) == expected

@@ -1,0 +1,164 @@
+"""loop=icp and the back-ends inside the runner: wiring (Previous[PoseEstimate]), run directory, second session."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import pytest
+from backend_world import CALIBRATION, OracleAssociation, World, make_world
+
+from sgf_pipeline import Dataset, Pipeline, RunContext, Stage, StageParams, StageRegistry, hookimpl, load_plugins
+from sgf_pipeline.sgf_map import MapDescriptor, load_map
+from sgf_pipeline.trajectory import read_tum
+from sgf_pipeline.types import Frame, GroupAssignments
+
+WORLDS: dict[int, World] = {}
+
+
+class ToyParams(StageParams):
+    """Which toy world."""
+
+    seed: int = 1
+    laps: float = 2.0
+    reverse_lap: bool = True
+
+
+class ToyWorld(Dataset):
+    """The synthetic world of the back-end tests, as a dataset."""
+
+    name = "toy_world"
+    Params = ToyParams
+
+    def world(self) -> World:
+        p = self.params
+        assert isinstance(p, ToyParams)
+        key = hash((p.seed, p.laps, p.reverse_lap))
+        if key not in WORLDS:
+            WORLDS[key] = make_world(
+                seed=p.seed,
+                laps=p.laps,
+                reverse_lap=p.reverse_lap,
+                odometry_noise=(0.01, math.radians(0.3), 0.01, math.radians(0.05)),
+            )
+        return WORLDS[key]
+
+    def frames(self):  # type: ignore[no-untyped-def]
+        yield from self.world().frames
+
+    def __len__(self) -> int:
+        return len(self.world().frames)
+
+    def begin(self, context: RunContext) -> None:
+        context.calibration = CALIBRATION
+        context.truth = self.world().truth
+
+
+class OracleParams(StageParams):
+    """A prior SGF map to seed the groups with."""
+
+    prior_map: str | None = None
+
+
+class OracleGroups(Stage):
+    """Association by design, from the world's ground truth (what the real association will output)."""
+
+    kind = "association"
+    name = "oracle"
+    output = "assignments"
+    Params = OracleParams
+
+    def begin(self, context: RunContext) -> None:
+        world = next(iter(WORLDS.values()))
+        p = self.params
+        assert isinstance(p, OracleParams)
+        prior = load_map(p.prior_map).descriptors() if p.prior_map else None
+        self.oracle = OracleAssociation(world, prior=prior)  # type: ignore[arg-type]
+
+    def process(self, frame: Frame) -> GroupAssignments | None:
+        """The frame's SGFs in their groups."""
+        return self.oracle.assign(frame)
+
+
+class ToyPlugin:
+    """Registers the toy dataset and association."""
+
+    @hookimpl
+    def sgf_register_stages(self, registry: StageRegistry) -> None:
+        registry.add(ToyWorld)
+        registry.add(OracleGroups)
+
+
+def config(backend: dict[str, Any], association: dict[str, Any] | None = None) -> dict[str, Any]:
+    return {
+        "pipeline": ["dataset", "association", "loop", "backend"],
+        "dataset": {"name": "toy_world"},
+        "association": {"name": "oracle", **(association or {})},
+        "loop": {"name": "icp"},
+        "backend": backend,
+        "run": {"progress": False, "plots": False},
+    }
+
+
+@pytest.fixture(scope="module")
+def plugins():  # type: ignore[no-untyped-def]
+    return load_plugins(allow=["loop", "backend"], extra=[("toy", ToyPlugin())])
+
+
+def test_a_run_closes_loops_and_writes_trajectory_metrics_and_map(tmp_path: Path, plugins) -> None:  # type: ignore[no-untyped-def]
+    WORLDS.clear()
+    pipeline = Pipeline.from_config(config({"name": "isam2"}), run_dir=tmp_path, plugins=plugins)
+    metrics = pipeline.run()
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["loops"]["closed"] == metrics["loops"]["closed"] == 5
+    assert saved["loops"]["closed_reverse"] == 3
+    assert saved["loops"]["false_closed"] == 0
+    assert saved["backend"]["loop_factors"] == 5
+    assert saved["ate_rmse_m"]["sgf"] < 0.4 * saved["ate_rmse_m"]["odometry"]
+    trajectory = read_tum(tmp_path / "trajectory_sgf.tum")
+    assert len(trajectory) == len(next(iter(WORLDS.values())).frames)
+    sgf_map = load_map(tmp_path / "sgf_map.safetensors", calibration=CALIBRATION)
+    assert len(sgf_map.views) == saved["backend"]["map"]["views"] == 15
+
+
+def test_a_second_session_through_the_runner_localizes_on_the_first_ones_map(tmp_path: Path, plugins) -> None:  # type: ignore[no-untyped-def]
+    WORLDS.clear()
+    Pipeline.from_config(config({"name": "gtsam_lm"}), run_dir=tmp_path / "first", plugins=plugins).run()
+    prior = str(tmp_path / "first" / "sgf_map.safetensors")
+    assert all(isinstance(d, MapDescriptor) for d in load_map(prior).descriptors())
+    cfg = config({"name": "isam2", "prior_map": prior}, {"prior_map": prior})
+    metrics = Pipeline.from_config(cfg, run_dir=tmp_path / "second", plugins=plugins).run()
+    assert metrics["loops"]["accepted_map"] >= 2
+    assert metrics["loops"]["false_closed"] == 0
+    assert metrics["backend"]["prior_map"]["anchored"] is True
+
+
+def test_a_missing_prior_map_stops_the_pipeline_while_it_is_built(tmp_path: Path, plugins) -> None:  # type: ignore[no-untyped-def]
+    from sgf_pipeline.errors import ConfigError
+
+    missing = str(tmp_path / "none.safetensors")
+    with pytest.raises(ConfigError, match="backend=gtsam_lm cannot start: SGF map not found"):
+        Pipeline.from_config(config({"name": "gtsam_lm", "prior_map": missing}), run_dir=tmp_path, plugins=plugins)
+
+
+def test_a_map_of_another_camera_stops_the_run_before_the_first_frame(tmp_path: Path, plugins) -> None:  # type: ignore[no-untyped-def]
+    from sgf_pipeline.calibration import Calibration
+    from sgf_pipeline.errors import DataError
+    from sgf_pipeline.sgf_map import save_map
+
+    WORLDS.clear()
+    Pipeline.from_config(config({"name": "none"}), run_dir=tmp_path / "first", plugins=plugins).run()
+    first = load_map(tmp_path / "first" / "sgf_map.safetensors")
+    other = Calibration.from_mounting(CALIBRATION.intrinsics, height=1.2, tilt=0.35)
+    save_map(tmp_path / "other.safetensors", replace(first, calibration=other))
+    pipeline = Pipeline.from_config(
+        config({"name": "isam2", "prior_map": str(tmp_path / "other.safetensors")}),
+        run_dir=tmp_path / "second",
+        plugins=plugins,
+    )
+    with pytest.raises(DataError, match="another camera calibration"):
+        pipeline.run()
+    assert pipeline.info.frames_processed == 0
