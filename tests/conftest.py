@@ -73,3 +73,12 @@ def run_cli(
     full_env = dict(os.environ)
     full_env.update(env or {})
     return subprocess.run([str(exe), *args], capture_output=True, text=True, env=full_env, cwd=cwd, timeout=timeout)
+
+
+def conf_node(relative: str) -> dict:
+    """A config group file of conf/ as plain data, interpolations resolved (as Hydra would, alone)."""
+    from omegaconf import OmegaConf
+
+    node = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / relative), resolve=True)
+    assert isinstance(node, dict)
+    return node

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from backend_world import CALIBRATION, OracleAssociation, ate, make_world, run_stages
+from conftest import conf_node
 from sgf_plugins.backend import (
     BackendParams,
     GtsamLmBackend,
@@ -213,7 +213,7 @@ def test_finalize_writes_the_trajectory_metrics_and_a_loadable_map(tmp_path: Pat
 
 @pytest.mark.parametrize("variant", ["gtsam_lm", "isam2", "none"])
 def test_config_files_hold_the_defaults(variant: str) -> None:
-    raw = yaml.safe_load((ROOT / "conf" / "backend" / f"{variant}.yaml").read_text())
+    raw = conf_node(f"backend/{variant}.yaml")
     assert raw.pop("name") == variant
     model = {"gtsam_lm": LmParams, "isam2": Isam2Params, "none": BackendParams}[variant]
     assert set(raw) == set(model.model_fields)
@@ -221,7 +221,7 @@ def test_config_files_hold_the_defaults(variant: str) -> None:
 
 
 def test_loop_config_file_holds_the_defaults() -> None:
-    raw = yaml.safe_load((ROOT / "conf" / "loop" / "icp.yaml").read_text())
+    raw = conf_node("loop/icp.yaml")
     assert raw.pop("name") == "icp"
     assert set(raw) == set(IcpLoopParams.model_fields)
     assert IcpLoopParams.model_validate(raw) == IcpLoopParams()

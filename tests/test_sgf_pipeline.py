@@ -11,7 +11,7 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
-import yaml
+from conftest import conf_node
 from sgf_plugins.sgf.association import OnlineGroupsParams
 from sgf_plugins.sgf.descriptor import PolarContextParams
 from sgf_plugins.sgf.detector import HuWindowParams
@@ -138,9 +138,9 @@ def config(run_dir_plots: bool = False) -> dict:
         "dataset": {"name": "sgf_test_stream"},
         "ipm": {"name": "sgf_test_bev"},
         "saliency": {"name": "sgf_test_saliency"},
-        "detector": yaml.safe_load((ROOT / "conf/detector/hu_window.yaml").read_text()),
-        "descriptor": yaml.safe_load((ROOT / "conf/descriptor/polar_context.yaml").read_text()),
-        "association": yaml.safe_load((ROOT / "conf/association/online_groups.yaml").read_text()),
+        "detector": conf_node("detector/hu_window.yaml"),
+        "descriptor": conf_node("descriptor/polar_context.yaml"),
+        "association": conf_node("association/online_groups.yaml"),
         "run": {"progress": False, "plots": run_dir_plots},
     }
 
@@ -151,7 +151,7 @@ def test_configs_hold_the_paper_defaults():
         ("descriptor", "polar_context", PolarContextParams),
         ("association", "online_groups", OnlineGroupsParams),
     ):
-        node = yaml.safe_load((ROOT / "conf" / group / f"{name}.yaml").read_text())
+        node = conf_node(f"{group}/{name}.yaml")
         assert node.pop("name") == name
         assert model.model_validate(node) == model(), f"conf/{group}/{name}.yaml differs from the code's defaults"
     assert HuWindowParams().hu_threshold == 0.005

@@ -100,6 +100,9 @@ class OnlineGroupsParams(StageParams):
         ge=0.0,
         description="groups within this eq. 10 distance of the best are equally good; the nearest on the map wins",
     )
+    prior_map: str | None = Field(
+        None, description="an SGF map (sgf_map.safetensors) whose groups seed the association: localization on it"
+    )
     yaw_tolerance: float = Field(
         0.02,
         ge=0.0,
@@ -205,7 +208,13 @@ class OnlineSgfGroups(Stage):
         self._distance = 0.0
 
     def begin(self, context: RunContext) -> None:
-        """Start the sequence with the seeded groups only."""
+        """Start the sequence with the seeded groups only (those of ``prior_map`` when it is set)."""
+        if self.params.prior_map is not None and not self._prior:
+            from sgf_pipeline.sgf_map import load_map
+
+            self.seed_groups(
+                groups_from_map(load_map(self.params.prior_map, calibration=context.calibration), self.params.columns)
+            )
         self._reset()
 
     # -- map positions and the spatial gate ---------------------------------------------------
@@ -381,6 +390,28 @@ def loop_pairs(groups: Iterable[SgfGroup], truth: SequenceTruth) -> dict[str, in
         "pairs_found_reverse": sum(1 for p, ok in found if ok and p.reverse),
         "pairs_total_reverse": sum(1 for p, _ in found if p.reverse),
     }
+
+
+def groups_from_map(sgf_map: Any, columns: ColumnSet = "intersection") -> list[SgfGroup]:
+    """SGF groups of a saved map, members anchored at their optimized map positions (for ``seed_groups``)."""
+    groups = []
+    for map_group in sgf_map.groups:
+        group = SgfGroup(map_group.group_id)
+        first = None
+        for view in map_group.views:
+            member = view.descriptor()
+            offset = 0
+            if first is None:
+                first = member
+            else:
+                offset = best_shift(shifted_distances(member.matrix, first.matrix[None], columns)[0])
+            anchor = (
+                member.map_pose[:2, :2] @ np.asarray(member.centroid, dtype=np.float64)[:2] + member.map_pose[:2, 3]
+            )
+            group.add(member, offset, anchor)
+        if group.members:
+            groups.append(group)
+    return groups
 
 
 @hookimpl
