@@ -71,3 +71,25 @@ def test_queue_keeps_the_last_n_and_resets() -> None:
         queue.reference()
     with pytest.raises(ValueError, match="at least one"):
         PoseQueue(0)
+
+
+def test_settle_follows_a_slope_after_k_poses_but_not_a_bump():
+    """The settle extension: a constant new pitch (a slope) takes over after `settle` poses."""
+    slope = PoseQueue(50, 0.025, settle=6)
+    for _ in range(50):
+        slope.push(0.0, 0.0)
+    for i in range(10):
+        slope.push(0.0, 0.08)
+        expected = 0.08 if i >= 5 else 0.0
+        assert slope.reference().pitch == pytest.approx(expected), i
+    assert len(slope) == 10
+
+    bump = PoseQueue(50, 0.025, settle=6)
+    for _ in range(50):
+        bump.push(0.0, 0.0)
+    for pitch in (0.03, 0.07, 0.09, 0.05, 0.0, -0.05, -0.08, -0.04, 0.0):  # up the bump, then down
+        bump.push(0.0, pitch)
+        assert bump.reference().pitch == pytest.approx(0.0)
+    assert len(bump) == 50
+    with pytest.raises(ValueError, match="settle must lie in"):
+        PoseQueue(10, 0.025, settle=10)

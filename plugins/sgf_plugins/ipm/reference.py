@@ -40,6 +40,12 @@ class PoseQueue:
     lasts longer than half the queue becomes the majority: the centre jumps to it, the flat poses
     become the outliers, and the reference follows the slope, so a constant slope is not
     compensated away. The transition takes ``size // 2 + 1`` poses.
+
+    ``settle`` (an extension, off by default): when the last ``settle`` pitches agree with one
+    another within ``pitch_threshold`` but lie more than ``pitch_threshold`` from the centre of
+    the older poses, the attitude has settled at a new level -- the robot is on a slope, not on a
+    bump, whose pitch rises and falls -- and the older poses are dropped, so the reference follows
+    the slope after ``settle`` poses instead of ``size // 2 + 1``.
     """
 
     def __init__(
@@ -48,6 +54,7 @@ class PoseQueue:
         pitch_threshold: float = 0.025,
         center: ReferenceCenter = "median",
         roll_threshold: float | None = None,
+        settle: int | None = None,
     ) -> None:
         if size < 1:
             raise ValueError(f"the pose queue needs at least one pose, got size={size}")
@@ -55,6 +62,9 @@ class PoseQueue:
         self.pitch_threshold = pitch_threshold
         self.center = center
         self.roll_threshold = roll_threshold
+        if settle is not None and not 1 <= settle < size:
+            raise ValueError(f"settle must lie in [1, size), got settle={settle} with size={size}")
+        self.settle = settle
         self._poses: deque[tuple[float, float]] = deque(maxlen=size)
 
     def __len__(self) -> int:
@@ -67,6 +77,14 @@ class PoseQueue:
     def push(self, roll: float, pitch: float) -> None:
         """Append the current attitude (the oldest leaves a full queue)."""
         self._poses.append((float(roll), float(pitch)))
+        k = self.settle
+        if k is None or len(self._poses) <= k:
+            return
+        pitches = np.fromiter((p for _, p in self._poses), dtype=np.float64)
+        recent, older = pitches[-k:], pitches[:-k]
+        if np.ptp(recent) <= self.pitch_threshold and abs(recent.mean() - np.median(older)) > self.pitch_threshold:
+            for _ in range(len(older)):
+                self._poses.popleft()
 
     def reference(self) -> ReferenceAttitude:
         """The robust average attitude of the queue (steps 2-4 of the class docstring)."""

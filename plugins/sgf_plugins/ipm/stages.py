@@ -183,6 +183,12 @@ class MotionCompensatedIpmParams(IpmParams):
     roll_threshold: float | None = Field(
         None, gt=0.0, description="also leave out poses whose roll is this far (rad) from the median; null = paper"
     )
+    settle: int | None = Field(
+        None,
+        ge=1,
+        description="extension: after this many poses settled at a new pitch (a slope), drop the older ones; "
+        "null = paper (a slope takes over after N/2 + 1 poses)",
+    )
     attitude: Literal["auto", "imu", "odometry"] = Field(
         "auto", description="roll/pitch source: imu, odometry pose, or auto (IMU when the frame has it)"
     )
@@ -216,7 +222,7 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
         super().__init__(params)
         self.params: MotionCompensatedIpmParams = params
         self.queue = PoseQueue(
-            params.queue_size, params.pitch_threshold, params.reference_center, params.roll_threshold
+            params.queue_size, params.pitch_threshold, params.reference_center, params.roll_threshold, params.settle
         )
         self.last_reference: ReferenceAttitude | None = None
 
