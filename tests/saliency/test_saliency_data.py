@@ -16,10 +16,12 @@ from sgf_plugins.saliency.data import (
     make_splits,
     normalize_image,
     resize_mask,
+    samples_from_bevs,
     write_sod_folder,
 )
 
 from sgf_pipeline.errors import DataError
+from sgf_pipeline.types import Bev, BevGrid, MarkingPass, MarkingTruth, SequenceTruth
 
 
 def test_written_folder_round_trips(tmp_path: Path) -> None:
@@ -121,3 +123,36 @@ def test_network_input_normalisation() -> None:
     assert x[0, 0, 0] == pytest.approx((1 - 0.485) / 0.229)
     m = resize_mask(np.full((16, 16), 255, np.uint8), 8)
     assert m.shape == (8, 8) and m.max() == 1.0
+
+
+def test_samples_from_synthetic_bevs(tmp_path: Path) -> None:
+    grid = BevGrid(0.02, 0.0, 0.64, -0.32, 0.32)
+    truth = SequenceTruth(
+        markings={
+            1: MarkingTruth(1, "arrow_left", "standard", False, (0, 0, 0), (1, 0.3)),
+            2: MarkingTruth(2, "campus_logo", "custom", False, (5, 0, 0), (1, 1)),
+        },
+        passes=[MarkingPass(1, 0, 0, 1, 0.0), MarkingPass(2, 0, 2, 2, 0.0)],
+    )
+    bevs = []
+    for frame in range(4):
+        ids = np.zeros((32, 32), np.uint16)
+        if frame < 2:
+            ids[5:15, 5:15] = 1
+        elif frame == 2:
+            ids[10:20, 10:30] = 2
+            ids[0:2, 0:5] = 1  # 10 pixels: too few to count as in view
+        image = np.full((32, 32, 3), 90, np.uint8)
+        bevs.append(Bev(image, np.ones((32, 32), bool), grid, frame, 0.1 * frame, instance_ids=ids))
+    bevs.append(Bev(image, np.ones((32, 32), bool), grid, 9, 0.9))  # no instance ids: skipped
+    samples = list(samples_from_bevs(bevs, truth, "campus_delivery"))
+    assert [s[2]["frame"] for s in samples] == [0, 1, 2, 3]
+    assert samples[0][2]["designs"] == ["arrow_left"] and samples[0][2]["group"] == "campus_delivery:1:0"
+    assert samples[1][2]["group"] == samples[0][2]["group"]  # one pass, one group
+    assert samples[2][2]["designs"] == ["campus_logo"] and samples[2][2]["categories"] == ["custom"]
+    assert samples[2][1].sum() == 200 + 10  # the mask keeps every marking pixel
+    assert samples[3][2]["designs"] == [] and samples[3][2]["group"] == "campus_delivery:blank:0"
+    spec = SplitSpec(seed=0, val_fraction=0.25, test_fraction=0.0, heldout_designs=("campus_logo",), group_key="group")
+    report = write_sod_folder(samples, tmp_path / "sod", spec)
+    assert report.splits["test_heldout"] == ["campus_delivery_000002"]
+    assert SodFolder(tmp_path / "sod").meta("campus_delivery_000000")["group"] == "campus_delivery:1:0"

@@ -41,21 +41,22 @@ def marking_saliency(
     if not seen.any():
         return np.zeros((h, w), np.float32)
     # 1. channel extremes; unseen pixels take the median of the seen ground so no edge appears there
-    channels = rgb.astype(np.float32)
+    image = np.asarray(rgb, dtype=np.uint8)
     planes = []
     if polarity in ("bright", "both"):
-        planes.append(channels.max(axis=2))
+        planes.append(image.max(axis=2))
     if polarity in ("dark", "both"):
-        planes.append(255.0 - channels.min(axis=2))
+        planes.append(255 - image.min(axis=2))
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (_odd(kernel_m / resolution),) * 2)
     response = np.zeros((h, w), np.float32)
     for plane in planes:
         plane = plane.copy()
-        plane[~seen] = float(np.median(plane[seen]))
+        plane[~seen] = np.uint8(np.median(plane[seen]))
         if smooth_px > 0:
             plane = cv2.GaussianBlur(plane, (0, 0), smooth_px)
         # 2. white top-hat: structures narrower than the kernel and brighter than their surroundings
-        response = np.maximum(response, cv2.morphologyEx(plane, cv2.MORPH_TOPHAT, kernel))
+        tophat = cv2.morphologyEx(plane, cv2.MORPH_TOPHAT, kernel).astype(np.float32)
+        response = np.maximum(response, tophat)
     # 3. adaptive threshold: k robust sigmas of the top-hat over the seen ground, at least min_contrast
     inner = cv2.erode(seen.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     values = response[inner] if inner.any() else response[seen]

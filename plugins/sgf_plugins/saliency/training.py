@@ -71,7 +71,9 @@ class TrainOptions(BaseModel):
     monitor: Literal["mae", "maxF", "meanF", "sm"] = Field("mae", description="validation metric for best/early stop")
     patience: int = Field(8, ge=1, description="stop after this many epochs without improvement")
     val_every: int = Field(1, ge=1, description="validate every this many epochs")
-    threads: int | None = Field(None, ge=1, description="torch intra-op threads; null = torch's default")
+    threads: int | None = Field(
+        1, ge=1, description="torch intra-op threads (1 is fastest on a shared 2-core machine); null = torch's default"
+    )
     resume: str | None = Field(None, description="directory of an interrupted run (its checkpoint) to continue")
     half_weights: bool = Field(True, description="store large tensors of the final weights as float16")
     export_to: str | None = Field(None, description="also copy the weights and model card to this directory")
