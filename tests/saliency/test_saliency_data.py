@@ -156,3 +156,12 @@ def test_samples_from_synthetic_bevs(tmp_path: Path) -> None:
     report = write_sod_folder(samples, tmp_path / "sod", spec)
     assert report.splits["test_heldout"] == ["campus_delivery_000002"]
     assert SodFolder(tmp_path / "sod").meta("campus_delivery_000000")["group"] == "campus_delivery:1:0"
+
+
+def test_unknown_split_name(toy_folder: Path) -> None:
+    folder = SodFolder(toy_folder)
+    with pytest.raises(DataError, match="no split named 'holdout'"):
+        folder.split("holdout")
+    assert sorted(
+        folder.split("train") + folder.split("val") + folder.split("test") + folder.split("test_heldout")
+    ) == (folder.names)

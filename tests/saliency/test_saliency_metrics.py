@@ -11,8 +11,11 @@ import cv2
 import numpy as np
 import pytest
 from sgf_plugins.saliency import metrics
+from sgf_plugins.saliency.cli_sod_eval import evaluate_prediction_folder
 from sgf_plugins.saliency.cli_sod_eval import run as sod_eval_run
 from sgf_plugins.saliency.metrics import SodMetrics
+
+from sgf_pipeline.errors import DataError
 
 GOLDEN_KEYS = {
     "maxF": "maxFm",
@@ -182,3 +185,13 @@ def test_table_layout() -> None:
     row = table.splitlines()[2].split()
     assert row[:5] == ["selfreformer", ".953", ".032", ".908", ".920"]
     assert row[-1] == "25.0"
+
+
+def test_prediction_folder_errors(shared_data: Path, tmp_path: Path) -> None:
+    root = shared_data / "pysodmetrics"
+    (tmp_path / "preds").mkdir()
+    cv2.imwrite(str(tmp_path / "preds" / "0001.png"), np.zeros((4, 4), np.uint8))
+    with pytest.raises(DataError, match="no prediction for 2 mask"):
+        evaluate_prediction_folder(tmp_path / "preds", root / "masks")
+    with pytest.raises(DataError, match="not found"):
+        evaluate_prediction_folder(tmp_path / "nothing", root / "masks")

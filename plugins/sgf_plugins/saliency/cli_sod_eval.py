@@ -19,7 +19,7 @@ from sgf_pipeline.config import config_dir
 from sgf_pipeline.errors import ConfigError, DataError
 from sgf_pipeline.io import atomic_write_json
 from sgf_pipeline.types import Bev, BevGrid
-from sgf_plugins.saliency.data import IMAGE_SUFFIXES, SodFolder
+from sgf_plugins.saliency.data import IMAGE_SUFFIXES, SodFolder, write_png
 from sgf_plugins.saliency.metrics import SodMetrics, format_table, to_uint8
 
 OUTPUT = "sod_metrics.json"
@@ -100,9 +100,7 @@ def evaluate_models(
             seconds += time.perf_counter() - t0
             acc.add_probability(out.probability, folder.mask(name))
             if save_dir is not None:
-                target = save_dir / model / f"{name}.png"
-                target.parent.mkdir(parents=True, exist_ok=True)
-                cv2.imwrite(str(target), to_uint8(out.probability))
+                write_png(save_dir / model / f"{name}.png", to_uint8(out.probability))
         results[model] = _summary(acc, len(names) / seconds if seconds > 0 else None, source=str(folder.root))
     return results
 

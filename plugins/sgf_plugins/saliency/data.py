@@ -221,7 +221,9 @@ def _as_mask_u8(mask: np.ndarray) -> np.ndarray:
     return (m > 0).astype(np.uint8) * 255  # instance ids: any marking is salient
 
 
-def _write_png(path: Path, image: np.ndarray) -> None:
+def write_png(path: Path, image: np.ndarray) -> None:
+    """Write an image as PNG atomically (BGR or grey, as OpenCV expects)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path) as tmp:
         ok, buf = cv2.imencode(".png", image)
         if not ok:
@@ -271,10 +273,10 @@ def write_sod_folder(
             raise ValueError(f"sample {index}: duplicate name {name!r}")
         seen.add(name)
         valid = meta.pop("valid", None)
-        _write_png(out / "images" / f"{name}.png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        _write_png(out / "masks" / f"{name}.png", m)
+        write_png(out / "images" / f"{name}.png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        write_png(out / "masks" / f"{name}.png", m)
         if valid is not None:
-            _write_png(out / "valid" / f"{name}.png", np.asarray(valid, dtype=bool).astype(np.uint8) * 255)
+            write_png(out / "valid" / f"{name}.png", np.asarray(valid, dtype=bool).astype(np.uint8) * 255)
         rows.append(json.dumps({"name": name, **meta}, default=_json_default))
         count += 1
     atomic_write_text(out / "meta.jsonl", "\n".join(rows) + ("\n" if rows else ""))

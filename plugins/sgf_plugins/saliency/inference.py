@@ -120,6 +120,7 @@ class SaliencyPredictor:
         net = load_network(model, arch, weights)
         self._torch: nn.Module | None = None
         self._session: Any = None
+        self.onnx_path: Path | None = None
         if runtime == "torch":
             import torch
 
@@ -135,7 +136,7 @@ class SaliencyPredictor:
         else:
             raise ValueError(f"unknown runtime {runtime!r}; use torch or onnx")
 
-    def logits_input(self, rgb: np.ndarray) -> np.ndarray:
+    def network_input(self, rgb: np.ndarray) -> np.ndarray:
         """The normalised network input ``(1, 3, S, S)`` of an RGB image."""
         return normalize_image(rgb, self.input_size)[None]
 
@@ -154,7 +155,7 @@ class SaliencyPredictor:
         if rgb.ndim != 3 or rgb.shape[2] != 3:
             raise ValueError(f"expected an (H, W, 3) RGB image, got shape {rgb.shape}")
         h, w = rgb.shape[:2]
-        prob = self.predict_network(self.logits_input(rgb))[0]
+        prob = self.predict_network(self.network_input(rgb))[0]
         if prob.shape != (h, w):
             prob = cv2.resize(prob, (w, h), interpolation=cv2.INTER_LINEAR)
         return np.clip(prob, 0.0, 1.0).astype(np.float32)
