@@ -1,0 +1,178 @@
+"""Running a trained saliency network on images: in PyTorch, or exported to ONNX and run by onnxruntime."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import warnings
+from collections.abc import Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import cv2
+import numpy as np
+
+from sgf_pipeline.errors import DataError
+from sgf_plugins.saliency.data import normalize_image
+
+if TYPE_CHECKING:
+    import torch
+    from torch import nn
+
+ONNX_OPSET = 17
+
+
+def onnx_cache_dir() -> Path:
+    """Where exported ONNX models are kept (``$SGF_PIPELINE_CACHE`` or ``~/.cache/sgf_pipeline``)."""
+    root = os.environ.get("SGF_PIPELINE_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "sgf_pipeline"
+    )
+    return Path(root) / "onnx"
+
+
+def load_network(model: str, arch: Mapping[str, Any], weights: str | Path) -> nn.Module:
+    """The network of ``model`` with weights loaded, in eval mode."""
+    from sgf_plugins.saliency.models import build_model
+    from sgf_plugins.saliency.weights import load_weights
+
+    net = build_model(model, arch)
+    load_weights(net, weights, model, arch)
+    return net.eval()
+
+
+def probability_module(net: nn.Module) -> nn.Module:
+    """Wrap a network so that it maps a normalised image batch to the final saliency probability."""
+    from torch import nn
+
+    class SaliencyProbability(nn.Module):
+        """sigmoid(final logit) of a saliency network, ``(B, 1, H, W)``."""
+
+        def __init__(self, inner: nn.Module) -> None:
+            super().__init__()
+            self.inner = inner
+
+        def forward(self, x: torch.Tensor) -> torch.Tensor:
+            """Probability at input resolution."""
+            import torch
+
+            return torch.sigmoid(self.inner.final(self.inner(x)))  # type: ignore[operator]
+
+    return SaliencyProbability(net).eval()
+
+
+def export_onnx(net: nn.Module, path: str | Path, input_size: int) -> Path:
+    """Export a network (probability output) to ONNX at a fixed input size, atomically."""
+    import torch
+
+    from sgf_pipeline.io import atomic_path
+
+    module = probability_module(net)
+    dummy = torch.zeros(1, 3, input_size, input_size)
+    target = Path(path)
+    with atomic_path(target) as tmp, warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            module,
+            (dummy,),
+            str(tmp),
+            input_names=["image"],
+            output_names=["probability"],
+            opset_version=ONNX_OPSET,
+            dynamo=False,
+        )
+    module.eval()
+    return target
+
+
+def onnx_cache_path(model: str, arch: Mapping[str, Any], weights: Path, input_size: int) -> Path:
+    """A cache file name that changes with the weights' bytes, the architecture, the input size and torch."""
+    import torch
+
+    from sgf_plugins.saliency.weights import file_sha256
+
+    key = json.dumps(
+        {"arch": dict(arch), "weights": file_sha256(weights), "size": input_size, "torch": torch.__version__},
+        sort_keys=True,
+    )
+    digest = hashlib.sha256(key.encode()).hexdigest()[:16]
+    return onnx_cache_dir() / f"{model}-{input_size}-{digest}.onnx"
+
+
+class SaliencyPredictor:
+    """A trained network that maps an RGB image of any size to a saliency probability of the same size."""
+
+    def __init__(
+        self,
+        model: str,
+        arch: Mapping[str, Any],
+        weights: str | Path,
+        input_size: int,
+        runtime: Literal["torch", "onnx"] = "torch",
+        threads: int | None = None,
+        onnx_path: str | Path | None = None,
+    ) -> None:
+        self.model = model
+        self.input_size = input_size
+        self.runtime = runtime
+        self.threads = threads
+        self.weights = Path(weights)
+        net = load_network(model, arch, weights)
+        self._torch: nn.Module | None = None
+        self._session: Any = None
+        self.onnx_path: Path | None = None
+        if runtime == "torch":
+            import torch
+
+            if threads:
+                torch.set_num_threads(threads)  # process-wide, like the runner's run.torch_threads
+            self._torch = probability_module(net)
+        elif runtime == "onnx":
+            path = Path(onnx_path) if onnx_path else onnx_cache_path(model, arch, self.weights, input_size)
+            if not path.is_file():
+                export_onnx(net, path, input_size)
+            self._session = _ort_session(path, threads)
+            self.onnx_path = path
+        else:
+            raise ValueError(f"unknown runtime {runtime!r}; use torch or onnx")
+
+    def network_input(self, rgb: np.ndarray) -> np.ndarray:
+        """The normalised network input ``(1, 3, S, S)`` of an RGB image."""
+        return normalize_image(rgb, self.input_size)[None]
+
+    def predict_network(self, x: np.ndarray) -> np.ndarray:
+        """Probabilities ``(B, S, S)`` of normalised inputs ``(B, 3, S, S)`` at the network's resolution."""
+        if self._session is not None:
+            return np.asarray(self._session.run(None, {"image": x.astype(np.float32)})[0])[:, 0]
+        import torch
+
+        assert self._torch is not None
+        with torch.inference_mode():
+            return self._torch(torch.from_numpy(x)).numpy()[:, 0]
+
+    def predict(self, rgb: np.ndarray) -> np.ndarray:
+        """Saliency probability ``(H, W)`` float32 in [0, 1] of an RGB image ``(H, W, 3)``."""
+        if rgb.ndim != 3 or rgb.shape[2] != 3:
+            raise ValueError(f"expected an (H, W, 3) RGB image, got shape {rgb.shape}")
+        h, w = rgb.shape[:2]
+        prob = self.predict_network(self.network_input(rgb))[0]
+        if prob.shape != (h, w):
+            prob = cv2.resize(prob, (w, h), interpolation=cv2.INTER_LINEAR)
+        return np.clip(prob, 0.0, 1.0).astype(np.float32)
+
+
+def _ort_session(path: Path, threads: int | None) -> Any:
+    """An onnxruntime CPU session."""
+    try:
+        import onnxruntime as ort
+    except ImportError as exc:  # pragma: no cover - a declared dependency
+        raise DataError(f"runtime=onnx needs onnxruntime: {exc}") from None
+    options = ort.SessionOptions()
+    if threads:
+        options.intra_op_num_threads = threads
+        options.inter_op_num_threads = 1
+    options.log_severity_level = 3
+    try:
+        return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:
+        raise DataError(f"onnxruntime cannot load {path}: {exc}; delete it to export it again") from None
