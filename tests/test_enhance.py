@@ -110,3 +110,14 @@ def test_registered_and_configured() -> None:
     node = yaml.safe_load((ROOT / "conf" / "enhance" / "clahe.yaml").read_text())
     assert node.pop("name") == "clahe"
     assert node == ClaheParams().model_dump()
+
+
+def test_clahe_max_brightness_enhances_night_frames_only(night) -> None:
+    image, _ = night
+    day, _ = render(GroundScene(), scene_calibration(320, 240), 0.0)
+    stage = ClaheEnhancement(ClaheParams(max_brightness=0.3))
+    assert day.mean() / 255.0 > 0.3 > image.mean() / 255.0
+    assert np.array_equal(stage.process(_frame(day)).pixels, day)
+    always = ClaheEnhancement(ClaheParams()).process(_frame(image)).pixels
+    assert np.array_equal(stage.process(_frame(image)).pixels, always)
+    assert not np.array_equal(always, image)

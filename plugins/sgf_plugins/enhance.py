@@ -40,10 +40,20 @@ class ClaheParams(StageParams):
 
     clip_limit: float = Field(2.0, gt=0.0, description="CLAHE contrast limit")
     tiles: int = Field(8, ge=1, le=64, description="tiles per image side")
+    max_brightness: float | None = Field(
+        None,
+        gt=0.0,
+        le=1.0,
+        description="enhance only images whose mean brightness (0-1) is below this (night); null = every image",
+    )
 
 
 class ClaheEnhancement(Stage):
-    """CLAHE on the L channel of Lab, for dark (night) images lit by the robot's LED."""
+    """CLAHE on the L channel of Lab, for dark (night) images lit by the robot's LED.
+
+    With ``max_brightness`` set, only images darker than it are enhanced, so one configuration
+    serves day and night sequences.
+    """
 
     kind = "enhance"
     name = "clahe"
@@ -57,6 +67,9 @@ class ClaheEnhancement(Stage):
     def process(self, frame: Frame) -> CameraImage:
         """The frame's image with equalised local contrast."""
         image = frame.image
+        limit = self.params.max_brightness
+        if limit is not None and image.dtype == np.uint8 and float(image[::4, ::4].mean()) / 255.0 >= limit:
+            return CameraImage(as_rgb(image), frame.index)
         if image.ndim == 2 and image.dtype == np.uint8:
             return CameraImage(as_rgb(self._clahe.apply(image)), frame.index)
         lab = cv2.cvtColor(as_rgb(image), cv2.COLOR_RGB2LAB)
