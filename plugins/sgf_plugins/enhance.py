@@ -62,6 +62,7 @@ class ClaheEnhancement(Stage):
 
     def __init__(self, params: ClaheParams) -> None:
         super().__init__(params)
+        self.params: ClaheParams = params
         self._clahe = cv2.createCLAHE(clipLimit=params.clip_limit, tileGridSize=(params.tiles, params.tiles))
 
     def process(self, frame: Frame) -> CameraImage:
