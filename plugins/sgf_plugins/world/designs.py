@@ -40,16 +40,20 @@ _ONE = 1 << _SHIFT
 
 
 class Canvas:
-    """A metric drawing surface for one marking: named paint layers of coverage in [0, 1].
+    """A metric drawing surface for one marking: paint layers of coverage in [0, 1].
 
     Pixel ``(row, col)`` has its centre at local ``x = x_top - (row + 0.5) res`` and
     ``y = y_left - (col + 0.5) res``, with one spare pixel around the ``length x width`` box.
+    Layers are drawn ``ss`` times finer without anti-aliasing and area-averaged, so a pixel's
+    coverage is the exact fraction of it that is painted (shapes keep their true size).
     """
 
-    def __init__(self, length: float, width: float, res: float) -> None:
+    def __init__(self, length: float, width: float, res: float, ss: int = 4) -> None:
         self.length = float(length)
         self.width = float(width)
         self.res = float(res)
+        self.ss = ss
+        self.sres = self.res / ss
         self.rows = math.ceil(self.length / res) + 2
         self.cols = math.ceil(self.width / res) + 2
         self.x_top = self.rows * res / 2.0
@@ -61,17 +65,17 @@ class Canvas:
     def to_pixels(self, points: Iterable[Point]) -> np.ndarray:
         """Fixed-point pixel coordinates (col, row) of local metric points, for cv2 with ``shift``."""
         pts = np.asarray(list(points), dtype=np.float64).reshape(-1, 2)
-        col = (self.y_left - pts[:, 1]) / self.res - 0.5
-        row = (self.x_top - pts[:, 0]) / self.res - 0.5
+        col = (self.y_left - pts[:, 1]) / self.sres - 0.5
+        row = (self.x_top - pts[:, 0]) / self.sres - 0.5
         return np.round(np.stack([col, row], axis=1) * _ONE).astype(np.int32)
 
     def px(self, metres: float) -> float:
-        """A length in pixels."""
-        return metres / self.res
+        """A length in (supersampled) drawing pixels."""
+        return metres / self.sres
 
     def layer(self, colour: RGB) -> np.ndarray:
         """A new empty paint layer drawn over the previous ones."""
-        cover = np.zeros((self.rows, self.cols), np.float32)
+        cover = np.zeros((self.rows * self.ss, self.cols * self.ss), np.float32)
         self.layers.append((colour, cover))
         return cover
 
@@ -79,16 +83,16 @@ class Canvas:
 
     def poly(self, layer: np.ndarray, points: Sequence[Point], value: float = 1.0) -> None:
         """Fill a polygon."""
-        cv2.fillPoly(layer, [self.to_pixels(points)], value, cv2.LINE_AA, _SHIFT)
+        cv2.fillPoly(layer, [self.to_pixels(points)], value, cv2.LINE_8, _SHIFT)
 
     def polys(self, layer: np.ndarray, polygons: Sequence[Sequence[Point]], value: float = 1.0) -> None:
         """Fill several polygons at once (even-odd holes are not used: draw holes with value 0)."""
-        cv2.fillPoly(layer, [self.to_pixels(p) for p in polygons], value, cv2.LINE_AA, _SHIFT)
+        cv2.fillPoly(layer, [self.to_pixels(p) for p in polygons], value, cv2.LINE_8, _SHIFT)
 
     def line(self, layer: np.ndarray, points: Sequence[Point], width: float, closed: bool = False) -> None:
         """A stroked polyline with round joints."""
         thickness = max(1, round(self.px(width)))
-        cv2.polylines(layer, [self.to_pixels(points)], closed, 1.0, thickness, cv2.LINE_AA, _SHIFT)
+        cv2.polylines(layer, [self.to_pixels(points)], closed, 1.0, thickness, cv2.LINE_8, _SHIFT)
 
     def rect(self, layer: np.ndarray, x0: float, x1: float, y0: float, y1: float, value: float = 1.0) -> None:
         """Fill an axis-aligned rectangle ``x in [x0, x1], y in [y0, y1]``."""
@@ -129,18 +133,16 @@ class Canvas:
 
     def _paste(self, layer: np.ndarray, glyphs: np.ndarray, box: tuple[float, float, float, float]) -> None:
         x0, x1, y0, y1 = box
-        c0 = (self.y_left - y1) / self.res - 0.5
-        c1 = (self.y_left - y0) / self.res - 0.5
-        r0 = (self.x_top - x1) / self.res - 0.5
-        r1 = (self.x_top - x0) / self.res - 0.5
+        c0 = (self.y_left - y1) / self.sres - 0.5
+        c1 = (self.y_left - y0) / self.sres - 0.5
+        r0 = (self.x_top - x1) / self.sres - 0.5
+        r1 = (self.x_top - x0) / self.sres - 0.5
         # Affine map from glyph pixels to canvas pixels (glyph top-left -> box far-left corner).
         gh, gw = glyphs.shape
         sx = (c1 - c0) / max(gw - 1, 1)
         sy = (r1 - r0) / max(gh - 1, 1)
         matrix = np.array([[sx, 0.0, c0], [0.0, sy, r0]])
-        warped = cv2.warpAffine(
-            glyphs, matrix, (self.cols, self.rows), flags=cv2.INTER_AREA if sx < 1 else cv2.INTER_LINEAR
-        )
+        warped = cv2.warpAffine(glyphs, matrix, (self.cols * self.ss, self.rows * self.ss), flags=cv2.INTER_LINEAR)
         np.maximum(layer, warped, out=layer)
 
     # -- result --------------------------------------------------------------------------
@@ -150,6 +152,8 @@ class Canvas:
         colour = np.zeros((self.rows, self.cols, 3), np.float32)
         alpha = np.zeros((self.rows, self.cols), np.float32)
         for rgb, cover in self.layers:
+            if self.ss > 1:
+                cover = cv2.resize(cover, (self.cols, self.rows), interpolation=cv2.INTER_AREA)
             a = np.clip(cover, 0.0, 1.0)
             colour = colour * (1.0 - a[:, :, None]) + np.asarray(rgb, np.float32) * a[:, :, None]
             alpha = alpha + a * (1.0 - alpha)
@@ -400,7 +404,18 @@ def _wheelchair(c: Canvas, rng: np.random.Generator, col: RGB) -> None:
 def _logo_shield(c: Canvas, rng: np.random.Generator, col: RGB) -> None:
     h, w = c.length / 2, c.width / 2
     outline = _icon(
-        [(-w, h), (w, h), (w, 0.1 * h), (0.6 * w, -0.55 * h), (0.0, -h), (-0.6 * w, -0.55 * h), (-w, 0.1 * h)]
+        [
+            (-w, h),
+            (-0.5 * w, 0.8 * h),
+            (0.0, h),
+            (0.5 * w, 0.8 * h),
+            (w, h),
+            (w, 0.25 * h),
+            (0.55 * w, -0.5 * h),
+            (0.0, -h),
+            (-0.55 * w, -0.5 * h),
+            (-w, 0.25 * h),
+        ]
     )
     c.poly(c.layer(col), outline)
     la = c.layer(WHITE)
@@ -497,11 +512,19 @@ def _parking_number(c: Canvas, rng: np.random.Generator, col: RGB) -> None:
 
 def _coloured_zone(c: Canvas, rng: np.random.Generator, col: RGB) -> None:
     h, w = c.length / 2, c.width / 2
-    c.rect(c.layer(col), -h, h, -w, w)
+    tag = [(-h, w), (0.4 * h, w), (h, 0.0), (0.4 * h, -w), (-h, -w)]
+    c.poly(c.layer(col), tag)
     la = c.layer(WHITE)
-    c.line(la, [(h - 0.05, w - 0.05), (h - 0.05, -w + 0.05), (-h + 0.05, -w + 0.05), (-h + 0.05, w - 0.05)], 0.07, True)
+    inset = [
+        (-h + 0.06, w - 0.06),
+        (0.4 * h - 0.03, w - 0.06),
+        (h - 0.09, 0.0),
+        (0.4 * h - 0.03, -w + 0.06),
+        (-h + 0.06, -w + 0.06),
+    ]
+    c.line(la, inset, 0.06, closed=True)
     letter = str(rng.choice(list("ABCDEFGKPRZ")))
-    c.text(la, letter, (-0.5 * h, 0.6 * h, -0.35 * w, 0.35 * w), cv2.FONT_HERSHEY_DUPLEX, 0.16)
+    c.text(la, letter, (-0.6 * h, 0.3 * h, -0.4 * w, 0.4 * w), cv2.FONT_HERSHEY_DUPLEX, 0.16)
 
 
 def _tactile_dots(c: Canvas, rng: np.random.Generator, col: RGB) -> None:
@@ -542,24 +565,21 @@ def _painted_heart(c: Canvas, rng: np.random.Generator, col: RGB) -> None:
     c.poly(c.layer(col), _icon(list(zip((a * s).tolist(), (b * s + 1.5 * s).tolist(), strict=True))))
 
 
-def _footprint(cx: float, cy: float, s: float, mirror: float) -> list[list[Point]]:
-    """A shoe print (sole and heel) pointing along +x, ``s`` m long."""
-    sole = [
-        (cx + 0.3 * s * math.cos(a), cy + mirror * (0.12 * s * math.sin(a) + 0.02 * s * math.sin(2 * a)))
-        for a in np.linspace(-math.pi / 2, math.pi / 2, 16)
-    ]
-    sole += [(cx - 0.05 * s, cy - mirror * 0.1 * s), (cx - 0.05 * s, cy + mirror * 0.1 * s)]
-    heel = circle_points((cx - 0.32 * s, cy), 0.11 * s, n=20)
+def _footprint(cx: float, cy: float, mirror: float) -> list[list[Point]]:
+    """A shoe print about 0.27 m long pointing along +x: the sole (ball and toes) and the heel."""
+    a = np.linspace(0.0, 2 * math.pi, 28, endpoint=False)
+    sole = [(cx + 0.045 + 0.085 * math.cos(t), cy + mirror * (0.012 + 0.045 * math.sin(t))) for t in a]
+    heel = [(cx - 0.085 + 0.05 * math.cos(t), cy + 0.038 * math.sin(t)) for t in a]
     return [sole, heel]
 
 
 def _painted_footprints(c: Canvas, rng: np.random.Generator, col: RGB) -> None:
     la = c.layer(col)
     h, w = c.length / 2, c.width / 2
-    s = 0.28
-    steps = [(-h + 0.25 + i * (2 * h - 0.5) / 3, (w - 0.12) * (1 if i % 2 == 0 else -1)) for i in range(4)]
-    for k, (x, y) in enumerate(steps):
-        for p in _footprint(x, y, s, 1.0 if k % 2 == 0 else -1.0):
+    for k in range(4):
+        x = -h + 0.15 + k * (2 * h - 0.3) / 3
+        y = (w - 0.07) * (1 if k % 2 == 0 else -1)
+        for p in _footprint(x, y, 1.0 if k % 2 == 0 else -1.0):
             c.poly(la, p)
 
 

@@ -42,6 +42,7 @@ class Lighting:
     headlight_frame: np.ndarray
     headlight_power: float
     lamps: list[tuple[np.ndarray, float]]
+    gain: float = 1.0
 
     def beam(self, to: np.ndarray) -> np.ndarray:
         """Headlight intensity towards offsets ``to`` (..., 3) from the lamp: a wide, low-aimed LED beam."""
@@ -53,12 +54,12 @@ class Lighting:
         return self.headlight_power * shape * (local[..., 0] > 0)
 
     def at(self, point: np.ndarray, normal: np.ndarray | None = None) -> float:
-        """Light level (1 = a sunny day's ground) on a surface at ``point`` facing ``normal``."""
+        """Light level (1 = sunny ground) times the camera gain, on a surface at ``point`` facing ``normal``."""
         level = self.ambient
         if not self.night:
             if normal is None:
-                return level + 0.45 * self.sun_strength
-            return level + self.sun_strength * max(0.0, float(normal @ self.sun)) * 0.9
+                return (level + 0.45 * self.sun_strength) * self.gain
+            return (level + self.sun_strength * max(0.0, float(normal @ self.sun)) * 0.9) * self.gain
         to = point - self.headlight_origin
         r = float(np.linalg.norm(to))
         if r > 1e-6 and self.headlight_power > 0:
@@ -67,7 +68,7 @@ class Lighting:
         for pos, power in self.lamps:
             d2 = float(((point - pos) ** 2).sum())
             level += power / max(d2, 16.0)
-        return level
+        return level * self.gain
 
 
 def clip_near(points: np.ndarray, z_near: float = 0.05) -> np.ndarray:
@@ -102,8 +103,8 @@ class Scenery:
             if layout.lamps
             else np.zeros(0)
         )
-        self._facades: OrderedDict[tuple[int, int, bool], np.ndarray] = OrderedDict()
-        self._canopies = [self._canopy_sprite(k) for k in range(4)]
+        self._facades: OrderedDict[tuple[int, int, bool, int], np.ndarray] = OrderedDict()
+        self._canopies = [_pyramid(self._canopy_sprite(k)) for k in range(4)]
         self._trees = np.array(
             [
                 [t.position[0], t.position[1], z, t.canopy_height, t.canopy_radius]
@@ -132,9 +133,21 @@ class Scenery:
 
     # -- textures ----------------------------------------------------------------------------
 
-    def facade_texture(self, building: int, side: int, width: float, night: bool) -> np.ndarray:
-        """RGBA texture (0.1 m per pixel) of one wall: plaster or brick, rows of windows, a plinth."""
-        key = (building, side, night)
+    def facade_texture(self, building: int, side: int, width: float, night: bool, lod: int = 0) -> np.ndarray:
+        """RGB texture of one wall (0.1 m per pixel, halved ``lod`` times): plaster, windows, a plinth."""
+        key = (building, side, night, lod)
+        found = self._facades.get(key)
+        if found is not None:
+            self._facades.move_to_end(key)
+            return found
+        if lod > 0:
+            finer = self.facade_texture(building, side, width, night, lod - 1)
+            half = cv2.resize(
+                finer, (max(1, finer.shape[1] // 2), max(1, finer.shape[0] // 2)), interpolation=cv2.INTER_AREA
+            )
+            self._facades[key] = half
+            return half
+        key = (building, side, night, 0)
         found = self._facades.get(key)
         if found is not None:
             self._facades.move_to_end(key)
@@ -151,7 +164,7 @@ class Scenery:
         floors = int(b.height // storey)
         bays = max(1, int(width // bay))
         margin = (width - bays * bay) / 2
-        lit = rng.random((floors, bays)) < 0.35
+        lit = rng.random((floors, bays)) < 0.25
         for f in range(floors):
             z0 = f * storey + 0.9
             z1 = z0 + storey * 0.5
@@ -161,7 +174,7 @@ class Scenery:
                 x1 = x0 + bay * 0.64
                 c0, c1 = round(x0 / res), round(x1 / res)
                 if night:
-                    colour = [96, 82, 60] if lit[f, k] else [9, 10, 13]
+                    colour = [88, 74, 50] if lit[f, k] else [9, 10, 13]
                 else:
                     colour = [int(v * rng.uniform(0.85, 1.15)) for v in glass]
                 cv2.rectangle(tex, (c0, r0), (c1, r1), (*colour, 255.0), -1)
@@ -207,7 +220,7 @@ class Scenery:
         agents: list[tuple[Agent, float]],
         far_field: bool,
     ) -> None:
-        """Draw everything above the ground (far first) into ``image`` (float RGB)."""
+        """Draw everything above the ground (far first) into ``image`` (uint8 RGB, already exposed)."""
         world_to_camera = np.linalg.inv(camera_to_world)
         rot, trans = world_to_camera[:3, :3], world_to_camera[:3, 3]
         centre = camera_to_world[:3, 3]
@@ -264,7 +277,7 @@ class Scenery:
         layout = self.layout
         if len(self._trees):
             tr = self._trees
-            near = np.flatnonzero((tr[:, 0] - centre[0]) ** 2 + (tr[:, 1] - centre[1]) ** 2 < 90.0**2)
+            near = np.flatnonzero((tr[:, 0] - centre[0]) ** 2 + (tr[:, 1] - centre[1]) ** 2 < 75.0**2)
             if near.size:
                 crowns = np.column_stack([tr[near, 0], tr[near, 1], tr[near, 2] + tr[near, 3]]) @ rot.T + trans
                 bases = tr[near, :3] @ rot.T + trans
@@ -298,7 +311,7 @@ class Scenery:
             edge = quads[:, 1, :2] - quads[:, 0, :2]
             normal = np.column_stack([edge[:, 1], -edge[:, 0]])
             facing = ((centre[:2] - mid[:, :2]) * normal).sum(axis=1) > 0
-            cand = np.flatnonzero((d2 < 160.0**2) & facing)
+            cand = np.flatnonzero((d2 < 140.0**2) & facing)
             if cand.size:
                 pc = quads[cand].reshape(-1, 3) @ rot.T + trans
                 pc = pc.reshape(-1, 4, 3)
@@ -373,10 +386,22 @@ class Scenery:
         r0, r1 = max(0, math.floor(uv[:, 1].min())), min(h, math.ceil(uv[:, 1].max()) + 1)
         if c1 <= c0 or r1 <= r0:
             return
-        tex = self.facade_texture(index, side, length, light.night)
-        # texture pixel (x, y) -> world: a + x*0.1*e_u + (height - y*0.1)*e_z
+        level = 0.9 * light.gain if light.night else light.at(np.array([*((a + c) / 2), base_z + 2.0]), normal)
+        if r1 - r0 < 6:
+            # a far wall a few pixels high: its mean colour (the windows are below a pixel)
+            colour = self.facade_texture(index, side, length, light.night).reshape(-1, 3).mean(axis=0) * level
+            self._fill(image, depth, uv, colour.astype(np.float32), max(float(pc[:, 2].min()), 0.5))
+            return
+        # the texture level whose texels are about a pixel at the wall's nearest point
+        px_per_m = K[0, 0] / max(float(pc[:, 2].min()), 0.5)
+        lod = int(np.clip(math.floor(math.log2(max(1e-6, 10.0 / px_per_m))), 0, 4))
+        tex = self.facade_texture(index, side, length, light.night, lod)
+        texel = length / tex.shape[1], b.height / tex.shape[0]
+        # texture pixel (x, y) -> world: a + x*texel*e_u + (height - y*texel)*e_z
         e_u = np.array([(c - a)[0], (c - a)[1], 0.0]) / max(length, 1e-9)
-        m = np.column_stack([0.1 * e_u, np.array([0.0, 0.0, -0.1]), np.array([a[0], a[1], base_z + b.height])])
+        m = np.column_stack(
+            [texel[0] * e_u, np.array([0.0, 0.0, -texel[1]]), np.array([a[0], a[1], base_z + b.height])]
+        )
         # camera = R m (x, y, 1) (homogeneous world, last coordinate 1 -> translation)
         cam_from_tex = self._cam_rot @ m
         cam_from_tex[:, 2] += self._cam_trans
@@ -390,10 +415,8 @@ class Scenery:
         nearest = float(pc[:, 2].min())
         alpha *= depth[r0:r1, c0:c1] > max(nearest, 0.5)
         # night walls are stored dark with their lit windows: they glow on their own
-        level = 0.9 if light.night else light.at(np.array([*((a + c) / 2), base_z + 2.0]), normal)
         roi = image[r0:r1, c0:c1]
-        roi *= 1.0 - alpha[..., None]
-        roi += warped.astype(np.float32) * (alpha * level)[..., None]
+        _blend_into(roi, warped.astype(np.float32) * level, alpha)
 
     # -- trees and lamps ---------------------------------------------------------------------
 
@@ -422,7 +445,7 @@ class Scenery:
         dist = float(np.linalg.norm(base[:2] - centre[:2]))
 
         def draw() -> None:
-            level = light.at(crown) if light.night else light.ambient + 0.6 * light.sun_strength
+            level = light.at(crown) if light.night else (light.ambient + 0.6 * light.sun_strength) * light.gain
             # trunk: a quad facing the camera
             half = 0.14
             side = np.array([-(base - centre)[1], (base - centre)[0], 0.0])
@@ -465,7 +488,7 @@ class Scenery:
             uv = project(seg[:2])
             z = max(float(seg[:2, 2].min()), 0.3)
             thick = max(1, round(K[0, 0] * 0.09 / z))
-            level = light.ambient + (0.0 if light.night else 0.5 * light.sun_strength)
+            level = (light.ambient + (0.0 if light.night else 0.5 * light.sun_strength)) * light.gain
             col = tuple(float(v) for v in np.array([58, 60, 62], np.float32) * level)
             p0 = (round(uv[0, 0] * 16), round(uv[0, 1] * 16))
             p1 = (round(uv[1, 0] * 16), round(uv[1, 1] * 16))
@@ -473,7 +496,7 @@ class Scenery:
             if pc[1, 2] > 0.3:
                 head = project(pc[1:2])[0]
                 r = max(1, round(K[0, 0] * 0.18 / pc[1, 2]))
-                glow = (255.0, 236.0, 190.0) if light.night else (190.0, 190.0, 180.0)
+                glow = (255.0, 236.0, 190.0) if light.night else tuple(v * light.gain for v in (190.0, 190.0, 180.0))
                 cv2.circle(image, (round(head[0] * 16), round(head[1] * 16)), r * 16, glow, -1, cv2.LINE_AA, 4)
 
         return dist, draw
@@ -488,13 +511,13 @@ class Scenery:
         cv2.fillPoly(mask, [np.round((uv - [c0, r0]) * 16).astype(np.int32)], 1.0, cv2.LINE_AA, 4)
         mask *= depth[r0:r1, c0:c1] > z
         roi = image[r0:r1, c0:c1]
-        roi[:] = roi * (1 - mask[..., None]) + colour * mask[..., None]
+        _blend_into(roi, colour, mask)
 
     def _sprite(
         self,
         image: np.ndarray,
         depth: np.ndarray,
-        sprite: np.ndarray,
+        pyramid: list[np.ndarray],
         centre: np.ndarray,
         r_px: float,
         level: float,
@@ -502,17 +525,18 @@ class Scenery:
     ) -> None:
         h, w = image.shape[:2]
         size = max(2, round(2 * r_px))
+        sprite = next((p for p in reversed(pyramid) if p.shape[0] >= size), pyramid[0])
         c0 = round(centre[0] - size / 2)
         r0 = round(centre[1] - size / 2)
         cc0, cc1 = max(0, c0), min(w, c0 + size)
         rr0, rr1 = max(0, r0), min(h, r0 + size)
         if cc1 <= cc0 or rr1 <= rr0:
             return
-        scaled = cv2.resize(sprite, (size, size), interpolation=cv2.INTER_AREA if size < 128 else cv2.INTER_LINEAR)
+        scaled = cv2.resize(sprite, (size, size), interpolation=cv2.INTER_LINEAR)
         part = scaled[rr0 - r0 : rr1 - r0, cc0 - c0 : cc1 - c0]
         alpha = part[..., 3] * (depth[rr0:rr1, cc0:cc1] > z * 0.9)
         roi = image[rr0:rr1, cc0:cc1]
-        roi[:] = roi * (1 - alpha[..., None]) + part[..., :3] * level * alpha[..., None]
+        _blend_into(roi, part[..., :3] * level, alpha)
 
     # -- people and vehicles -------------------------------------------------------------------
 
@@ -681,3 +705,20 @@ class Scenery:
         self._cam_rot = world_to_camera[:3, :3]
         self._cam_trans = world_to_camera[:3, 3]
         self._camera_world = camera_to_world[:3, 3]
+
+
+def _pyramid(sprite: np.ndarray) -> list[np.ndarray]:
+    """A sprite and its halvings down to 4 pixels (area-averaged), largest first."""
+    levels = [sprite]
+    while levels[-1].shape[0] > 4:
+        prev = levels[-1]
+        levels.append(cv2.resize(prev, (prev.shape[1] // 2, prev.shape[0] // 2), interpolation=cv2.INTER_AREA))
+    return levels
+
+
+def _blend_into(roi: np.ndarray, colour: np.ndarray, alpha: np.ndarray) -> None:
+    """Alpha-blend ``colour`` (float RGB or one RGB triple) into a uint8 image region in place."""
+    a = alpha[..., None]
+    out = roi.astype(np.float32) * (1.0 - a) + np.asarray(colour, np.float32) * a
+    np.clip(out, 0.0, 255.0, out=out)
+    roi[:] = out.astype(np.uint8)

@@ -52,19 +52,20 @@ class Terrain:
         y: np.ndarray,
         near: tuple[float, float, float] | None = None,
         detail: bool = True,
+        smooth: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Height ``H`` and its partial derivatives ``dH/dx``, ``dH/dy`` at points (any shape).
 
         ``near = (x, y, radius)`` limits the bumps and rough patches to those within ``radius`` of
         a point (the renderer skips sub-pixel features far from the camera); ``detail=False``
-        leaves them out (the smooth hills only).
+        leaves them out (the smooth hills only), ``smooth=False`` leaves the hills out.
         """
         x = np.asarray(x, np.float64)
         y = np.asarray(y, np.float64)
         shape = np.broadcast_shapes(x.shape, y.shape)
         x = np.broadcast_to(x, shape).ravel()
         y = np.broadcast_to(y, shape).ravel()
-        if self.hills:
+        if self.hills and smooth:
             h, gx, gy = self._smooth(x, y)
         else:
             h, gx, gy = np.zeros_like(x), np.zeros_like(x), np.zeros_like(x)
@@ -79,18 +80,18 @@ class Terrain:
                 _add_rough(self.rough[i], x, y, h, gx, gy)
         return h.reshape(shape), gx.reshape(shape), gy.reshape(shape)
 
-    def detail_boxes(self, x: float, y: float, radius: float) -> np.ndarray:
-        """Bounding boxes (K, 4: x0, y0, x1, y1) of the bumps and rough patches within ``radius``."""
+    def detail_boxes(self, x: float, y: float, radius: float, kind: str = "bumps") -> np.ndarray:
+        """Bounding boxes (K, 4: x0, y0, x1, y1) of the ``bumps`` or ``rough`` patches within ``radius``."""
         boxes = []
-        for i in self._bump_index.query(x - radius, y - radius, x + radius, y + radius):
-            b = self.bumps[i]
-            r = max(b.half_length, b.half_width) + 0.2
-            boxes.append((b.centre[0] - r, b.centre[1] - r, b.centre[0] + r, b.centre[1] + r))
-        for i in self._rough_index.query(x - radius, y - radius, x + radius, y + radius):
-            p = self.rough[i]
-            boxes.append(
-                (p.centre[0] - p.radius, p.centre[1] - p.radius, p.centre[0] + p.radius, p.centre[1] + p.radius)
-            )
+        if kind == "bumps":
+            for i in self._bump_index.query(x - radius, y - radius, x + radius, y + radius):
+                b = self.bumps[i]
+                r = max(b.half_length, b.half_width) + 0.2
+                boxes.append((b.centre[0] - r, b.centre[1] - r, b.centre[0] + r, b.centre[1] + r))
+        else:
+            for i in self._rough_index.query(x - radius, y - radius, x + radius, y + radius):
+                c, r = self.rough[i].centre, self.rough[i].radius
+                boxes.append((c[0] - r, c[1] - r, c[0] + r, c[1] + r))
         return np.asarray(boxes, np.float64).reshape(-1, 4)
 
     def height(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -39,8 +39,8 @@ class Level:
 
 LEVELS: tuple[Level, ...] = (
     Level(0, 0.01, 8.0, 3, 16, 4),
-    Level(1, 0.04, 8.0, 7, 4, 1),
-    Level(2, 0.16, 32.0, 9, 2, 1),
+    Level(1, 0.04, 8.0, 7, 4, 2),
+    Level(2, 0.16, 32.0, 9, 2, 2),
 )
 
 _ASPHALT, _SLABS, _BRICKS = MATERIAL_ID["asphalt"], MATERIAL_ID["slabs"], MATERIAL_ID["bricks"]
@@ -80,6 +80,15 @@ def _periodic_cover(u: np.ndarray, period: float, width: float, texel: float) ->
     return ((integral(u + half) - integral(u - half)) / texel).astype(np.float32)
 
 
+@dataclass
+class CellFeatures:
+    """Wear anchored to one world cell: cracks (polyline, width), stains (centre, axes, angle, darkness), repairs."""
+
+    cracks: list[tuple[np.ndarray, float]]
+    stains: list[tuple[np.ndarray, np.ndarray, float, float]]
+    repairs: list[np.ndarray]
+
+
 class TileGenerator:
     """Makes the texture and instance-id tiles of the campus ground at any level of detail."""
 
@@ -88,6 +97,8 @@ class TileGenerator:
         self.sun = sun
         self.seed = seed
         self._rasters: OrderedDict[tuple[int, int], Raster] = OrderedDict()
+        self._features: OrderedDict[tuple[int, int], CellFeatures] = OrderedDict()
+        self._tree_shadows: np.ndarray | None = None
         self._brick_palettes = [
             [(152, 74, 58), (168, 92, 66), (136, 64, 52)],
             [(176, 110, 72), (160, 98, 64), (186, 124, 84)],
@@ -143,14 +154,16 @@ class TileGenerator:
         g = res * step
         gnx, gny = math.ceil(nx / step), math.ceil(ny / step)
         # 1. smooth fields on the coarse grid
-        sdf, s, t, half, mat, area = self._geometry(x0, y_top, gnx, gny, g)
+        sdf, s, t, mat, area = self._geometry(x0, y_top, gnx, gny, g)
         large = fbm(seed + 10, x0, y_top, gnx, gny, g, (5.12, 2.56, 1.28))
         medium = lattice_noise(seed + 11, x0, y_top, gnx, gny, g, 0.16)
         edge = lattice_noise(seed + 3, x0, y_top, gnx, gny, g, 0.32)
+        sdf = sdf + 0.03 * edge * (sdf > -0.05)
+        tone = 0.1 * large + 0.05 * medium
         lawn = self._lawn_base(x0, y_top, gnx, gny, g, large)
-        stain = self._stains(x0, y_top, gnx, gny, g)
+        stains = 1.0 - 0.22 * self._stains(x0, y_top, gnx, gny, g) * (sdf < 0.0)
         shade = self._shadows(x0, y_top, gnx, gny, g)
-        smooth: np.ndarray = np.dstack([sdf, s, t, half, large, medium, edge, stain, shade, lawn]).astype(np.float32)
+        smooth = np.dstack([sdf, s, t, tone, stains, shade, lawn]).astype(np.float32)
         if step > 1:
             smooth = cv2.resize(smooth, (gnx * step, gny * step), interpolation=cv2.INTER_LINEAR)
             cats = cv2.resize(
@@ -159,27 +172,25 @@ class TileGenerator:
             mat, area = cats[..., 0], cats[..., 1]
         smooth = smooth[:ny, :nx]
         mat, area = mat[:ny, :nx], area[:ny, :nx]
-        sdf, s, t, half = smooth[..., 0], smooth[..., 1], smooth[..., 2], smooth[..., 3]
-        large, medium, edge, stain, shade = (smooth[..., k] for k in range(4, 9))
-        lawn = smooth[..., 9:12]
-        sdf = sdf + 0.03 * edge * (sdf > -0.05)
+        sdf, s, t, tone, factor, shade = (smooth[..., k] for k in range(6))
+        lawn = smooth[..., 6:9]
         # 2. full-resolution detail: lawn grain, paving patterns, curbs
         grain = self._grain(x0, y_top, nx, ny, res)
-        fine = lattice_noise(seed + 22, x0, y_top, nx, ny, res, 0.08)
-        rgb = lawn * (1.0 + 0.25 * grain + 0.15 * fine)[..., None]
+        shading = 1.0 + 0.25 * grain
+        if res <= 0.04:
+            shading += 0.15 * lattice_noise(seed + 22, x0, y_top, nx, ny, res, 0.08)
+        rgb = lawn * shading[..., None]
         paved = sdf < 0.0
         for material in np.unique(mat[paved]) if paved.any() else ():
             sel = paved & (mat == material)
-            rgb[sel] = self._paving(
-                int(material), s[sel], t[sel], half[sel], area[sel], large[sel], medium[sel], grain[sel], res
-            )
+            rgb[sel] = self._paving(int(material), s[sel], t[sel], area[sel], tone[sel], grain[sel], res)
         curb = (sdf >= 0.0) & (sdf < CURB_WIDTH)
         if curb.any():
             joints = _periodic_cover(s[curb], 1.0, 0.012, res)
-            tone = 176.0 * (1.0 + 0.05 * grain[curb] + 0.04 * large[curb]) * (1.0 - 0.35 * joints)
-            rgb[curb] = tone[:, None] * np.array([1.0, 0.99, 0.96], np.float32)
+            level = 176.0 * (1.0 + 0.05 * grain[curb] + 0.4 * tone[curb]) * (1.0 - 0.35 * joints)
+            rgb[curb] = level[:, None] * np.array([1.0, 0.99, 0.96], np.float32)
         # 3. cracks and repairs on the paving, stains, building bases
-        factor = 1.0 - 0.22 * stain * paved
+        factor = np.array(factor)
         self._cracks(factor, x0, y_top, nx, ny, res, paved, mat)
         rgb *= factor[..., None]
         self._buildings(rgb, x0, y_top, nx, ny, res)
@@ -204,35 +215,42 @@ class TileGenerator:
 
     def _geometry(
         self, x0: float, y_top: float, gnx: int, gny: int, g: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Signed distance to the paving, path coordinates (along, across), half width, material, area id."""
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Signed distance to the paving, path coordinates (along, across), material and area id per texel.
+
+        Every path piece near the region is measured at once (arrays of pieces x texels); plazas
+        win inside their outline. Area ids are path edges, or 1000 + plaza index.
+        """
         layout = self.layout
         xs = x0 + (np.arange(gnx) + 0.5) * g
         ys = y_top - (np.arange(gny) + 0.5) * g
+        best = np.full((gny, gnx), 50.0)
+        s_best = np.zeros((gny, gnx))
+        t_best = np.zeros((gny, gnx))
+        mat = np.full((gny, gnx), _LAWN, np.int32)
+        area = np.zeros((gny, gnx), np.int32)
+        lo_x, hi_x = xs[0] - 1.0, xs[-1] + 1.0
+        lo_y, hi_y = ys[-1] - 1.0, ys[0] + 1.0
+        found = layout.segment_index.query(lo_x, lo_y, hi_x, hi_y)
+        if found:
+            segs = [layout.segments[i] for i in found]
+            p0 = np.array([sg.p0 for sg in segs])
+            d = np.array([sg.direction for sg in segs])
+            length = np.array([sg.length for sg in segs])
+            hw = np.array([sg.half_width for sg in segs])
+            rx = xs[None, None, :] - p0[:, 0, None, None]
+            ry = ys[None, :, None] - p0[:, 1, None, None]
+            along = rx * d[:, 0, None, None] + ry * d[:, 1, None, None]
+            lat = ry * d[:, 0, None, None] - rx * d[:, 1, None, None]
+            dist = np.hypot(along - np.clip(along, 0.0, length[:, None, None]), lat) - hw[:, None, None]
+            k = np.argmin(dist, axis=0)[None]
+            best = np.take_along_axis(dist, k, 0)[0]
+            s0 = np.array([sg.s0 for sg in segs])
+            s_best = np.take_along_axis(along, k, 0)[0] + s0[k[0]]
+            t_best = np.take_along_axis(lat, k, 0)[0] + hw[k[0]]
+            mat = np.array([sg.material for sg in segs], np.int32)[k[0]]
+            area = np.array([sg.edge for sg in segs], np.int32)[k[0]]
         px, py = np.meshgrid(xs, ys)
-        best = np.full(px.shape, 50.0)
-        s_best = np.zeros(px.shape)
-        t_best = np.zeros(px.shape)
-        mat = np.full(px.shape, _LAWN, np.int32)
-        area = np.zeros(px.shape, np.int32)
-        half = np.ones(px.shape)
-        lo_x, hi_x = xs[0] - 10.0, xs[-1] + 10.0
-        lo_y, hi_y = ys[-1] - 10.0, ys[0] + 10.0
-        for i in layout.segment_index.query(lo_x, lo_y, hi_x, hi_y):
-            sg = layout.segments[i]
-            d = sg.direction
-            rx, ry = px - sg.p0[0], py - sg.p0[1]
-            along = rx * d[0] + ry * d[1]
-            lat = -rx * d[1] + ry * d[0]
-            dist = np.hypot(along - np.clip(along, 0.0, sg.length), lat) - sg.half_width
-            better = dist < best
-            if better.any():
-                best = np.where(better, dist, best)
-                s_best = np.where(better, sg.s0 + along, s_best)
-                t_best = np.where(better, lat + sg.half_width, t_best)
-                mat = np.where(better, sg.material, mat)
-                area = np.where(better, sg.edge, area)
-                half = np.where(better, sg.half_width, half)
         for i in layout.plaza_index.query(lo_x, lo_y, hi_x, hi_y):
             pz = layout.plazas[i]
             c, sn = math.cos(pz.yaw), math.sin(pz.yaw)
@@ -250,8 +268,7 @@ class TileGenerator:
                 t_best = np.where(better, v + 100.0, t_best)
                 mat = np.where(better, MATERIAL_ID[pz.material], mat)
                 area = np.where(better, 1000 + i, area)
-                half = np.where(better, 100.0, half)
-        return best, s_best, t_best, half, mat, area
+        return best, s_best, t_best, mat, area
 
     def _lawn_base(self, x0: float, y_top: float, gnx: int, gny: int, g: float, large: np.ndarray) -> np.ndarray:
         """Lawn colour (3 channels) before grain: green, drier and bare patches."""
@@ -270,30 +287,29 @@ class TileGenerator:
         material: int,
         ss: np.ndarray,
         tt: np.ndarray,
-        half: np.ndarray,
         area: np.ndarray,
-        lg: np.ndarray,
-        md: np.ndarray,
+        tn: np.ndarray,
         gr: np.ndarray,
         res: float,
     ) -> np.ndarray:
-        """Colours (K, 3) of paved texels from their path coordinates and noise values."""
+        """Colours (K, 3) of paved texels from their path coordinates, area, tone and grain."""
         if material == _ASPHALT:
-            tone = 1.0 + 0.13 * lg + 0.06 * md + 0.12 * gr + (gr > 0.97) * np.float32(0.15)
+            tone = 1.0 + 1.2 * tn + 0.12 * gr + (gr > 0.97) * np.float32(0.15)
             return tone[:, None] * np.array([86, 87, 90], np.float32)
         if material == _SLABS:
-            period = np.where(half > 50.0, np.float32(0.6), np.float32(1.0))
+            plaza = area >= 1000
+            period = np.where(plaza, np.float32(0.6), np.float32(1.0))
             i = np.floor(ss / period).astype(np.int64)
             j = np.floor(tt / period).astype(np.int64)
             tint = hash_uniform(self.seed + 31, i, j) - 0.5
             joint = np.maximum(_periodic_cover(ss, 1.0, 0.012, res), _periodic_cover(tt, 1.0, 0.012, res))
             joint = np.where(
-                half > 50.0,
+                plaza,
                 np.maximum(_periodic_cover(ss, 0.6, 0.012, res), _periodic_cover(tt, 0.6, 0.012, res)),
                 joint,
             )
             detail = min(1.0, 0.6 / (4 * res))
-            tone = (1.0 + 0.1 * lg + 0.04 * md + 0.06 * gr + 0.12 * detail * tint) * (1.0 - 0.45 * joint)
+            tone = (1.0 + tn + 0.06 * gr + 0.12 * detail * tint) * (1.0 - 0.45 * joint)
             return tone[:, None] * np.array([166, 163, 156], np.float32)
         if material == _BRICKS:
             bl, bw = 0.21, 0.105
@@ -307,7 +323,7 @@ class TileGenerator:
             pick = np.minimum((h * 3).astype(np.int64), 2)
             colour = palettes[which, pick] * detail + palettes[which].mean(axis=1) * (1 - detail)
             joint = np.maximum(_periodic_cover(tt, bw, 0.01, res), _periodic_cover(ss + shift, bl, 0.01, res))
-            tone = 1.0 + 0.08 * lg + 0.05 * md + 0.07 * gr + 0.2 * detail * (h * 3 - np.floor(h * 3) - 0.5)
+            tone = 1.0 + 0.9 * tn + 0.07 * gr + 0.2 * detail * (h * 3 - np.floor(h * 3) - 0.5)
             mortar = np.array([160, 154, 140], np.float32)
             return colour * (tone * (1.0 - joint))[:, None] + mortar * joint[:, None]
         return np.array([150, 150, 150], np.float32) * (1.0 + 0.05 * gr)[:, None]
@@ -318,27 +334,48 @@ class TileGenerator:
         j0, j1 = math.floor((y_top - ny * res - c) / c), math.floor((y_top + c) / c)
         return [(i, j) for i in range(i0, i1 + 1) for j in range(j0, j1 + 1)]
 
+    def _cell_features(self, ci: int, cj: int) -> CellFeatures:
+        """The cracks, stains and asphalt repairs anchored to one 8 m world cell (cached)."""
+        found = self._features.get((ci, cj))
+        if found is not None:
+            return found
+        origin = np.array([ci * FEATURE_CELL, cj * FEATURE_CELL])
+        rng = rng_for(self.seed, 101, ci, cj)
+        cracks = []
+        for _ in range(int(rng.poisson(2.0))):
+            p = origin + rng.uniform(0, FEATURE_CELL, 2)
+            steps = int(rng.integers(6, 30))
+            headings = rng.uniform(0, 2 * math.pi) + np.cumsum(rng.normal(0, 0.45, steps))
+            walk = np.cumsum(0.12 * np.stack([np.cos(headings), np.sin(headings)], 1), 0)
+            cracks.append((p + np.concatenate([[[0.0, 0.0]], walk]), float(rng.uniform(0.004, 0.014))))
+        repairs = []
+        if rng.random() < 0.25:
+            p = origin + rng.uniform(0, FEATURE_CELL, 2)
+            w, h = rng.uniform(0.6, 2.5, 2)
+            a = rng.uniform(0, math.pi)
+            corners = np.array([[-w, -h], [w, -h], [w, h], [-w, h]]) / 2
+            rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+            repairs.append(p + corners @ rot.T)
+        rng = rng_for(self.seed, 102, ci, cj)
+        stains = []
+        for _ in range(int(rng.poisson(0.8))):
+            p = origin + rng.uniform(0, FEATURE_CELL, 2)
+            axes = rng.uniform(0.15, 0.7, 2)
+            stains.append((p, axes, float(rng.uniform(0, 180)), float(rng.uniform(0.3, 1.0))))
+        features = CellFeatures(cracks, stains, repairs)
+        self._features[(ci, cj)] = features
+        while len(self._features) > 4096:
+            self._features.popitem(last=False)
+        return features
+
     def _stains(self, x0: float, y_top: float, nx: int, ny: int, res: float) -> np.ndarray:
         """Oil and water stains (soft blotches in [0, 1]) anchored to 8 m world cells."""
         stain: np.ndarray = np.zeros((ny, nx), np.float32)
         for ci, cj in self._cells(x0, y_top, nx, ny, res):
-            rng = rng_for(self.seed, 102, ci, cj)
-            for _ in range(int(rng.poisson(0.8))):
-                p = np.array([ci, cj]) * FEATURE_CELL + rng.uniform(0, FEATURE_CELL, 2)
-                axes = rng.uniform(0.15, 0.7, 2)
+            for p, axes, angle, value in self._cell_features(ci, cj).stains:
                 centre = (round(((p[0] - x0) / res - 0.5) * 16), round(((y_top - p[1]) / res - 0.5) * 16))
-                cv2.ellipse(
-                    stain,
-                    centre,
-                    (max(1, int(axes[0] / res * 16)), max(1, int(axes[1] / res * 16))),
-                    float(rng.uniform(0, 180)),
-                    0,
-                    360,
-                    float(rng.uniform(0.3, 1.0)),
-                    -1,
-                    cv2.LINE_AA,
-                    4,
-                )
+                size = (max(1, int(axes[0] / res * 16)), max(1, int(axes[1] / res * 16)))
+                cv2.ellipse(stain, centre, size, angle, 0, 360, value, -1, cv2.LINE_AA, 4)
         if stain.any():
             stain = cv2.GaussianBlur(stain, (0, 0), max(0.5, 0.08 / res))
         return stain
@@ -357,32 +394,19 @@ class TileGenerator:
         """Darken ``factor`` with cracks (and asphalt repairs) on the paving, from 8 m world cells."""
         dark = np.zeros((ny, nx), np.float32)
         repair = np.zeros((ny, nx), np.float32)
+        offset = np.array([x0, y_top])
+        scale = np.array([16.0 / res, -16.0 / res])
 
         def to_px(pts: np.ndarray) -> np.ndarray:
-            col = (pts[:, 0] - x0) / res - 0.5
-            row = (y_top - pts[:, 1]) / res - 0.5
-            return np.round(np.stack([col, row], axis=1) * 16).astype(np.int32)
+            return np.round((pts - offset) * scale - 8.0).astype(np.int32)
 
         for ci, cj in self._cells(x0, y_top, nx, ny, res):
-            rng = rng_for(self.seed, 101, ci, cj)
-            origin = np.array([ci * FEATURE_CELL, cj * FEATURE_CELL])
-            for _ in range(int(rng.poisson(2.0))):
-                p = origin + rng.uniform(0, FEATURE_CELL, 2)
-                steps = int(rng.integers(6, 30))
-                headings = rng.uniform(0, 2 * math.pi) + np.cumsum(rng.normal(0, 0.45, steps))
-                pts = p + np.concatenate(
-                    [[[0.0, 0.0]], np.cumsum(0.12 * np.stack([np.cos(headings), np.sin(headings)], 1), 0)]
-                )
-                width = float(rng.uniform(0.004, 0.014))
+            cell = self._cell_features(ci, cj)
+            for pts, width in cell.cracks:
                 strength = min(1.0, width / res)
                 cv2.polylines(dark, [to_px(pts)], False, strength, max(1, round(width / res)), cv2.LINE_AA, 4)
-            if rng.random() < 0.25:
-                p = origin + rng.uniform(0, FEATURE_CELL, 2)
-                w, h = rng.uniform(0.6, 2.5, 2)
-                a = rng.uniform(0, math.pi)
-                corners = np.array([[-w, -h], [w, -h], [w, h], [-w, h]]) / 2
-                rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-                cv2.fillPoly(repair, [to_px(p + corners @ rot.T)], 1.0, cv2.LINE_AA, 4)
+            for corners in cell.repairs:
+                cv2.fillPoly(repair, [to_px(corners)], 1.0, cv2.LINE_AA, 4)
         if dark.any():
             factor -= 0.5 * dark * paved
         if repair.any():
@@ -456,28 +480,42 @@ class TileGenerator:
         layout = self.layout
         shade: np.ndarray = np.zeros((ny, nx), np.float32)
         off = self.sun.shadow_offset
-        reach = 30.0 * float(np.linalg.norm(off)) + 10.0
-        lo_x, hi_x = x0 - reach, x0 + nx * res + reach
-        lo_y, hi_y = y_top - ny * res - reach, y_top + reach
+        x1, y0 = x0 + nx * res, y_top - ny * res
 
         def to_px(pts: np.ndarray) -> np.ndarray:
             col = (pts[:, 0] - x0) / res - 0.5
             row = (y_top - pts[:, 1]) / res - 0.5
             return np.round(np.stack([col, row], axis=1) * 16).astype(np.int32)
 
-        for i in layout.building_index.query(lo_x, lo_y, hi_x, hi_y):
+        reach = 27.0 * float(np.linalg.norm(off)) + 2.0
+        for i in layout.building_index.query(x0 - reach, y0 - reach, x1 + reach, y_top + reach):
             b = layout.buildings[i]
-            pts = np.concatenate([b.corners, b.corners + off * b.height]).astype(np.float32)
-            hull = cv2.convexHull(pts)[:, 0, :].astype(np.float64)
+            pts = np.concatenate([b.corners, b.corners + off * b.height])
+            lo, hi = pts.min(axis=0), pts.max(axis=0)
+            if hi[0] < x0 or lo[0] > x1 or hi[1] < y0 or lo[1] > y_top:
+                continue
+            hull = cv2.convexHull(pts.astype(np.float32))[:, 0, :].astype(np.float64)
             cv2.fillPoly(shade, [to_px(hull)], 1.0, cv2.LINE_AA, 4)
+        if self._tree_shadows is None:
+            self._tree_shadows = np.array(
+                [
+                    [*(t.position + off * t.canopy_height), t.canopy_radius / math.sin(self.sun.elevation)]
+                    for t in layout.trees
+                ]
+            ).reshape(-1, 3)
+        ts = self._tree_shadows
+        near = np.flatnonzero(
+            (ts[:, 0] + ts[:, 2] > x0)
+            & (ts[:, 0] - ts[:, 2] < x1)
+            & (ts[:, 1] + ts[:, 2] > y0)
+            & (ts[:, 1] - ts[:, 2] < y_top)
+        )
         canopy = np.zeros((ny, nx), np.float32)
-        for i in layout.tree_index.query(lo_x, lo_y, hi_x, hi_y):
-            tr = layout.trees[i]
-            centre = tr.position + off * tr.canopy_height
-            c = to_px(centre[None])[0]
-            stretch = 1.0 / math.sin(self.sun.elevation)
-            axes = (max(1, int(tr.canopy_radius * stretch / res * 16)), max(1, int(tr.canopy_radius / res * 16)))
-            angle = math.degrees(math.atan2(-off[1], off[0]))
+        angle = math.degrees(math.atan2(-off[1], off[0]))
+        for i in near:
+            tr = layout.trees[int(i)]
+            c = to_px(ts[i : i + 1, :2])[0]
+            axes = (max(1, int(ts[i, 2] / res * 16)), max(1, int(tr.canopy_radius / res * 16)))
             cv2.ellipse(canopy, (int(c[0]), int(c[1])), axes, angle, 0, 360, 1.0, -1, cv2.LINE_AA, 4)
             trunk = np.stack([tr.position, tr.position + off * tr.trunk_height])
             cv2.polylines(canopy, [to_px(trunk)], False, 1.0, max(1, round(0.25 / res)), cv2.LINE_AA, 4)

@@ -40,6 +40,7 @@ class WorldParams(StageParams):
     fy: float = Field(400.0, gt=0.0, description="focal length y (px)")
     cx: float | None = Field(None, description="principal point x (px); null = image centre (width - 1) / 2")
     cy: float | None = Field(None, description="principal point y (px); null = image centre (height - 1) / 2")
+    flat_ground: bool = Field(False, description="no hills, bumps or rough patches: the ground is the plane z = 0")
     camera_height: float = Field(0.6, gt=0.1, le=3.0, description="camera height above the ground (m)")
     camera_tilt_deg: float = Field(25.0, ge=5.0, le=70.0, description="camera tilt below the horizon (deg)")
     speed_min: float = Field(1.0, gt=0.0, description="slowest cruising speed (m/s)")
@@ -97,7 +98,9 @@ class CampusWorld:
             designs=tuple(designs),
         )
         self.layout: CampusLayout = build_layout(params.seed, params.scale, options)
-        self.terrain = Terrain(self.layout.hills, self.layout.bumps, self.layout.rough)
+        self.terrain = (
+            Terrain() if params.flat_ground else Terrain(self.layout.hills, self.layout.bumps, self.layout.rough)
+        )
         intr = Intrinsics(
             fx=params.fx,
             fy=params.fy,
