@@ -8,7 +8,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from backend_world import CALIBRATION, OracleAssociation, ate, make_world, run_stages
-from conftest import conf_node
 from sgf_plugins.backend import (
     BackendParams,
     GtsamLmBackend,
@@ -18,6 +17,7 @@ from sgf_plugins.backend import (
     OdometryBackend,
 )
 from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams
+from sgf_testing import conf_node
 
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, rpy_from_rotation, xy_yaw

@@ -9,7 +9,7 @@ import tempfile
 from pathlib import Path
 
 import pytest
-from conftest import run_cli
+from sgf_testing import run_cli
 
 pytestmark = pytest.mark.slow
 

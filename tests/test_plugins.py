@@ -9,8 +9,8 @@ import re
 from pathlib import Path
 
 import pytest
-from conftest import ROOT, run_cli
 from pydantic import BaseModel
+from sgf_testing import ROOT, run_cli
 
 from sgf_pipeline import PluginError, Stage, StageRegistry, hookimpl, hookspecs, load_plugins
 from sgf_pipeline.registry import ALLOW_ENV, BLOCK_ENV

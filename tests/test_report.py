@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from conftest import run_cli
+from sgf_testing import run_cli
 
 from sgf_pipeline.errors import DataError
 from sgf_pipeline.report import build_tables, find_runs, write_report

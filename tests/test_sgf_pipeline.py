@@ -11,7 +11,6 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
-from conftest import conf_node
 from sgf_plugins.sgf.association import OnlineGroupsParams
 from sgf_plugins.sgf.descriptor import PolarContextParams
 from sgf_plugins.sgf.detector import HuWindowParams
@@ -25,6 +24,7 @@ from sgf_plugins.sgf.synthetic import (
     rectangle,
     tee_shape,
 )
+from sgf_testing import conf_node
 
 from sgf_pipeline import Dataset, Pipeline, RunContext, Stage, hookimpl, load_plugins
 from sgf_pipeline.geometry import pose_from_xy_yaw

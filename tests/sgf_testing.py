@@ -1,0 +1,30 @@
+"""Helpers shared by the test modules (imported by name; conftest.py holds only fixtures)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_cli(
+    script: str, *args: str, env: dict[str, str] | None = None, cwd: Path | None = None, timeout: float = 600
+) -> subprocess.CompletedProcess[str]:
+    """Run a console script of this environment and capture its output."""
+    import sys
+
+    exe = Path(sys.executable).parent / script
+    full_env = dict(os.environ)
+    full_env.update(env or {})
+    return subprocess.run([str(exe), *args], capture_output=True, text=True, env=full_env, cwd=cwd, timeout=timeout)
+
+
+def conf_node(relative: str) -> dict:
+    """A config group file of conf/ as plain data, interpolations resolved (as Hydra would, alone)."""
+    from omegaconf import OmegaConf
+
+    node = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / relative), resolve=True)
+    assert isinstance(node, dict)
+    return node
