@@ -451,6 +451,8 @@ class IcpLoopClosing(Stage):
             "candidates": self.counts["candidates"],
         }
         truth = context.truth if context.truth is not None else self.truth
+        if not self.accepted and (truth is not None or self.ground_truth):
+            loops["false_closed"] = 0  # nothing accepted, and the truth to judge it by is known
         if truth is not None:
             closed = [r for r in truth.revisits if self._closes(r, truths)]
             loops["closed"] = len(closed)
