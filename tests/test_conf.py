@@ -58,9 +58,18 @@ def test_the_default_config_builds_a_valid_pipeline():
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
 def test_each_experiment_composes(name: str):
+    text = (CONF / "experiment" / f"{name}.yaml").read_text()
+    app = "sgf_sod_eval" if "# app: sgf-sod-eval" in text else "config"
     with initialize_config_dir(str(CONF), version_base="1.3"):
-        cfg = compose("config", overrides=[f"+experiment={name}"])
-    assert "pipeline" in cfg
+        cfg = compose(app, overrides=[f"+experiment={name}"], return_hydra_config=True)
+    if app == "config":
+        assert "pipeline" in cfg
+        assert cfg.hydra.mode.name == "MULTIRUN"
+        assert cfg.hydra.sweeper.params, "an experiment sweeps something"
+        for key in cfg.hydra.sweeper.params:
+            assert key.split(".")[0] in cfg or key.split(".")[0] in cfg.pipeline
+    else:
+        assert list(cfg.models) == ["selfreformer", "u2net", "u2netp", "ldf", "classical"]
 
 
 def test_conf_is_inside_the_package_and_the_wheel(tmp_path: Path):
