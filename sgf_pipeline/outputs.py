@@ -64,6 +64,7 @@ def collect_metrics(pipeline: Pipeline, trajectories: dict[str, Trajectory]) -> 
                     log.warning("ATE of %s not computed: %s", name, exc)
                     metrics.setdefault("warnings", []).append(f"ATE of {name} not computed: {exc}")
     metrics = _merge(metrics, pipeline.context.metrics)
+    metrics["runner"] = pipeline.drop_report()
     for report in pipeline.plugins.manager.hook.sgf_report_metrics(run=pipeline.info):
         if report:
             metrics = _merge(metrics, report)
@@ -87,24 +88,39 @@ def write_run(pipeline: Pipeline, trajectories: dict[str, Trajectory], metrics: 
 
 
 def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:
-    """Record a failed or interrupted run, keeping whatever the run directory already holds."""
+    """Record a failed or interrupted run, keeping whatever the run directory already holds.
+
+    ``failure.json`` names the error (and the stage and frame of a stage error); the trajectories
+    so far are written as ``trajectory_<name>.partial.tum``: odometry and ground truth of the
+    processed frames, and any trajectory a stage published before the failure.
+    """
+    from sgf_pipeline.errors import StageError
+    from sgf_pipeline.runner import _trajectory
+
     run_dir = pipeline.run_dir
     assert run_dir is not None
     info = pipeline.info
-    payload = {
+    payload: dict[str, Any] = {
         "status": status,
         "error": f"{type(exc).__name__}: {exc}",
+        "stage": None,
+        "frame": None,
         "frames_seen": info.frames_seen,
         "frames_processed": info.frames_processed,
+        "runner": pipeline.drop_report(),
         "traceback": traceback.format_exception(type(exc), exc, exc.__traceback__)[-6:],
     }
+    if isinstance(exc, StageError):
+        payload["stage"] = f"{exc.kind}={exc.name}"
+        payload["frame"] = exc.frame_index
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
+        partial = dict(pipeline.context.trajectories)
         for name, rows in (("odometry", pipeline._odometry), ("gt", pipeline._ground_truth)):
-            if len(rows) >= 1:
-                from sgf_pipeline.runner import _trajectory
-
-                write_tum(run_dir / f"trajectory_{name}.partial.tum", _trajectory(rows))
+            if rows:
+                partial.setdefault(name, _trajectory(rows))
+        for name, trajectory in partial.items():
+            write_tum(run_dir / f"trajectory_{name}.partial.tum", trajectory)
         atomic_write_json(run_dir / "failure.json", payload)
     except Exception:  # pragma: no cover - best effort while failing
         log.exception("could not record the failed run")
