@@ -30,9 +30,10 @@ from pydantic import Field
 
 from sgf_pipeline import DataError, RunContext, StageRegistry, hookimpl
 from sgf_pipeline.calibration import Calibration
-from sgf_pipeline.calibration_io import read_euroc_sensor_yaml
+from sgf_pipeline.calibration_io import euroc_matrix, read_euroc_sensor_yaml
 from sgf_pipeline.geometry import invert
 from sgf_pipeline.imu import roll_pitch_from_inertial
+from sgf_pipeline.io import read_text, read_yaml
 from sgf_pipeline.timesync import PoseSeries, ValueSeries
 from sgf_pipeline.trajectory import TrajectoryError, read_euroc_csv, read_trajectory, seconds_from_ns
 from sgf_pipeline.types import Frame
@@ -67,7 +68,7 @@ def _read_csv_ns(path: Path, min_columns: int, what: str) -> tuple[np.ndarray, l
     stamps: list[int] = []
     rows: list[list[str]] = []
     lines: list[int] = []
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
+    for number, line in enumerate(read_text(path).splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -75,9 +76,12 @@ def _read_csv_ns(path: Path, min_columns: int, what: str) -> tuple[np.ndarray, l
         if len(fields) < min_columns:
             raise DataError(f"{path}:{number}: a {what} line has at least {min_columns} fields, got {len(fields)}")
         try:
-            stamps.append(int(fields[0]))
+            stamp = int(fields[0])
         except ValueError:
-            raise DataError(f"{path}:{number}: timestamp {fields[0]!r} is not an integer of nanoseconds") from None
+            raise DataError(f"{path}:{number}: timestamp {fields[0]!r:.40} is not an integer of nanoseconds") from None
+        if not -(2**63) <= stamp < 2**63:
+            raise DataError(f"{path}:{number}: timestamp {fields[0]!r:.40} ns is out of range (64-bit ns)")
+        stamps.append(stamp)
         rows.append(fields[1:])
         lines.append(number)
     return np.asarray(stamps, dtype=np.int64), rows, lines
@@ -147,6 +151,13 @@ class EurocDataset(RecordedDataset):
                 continue
             keep.append(i)
             last = t
+        for i in keep:
+            name = Path(rows[i][0])
+            if not rows[i][0] or name.is_absolute() or ".." in name.parts:
+                raise DataError(
+                    f"{cam_dir / 'data.csv'}:{lines[i]}: image name {rows[i][0]!r:.60} must be a file name inside "
+                    f"{cam_dir / 'data'} (no absolute path, no '..')"
+                )
         paths = [cam_dir / "data" / rows[i][0] for i in keep]
         return ns[keep], paths
 
@@ -214,12 +225,10 @@ class EurocDataset(RecordedDataset):
             raise DataError(f"{path} has no usable IMU samples")
         imu_to_body = np.eye(4)
         if (imu_dir / "sensor.yaml").is_file():
-            import yaml
-
-            meta = yaml.safe_load((imu_dir / "sensor.yaml").read_text()) or {}
+            meta = read_yaml(imu_dir / "sensor.yaml", "IMU sensor file") or {}
             node = meta.get("T_BS") if isinstance(meta, dict) else None
-            if isinstance(node, dict) and "data" in node:
-                imu_to_body = np.asarray(node["data"], dtype=np.float64).reshape(4, 4)
+            if node is not None:
+                imu_to_body = euroc_matrix(node, "T_BS", imu_dir / "sensor.yaml")
         imu_to_base = self.body_to_base @ imu_to_body
         ts = seconds_from_ns(ns)
         roll_pitch = roll_pitch_from_inertial(ts, data[:, 0:3], data[:, 3:6], self.params.imu_gain, imu_to_base)
