@@ -95,7 +95,6 @@ def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:
     processed frames, and any trajectory a stage published before the failure.
     """
     from sgf_pipeline.errors import StageError
-    from sgf_pipeline.runner import _trajectory
 
     run_dir = pipeline.run_dir
     assert run_dir is not None
@@ -116,9 +115,9 @@ def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
         partial = dict(pipeline.context.trajectories)
-        for name, rows in (("odometry", pipeline._odometry), ("gt", pipeline._ground_truth)):
-            if rows:
-                partial.setdefault(name, _trajectory(rows))
+        for name, log_ in (("odometry", pipeline._odometry), ("gt", pipeline._ground_truth)):
+            if len(log_):
+                partial.setdefault(name, log_.trajectory())
         for name, trajectory in partial.items():
             write_tum(run_dir / f"trajectory_{name}.partial.tum", trajectory)
         atomic_write_json(run_dir / "failure.json", payload)

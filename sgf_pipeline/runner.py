@@ -137,8 +137,8 @@ class Pipeline:
             options=config.run,
         )
         self._previous: dict[str, Any] = {}
-        self._odometry: list[tuple[float, np.ndarray]] = []
-        self._ground_truth: list[tuple[float, np.ndarray]] = []
+        self._odometry = PoseLog()
+        self._ground_truth = PoseLog()
         self._last_key: np.ndarray | None = None
         self._last_processed: float | None = None
         self._dropped: Counter[str] = Counter()
@@ -384,11 +384,11 @@ class Pipeline:
         self.info.frames_processed += 1
         self._previous = values
         self._last_processed = float(frame.timestamp)
-        self._odometry.append((frame.timestamp, np.asarray(frame.odometry, dtype=np.float64)))
+        self._odometry.append(frame.timestamp, frame.odometry)
         if frame.ground_truth is not None:
             truth = np.asarray(frame.ground_truth, dtype=np.float64)
             if truth.shape == (4, 4) and np.all(np.isfinite(truth)):
-                self._ground_truth.append((frame.timestamp, truth))
+                self._ground_truth.append(frame.timestamp, truth)
             else:
                 self._ground_truth_dropped += 1
         hook.sgf_frame_end(run=self.info, frame=frame, seconds=elapsed)
@@ -493,10 +493,10 @@ class Pipeline:
                 first.args = (f"{first.args[0]} (finalize also failed in {others})",)
             raise first
         trajectories = dict(self.context.trajectories)
-        if self._odometry:
-            trajectories.setdefault("odometry", _trajectory(self._odometry))
-        if self._ground_truth:
-            trajectories.setdefault("gt", _trajectory(self._ground_truth))
+        if len(self._odometry):
+            trajectories.setdefault("odometry", self._odometry.trajectory())
+        if len(self._ground_truth):
+            trajectories.setdefault("gt", self._ground_truth.trajectory())
         metrics = outputs.collect_metrics(self, trajectories)
         if self.run_dir is not None:
             outputs.write_run(self, trajectories, metrics)
@@ -517,8 +517,33 @@ class Pipeline:
         outputs.write_failure(self, status, exc)
 
 
-def _trajectory(rows: list[tuple[float, np.ndarray]]) -> Trajectory:
-    return Trajectory(np.array([t for t, _ in rows]), np.stack([p for _, p in rows]))
+class PoseLog:
+    """Timed poses appended frame by frame, kept as rows of 13 floats (t and the 3x4 pose) in a growing array.
+
+    About 100 bytes a pose: an hours-long run's odometry fits where a list of 4x4 arrays would not.
+    """
+
+    def __init__(self) -> None:
+        self._rows = np.empty((1024, 13), dtype=np.float64)
+        self._count = 0
+
+    def __len__(self) -> int:
+        return self._count
+
+    def append(self, timestamp: float, pose: np.ndarray) -> None:
+        """Add one pose (4x4; the last row is taken to be 0 0 0 1)."""
+        if self._count == len(self._rows):
+            self._rows = np.concatenate([self._rows, np.empty_like(self._rows)])
+        self._rows[self._count, 0] = timestamp
+        self._rows[self._count, 1:] = np.asarray(pose, dtype=np.float64)[:3, :4].reshape(12)
+        self._count += 1
+
+    def trajectory(self) -> Trajectory:
+        """The poses so far as a :class:`Trajectory`."""
+        rows = self._rows[: self._count]
+        poses = np.tile(np.eye(4), (self._count, 1, 1))
+        poses[:, :3, :4] = rows[:, 1:].reshape(-1, 3, 4)
+        return Trajectory(rows[:, 0].copy(), poses)
 
 
 def _to_plain(cfg: Mapping[str, Any]) -> dict[str, Any]:
