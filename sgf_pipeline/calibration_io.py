@@ -265,8 +265,11 @@ def _first_error(exc: ValueError) -> str:
     if callable(errors):
         items = errors()
         if items:
+            message = str(items[0]["msg"]).removeprefix("Value error, ")
+            if not items[0]["loc"]:  # a check of the whole model
+                return message
             loc = ".".join(str(x) for x in items[0]["loc"])
-            return f"{loc}: {items[0]['msg']} (got {items[0].get('input')!r:.40})"
+            return f"{loc}: {message} (got {items[0].get('input')!r:.40})"
     return str(exc)
 
 

@@ -168,12 +168,13 @@ def parse_config(raw: Mapping[str, Any]) -> PipelineConfig:
     kinds = raw["pipeline"]
     if isinstance(kinds, str) or not isinstance(kinds, (list, tuple)) or not kinds:
         raise ConfigError(f"`pipeline` must be a non-empty list of stage kinds, got {kinds!r}")
+    for kind in kinds:
+        if not isinstance(kind, str) or not kind:
+            raise ConfigError(f"`pipeline` lists stage kinds by name; {kind!r} is not a name")
     if len(set(kinds)) != len(kinds):
         raise ConfigError(f"`pipeline` lists a stage kind twice: {list(kinds)}")
     stages: dict[str, StageConfig] = {}
     for kind in kinds:
-        if not isinstance(kind, str) or not kind:
-            raise ConfigError(f"`pipeline` lists stage kinds by name; {kind!r} is not a name")
         node = raw.get(kind)
         if node is None:
             raise ConfigError(

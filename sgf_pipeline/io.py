@@ -6,7 +6,7 @@ import contextlib
 import json
 import math
 import os
-import tempfile
+import secrets
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -21,11 +21,16 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` only if the block succeeds."""
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    tmp_path: Path | None = None
+    # The name is chosen before the file exists, so an interrupt at any point (even between creating
+    # the file and learning its name) leaves nothing behind: the finally clause knows what to remove.
+    tmp_path = target.parent / f".{target.name}.{os.getpid()}.{secrets.token_hex(6)}.part"
+    ours = True
     try:
-        # Inside the try: an interrupt right after mkstemp must not leave the temporary file behind.
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".part", dir=target.parent)
-        tmp_path = Path(tmp)
+        try:
+            fd = os.open(tmp_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)  # the umask applies
+        except FileExistsError:  # pragma: no cover - a clash of 48 random bits: another writer's file
+            ours = False
+            raise
         os.close(fd)
         yield tmp_path
         with open(tmp_path, "rb+") as fh:
@@ -33,7 +38,7 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         os.replace(tmp_path, target)
         _fsync_dir(target.parent)
     finally:
-        if tmp_path is not None and tmp_path.exists():
+        if ours and tmp_path.exists():
             tmp_path.unlink()
 
 

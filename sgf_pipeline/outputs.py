@@ -148,7 +148,8 @@ def plot_trajectories(path: Any, trajectories: dict[str, Trajectory], metrics: d
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+    if trajectories:
+        ax.legend(loc="best", fontsize=8)
     ax.set_title(f"{metrics.get('sequence', '')}: trajectories (SE(3)-aligned to ground truth)")
     fig.tight_layout()
     with atomic_path(path) as tmp:

@@ -131,7 +131,8 @@ def _text(path: Path) -> str:
 
 def _rotation(quaternion: np.ndarray) -> np.ndarray:
     """The rotation of an ``(x, y, z, w)`` quaternion, or NaNs when it has no usable length."""
-    norm = float(np.linalg.norm(quaternion)) if np.all(np.isfinite(quaternion)) else math.nan
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm = float(np.linalg.norm(quaternion)) if np.all(np.isfinite(quaternion)) else math.nan
     if not (math.isfinite(norm) and norm > _MIN_QUATERNION_NORM):
         return np.full((3, 3), np.nan)
     return rotation_from_quaternion(quaternion / norm)
