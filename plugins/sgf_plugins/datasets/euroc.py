@@ -208,18 +208,18 @@ class EurocDataset(RecordedDataset):
             data = np.asarray([[float(v) for v in r[:6]] for r in rows], dtype=np.float64).reshape(-1, 6)
         except ValueError:
             raise DataError(f"{path}: non-numeric gyro or accelerometer value") from None
-        good = np.isfinite(data).all(axis=1)
-        if ns.size > 1:
-            order = np.ones(ns.size, dtype=bool)
-            order[1:] = np.diff(ns) > 0
-            if not order.all():
-                i = int(np.flatnonzero(~order)[0])
-                self.skips.problem(
-                    "imu timestamp", f"{path}:{lines[i]}: IMU timestamp {int(ns[i])} ns is not increasing"
-                )
-            good &= order
-        for i in np.flatnonzero(~np.isfinite(data).all(axis=1)):
+        good = np.asarray(np.isfinite(data).all(axis=1), dtype=bool)
+        for i in np.flatnonzero(~good):
             self.skips.problem("bad imu", f"{path}:{lines[int(i)]}: non-finite IMU sample")
+        last: int | None = None
+        for i in np.flatnonzero(good):  # each kept sample after the last kept one (a running maximum)
+            if last is not None and ns[i] <= last:
+                self.skips.problem(
+                    "imu timestamp", f"{path}:{lines[int(i)]}: IMU timestamp {int(ns[i])} ns is not after {last} ns"
+                )
+                good[i] = False
+            else:
+                last = int(ns[i])
         ns, data = ns[good], data[good]
         if ns.size == 0:
             raise DataError(f"{path} has no usable IMU samples")
