@@ -156,7 +156,7 @@ def read_kitti_calib(path: str | os.PathLike[str]) -> dict[str, np.ndarray]:
             "intrinsics with dataset.intrinsics={fx: ..., fy: ..., cx: ..., cy: ...}"
         )
     matrices: dict[str, np.ndarray] = {}
-    for number, line in enumerate(read_text(p, "KITTI calibration file").splitlines(), start=1):
+    for number, line in enumerate(read_text(p, "KITTI calibration file").split("\n"), start=1):
         if ":" not in line:
             continue
         key, _, values = line.partition(":")

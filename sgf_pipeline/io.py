@@ -112,8 +112,8 @@ def read_yaml(path: str | os.PathLike[str], what: str = "YAML file") -> Any:
         return yaml.safe_load(text)
     except yaml.MarkedYAMLError as exc:
         where = f":{exc.problem_mark.line + 1}" if exc.problem_mark is not None else ""
-        detail = " ".join(str(exc).split())
-        raise DataError(f"{p}{where}: not valid YAML: {detail}") from None
+        detail = ", ".join(str(part) for part in (exc.context, exc.problem) if part) or type(exc).__name__
+        raise DataError(f"{p}{where}: not valid YAML: {' '.join(detail.split())}") from None
     except yaml.YAMLError as exc:
         raise DataError(f"{p}: not valid YAML: {' '.join(str(exc).split())}") from None
     except RecursionError:

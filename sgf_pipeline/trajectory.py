@@ -91,7 +91,7 @@ def _table(path: Path, separators: str, columns: tuple[int, ...], what: str) -> 
         raise TrajectoryError(f"{what} file not found: {path}")
     rows: list[list[float]] = []
     lines: list[int] = []
-    for number, line in enumerate(_text(path).splitlines(), start=1):
+    for number, line in enumerate(_text(path).split("\n"), start=1):
         line = line.strip()
         if not line or line.startswith("#") or line.startswith("%"):
             continue
@@ -302,7 +302,7 @@ def read_euroc_csv(path: str | os.PathLike[str], duplicates: Duplicates = "error
         raise TrajectoryError(f"EuRoC CSV file not found: {p}")
     rows: list[tuple[int, list[float]]] = []
     lines: list[int] = []
-    for number, line in enumerate(_text(p).splitlines(), start=1):
+    for number, line in enumerate(_text(p).split("\n"), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -370,7 +370,7 @@ def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat:
         text = head.decode("utf-8")
     except UnicodeDecodeError:
         raise TrajectoryError(f"{p}: not a text file, so not a trajectory") from None
-    for line in text.splitlines():
+    for line in text.split("\n"):
         line = line.strip()
         if not line or line.startswith("#"):
             continue

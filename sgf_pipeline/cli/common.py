@@ -135,6 +135,7 @@ def console(app: Callable[[], Any]) -> Callable[[], None]:
             )
             sys.exit(EXIT_USAGE)
         if _full_tracebacks() or os.environ.get("HYDRA_FULL_ERROR") == "1":
+            os.environ[TRACEBACK_ENV] = "1"  # the task wrapper re-raises too
             app()
             return
         from hydra.errors import HydraException

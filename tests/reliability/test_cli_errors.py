@@ -135,3 +135,24 @@ def test_a_traceback_on_request(files: dict[str, Path]):
     )
     assert result.returncode == 1
     assert "Traceback (most recent call last)" in result.stderr and "DataError: reference: " in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("metrics", "message"),
+    [
+        ({"ate_rmse_m": {"sgf": "1.2 m"}}, r"ate_rmse_m.sgf must be a number or null, got '1.2 m'"),
+        ({"loops": {"closed": True}}, r"loops.closed must be a number or null, got True"),
+        ({"timing": [1, 2]}, r"timing must be a mapping, got \[1, 2\]"),
+        ({"timing": {"stages": {"ipm": {"mean_ms": "fast"}}}}, r"timing.stages must map stage kinds to"),
+        ({"sequence": ["a"]}, r"sequence must be a name, got \['a'\]"),
+    ],
+)
+def test_sgf_report_refuses_metrics_of_another_shape(tmp_path: Path, metrics: dict, message: str):
+    from sgf_pipeline.errors import DataError
+    from sgf_pipeline.report import find_runs
+
+    run = tmp_path / "r1"
+    run.mkdir()
+    (run / "metrics.json").write_text(json.dumps({"status": "finished", **metrics}))
+    with pytest.raises(DataError, match=rf"r1/metrics.json: {message}"):
+        find_runs(tmp_path)

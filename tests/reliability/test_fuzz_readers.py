@@ -157,6 +157,8 @@ def test_written_trajectories_read_back(work: Path, start, steps, positions, qua
         ("i.kitti", b"1 1 1 0 1 1 1 0 1 1 1 0\n", r"i.kitti:1: the pose's 3x3 block is not a rotation"),
         ("j.kitti", b"1 0 0 0 0 1 0 0 0 0 -1 0\n", r"j.kitti:1: .*not a rotation .*det R = -1"),
         ("k.kitti", b"1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0 0 1 0 0 0 0 1\n", r"k.kitti:2: a KITTI pose .* got 11"),
+        # line numbers count newlines only: Python's splitlines() also breaks at \x1c-\x1e, \x85, \u2028
+        ("l.tum", b"0 0 0 0 0 0 0 1\x1e\n1 2\n", r"l.tum:2: a TUM .* got 2"),
     ],
 )
 def test_hand_made_bad_trajectories(tmp_path: Path, name: str, content: bytes, message: str):

@@ -68,7 +68,7 @@ def _read_csv_ns(path: Path, min_columns: int, what: str) -> tuple[np.ndarray, l
     stamps: list[int] = []
     rows: list[list[str]] = []
     lines: list[int] = []
-    for number, line in enumerate(read_text(path).splitlines(), start=1):
+    for number, line in enumerate(read_text(path).split("\n"), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue

@@ -100,7 +100,7 @@ class FolderDataset(RecordedDataset):
     def _read_timestamps(self, n: int) -> np.ndarray:
         path = self._need("timestamps.txt")
         values: list[float] = []
-        for number, line in enumerate(read_text(path).splitlines(), start=1):
+        for number, line in enumerate(read_text(path).split("\n"), start=1):
             line = line.strip()
             if not line or line.startswith("#"):
                 continue
@@ -136,11 +136,11 @@ class FolderDataset(RecordedDataset):
         path = self.root / "imu.csv"
         if not path.is_file():
             return None
-        lines = [ln.strip() for ln in read_text(path).splitlines() if ln.strip()]
-        if not lines or [h.strip() for h in lines[0].split(",")] != ["timestamp", "roll", "pitch"]:
+        lines = [(k, ln.strip()) for k, ln in enumerate(read_text(path).split("\n"), start=1) if ln.strip()]
+        if not lines or [h.strip() for h in lines[0][1].split(",")] != ["timestamp", "roll", "pitch"]:
             raise DataError(f"{path}: the first line must be the header 'timestamp,roll,pitch'")
         rows = []
-        for number, line in enumerate(lines[1:], start=2):
+        for number, line in lines[1:]:
             try:
                 rows.append([float(v) for v in line.split(",")])
             except ValueError:
