@@ -89,10 +89,10 @@ def atomic_write_json(path: str | os.PathLike[str], data: Any) -> None:
 
 
 def read_text(path: str | os.PathLike[str], what: str = "file") -> str:
-    """A UTF-8 text file's content; a missing, unreadable or binary file gives a :class:`DataError`."""
+    """A UTF-8 text file's content, carriage returns kept; a missing, unreadable or binary file gives a DataError."""
     p = Path(path)
     try:
-        return p.read_text(encoding="utf-8")
+        return p.read_bytes().decode("utf-8")  # no newline translation: a line ends at "\n" only, as in grep -n
     except FileNotFoundError:
         raise DataError(f"{what} not found: {p}") from None
     except UnicodeDecodeError as exc:

@@ -121,7 +121,7 @@ def _table(path: Path, separators: str, columns: tuple[int, ...], what: str) -> 
 def _text(path: Path) -> str:
     """A file's text; a binary file gives a clear error instead of a decoding exception."""
     try:
-        return path.read_text(encoding="utf-8")
+        return path.read_bytes().decode("utf-8")  # no newline translation: a line ends at "\n" only
     except UnicodeDecodeError as exc:
         line = path.read_bytes()[: exc.start].count(b"\n") + 1
         raise TrajectoryError(f"{path}:{line}: not a text file (is it an image or a bag?)") from None

@@ -159,6 +159,7 @@ def test_written_trajectories_read_back(work: Path, start, steps, positions, qua
         ("k.kitti", b"1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0 0 1 0 0 0 0 1\n", r"k.kitti:2: a KITTI pose .* got 11"),
         # line numbers count newlines only: Python's splitlines() also breaks at \x1c-\x1e, \x85, \u2028
         ("l.tum", b"0 0 0 0 0 0 0 1\x1e\n1 2\n", r"l.tum:2: a TUM .* got 2"),
+        ("m.tum", b"0 0 0 0 0 0 0 1\r\n1 0 0 0 0 0 0 1\r1 2\n", r"m.tum:2: a TUM .* got 10"),
     ],
 )
 def test_hand_made_bad_trajectories(tmp_path: Path, name: str, content: bytes, message: str):
