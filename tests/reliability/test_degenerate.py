@@ -312,3 +312,19 @@ def test_a_robot_driver_feeding_bad_frames_gets_them_back_dropped(plugins):
         "timestamp not increasing": 1,
     }
     assert metrics["timing"]["frames"] == 2
+
+
+def test_a_run_never_reports_the_ate_of_an_earlier_run(plugins, tmp_path: Path):
+    """The metrics skeleton was shared between runs: a run without ATE reported the previous run's."""
+    curve = [pose_from_xy_yaw(3.0 * math.sin(0.1 * i), 3.0 * (1 - math.cos(0.1 * i)), 0.1 * i) for i in range(30)]
+    frames = frames_along(curve)
+    for f in frames:
+        f.odometry = f.odometry.copy()
+        f.odometry[:2, 3] *= 1.05
+    first, _ = run(plugins, tmp_path / "curve", frames, empty)
+    assert first["ate_rmse_m"]["odometry"] > 0.01
+    second, _ = run(plugins, tmp_path / "straight", frames_along(straight(30)), empty)
+    assert second["ate_rmse_m"] == {"odometry": None, "sgf": None}
+    from sgf_pipeline.outputs import METRIC_SKELETON
+
+    assert METRIC_SKELETON["ate_rmse_m"] == {"odometry": None, "sgf": None}
