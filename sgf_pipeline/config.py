@@ -140,8 +140,8 @@ def _check_finite(node: Any, path: str) -> None:
 
 
 def check_keys(raw: Mapping[str, Any], kinds: Iterable[str]) -> None:
-    """Refuse top-level keys that are neither runner options nor the node of a registered stage kind (typos)."""
-    known = set(TOP_LEVEL_KEYS) | set(kinds) | {"hydra"}
+    """Refuse top-level keys that are neither runner options nor the node of a stage kind (typos)."""
+    known = set(TOP_LEVEL_KEYS) | set(kinds) | set(PAPER_STAGES) | {"hydra"}  # a blocked plugin's node may stay
     unknown = sorted(str(k) for k in raw if k not in known)
     if unknown:
         raise ConfigError(

@@ -348,6 +348,21 @@ def test_bad_values_name_the_key(tmp_path: Path, overrides: list[str], message: 
         Pipeline.from_config(cfg)
 
 
+def test_an_allow_list_leaves_the_nodes_of_other_paper_stages_alone(tmp_path: Path):
+    """A deployment that allows only some plugins still composes the default config's other stage nodes."""
+    folder = write_folder(tmp_path / "seq", make_frames(2, seed=3), calibration())
+    cfg = _compose(
+        f"dataset.path={folder}",
+        "pipeline=[dataset,enhance]",
+        "plugins.allow=[dataset_folder,enhance]",
+        "run.progress=false",
+    )
+    assert cfg.ipm.name == "mc"  # composed by the defaults list, but its plugin is not allowed
+    pipeline = Pipeline.from_config(cfg)
+    assert pipeline.plugins.registry.kinds() == ["dataset", "enhance"]
+    assert pipeline.run()["timing"]["frames"] == 2
+
+
 def test_detector_and_descriptor_values_are_checked(toy_plugins):
     cfg = _toy_config(pipeline=["dataset", "detector"], detector={"name": "hu_window", "threshold": 1.5})
     with pytest.raises(ConfigError, match=r"detector.threshold: Input should be less than 1"):
