@@ -290,7 +290,11 @@ class Pipeline:
         """Lock the run directory for this run, and clear what an earlier run left there when allowed."""
         run_dir.mkdir(parents=True, exist_ok=True)
         self._lock = _lock_directory(run_dir)
-        self._check_finished_run()  # again, under the lock: another run may have finished meanwhile
+        try:
+            self._check_finished_run()  # again, under the lock: another run may have finished meanwhile
+        except ConfigError:
+            self.release()
+            raise
         if (run_dir / "metrics.json").exists():  # run.overwrite=true: the old run's files go first
             log.warning("run.overwrite=true: replacing the finished run in %s", run_dir)
             stale = [run_dir / n for n in RUN_FILES] + sorted(run_dir.glob("trajectory_*.tum"))
