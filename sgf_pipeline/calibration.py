@@ -16,7 +16,7 @@ OPTICAL_TO_BASE = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
 class Intrinsics(BaseModel):
     """Pinhole intrinsics in pixels, with the image size they belong to."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     fx: float = Field(gt=0)
     fy: float = Field(gt=0)
@@ -34,7 +34,7 @@ class Intrinsics(BaseModel):
 class Distortion(BaseModel):
     """Lens distortion: ``radtan`` (OpenCV k1 k2 p1 p2 [k3]) or ``equidistant`` (k1..k4)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     model: Literal["none", "radtan", "equidistant"] = "none"
     coefficients: tuple[float, ...] = ()

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +13,9 @@ from sgf_pipeline.errors import ConfigError
 
 #: Keys of a stage's config node that are not the stage's parameters.
 RESERVED_KEYS = ("name", "rename")
+
+#: Top-level keys of a run's config besides the stage nodes (``hydra`` is Hydra's own and never validated).
+TOP_LEVEL_KEYS = ("pipeline", "run", "plugins")
 
 #: The paper's pipeline, in data-flow order (DESIGN.md section 1).
 PAPER_STAGES = ("dataset", "enhance", "ipm", "saliency", "detector", "descriptor", "association", "loop", "backend")
@@ -30,7 +33,7 @@ def config_dir() -> Path:
 class RunOptions(BaseModel):
     """Options of the runner itself (config node ``run``)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
     keyframe_distance: float = Field(
         0.0, ge=0.0, description="process a frame once the odometry moved this far (m) since the last one; 0 = all"
@@ -116,6 +119,9 @@ def format_validation_error(group: str, model: type[BaseModel], error: Validatio
 
 def validate_options(group: str, model: type[BaseModel], values: Mapping[str, Any] | None) -> Any:
     """Validate a plain config node against a pydantic model, with a clear error."""
+    if values is not None and not isinstance(values, Mapping):
+        known = ", ".join(model.model_fields)
+        raise ConfigError(f"{group}: must be a mapping of options ({known}), got {values!r:.80}")
     try:
         return model.model_validate(dict(values or {}))
     except ValidationError as exc:
@@ -133,13 +139,38 @@ def _check_finite(node: Any, path: str) -> None:
             _check_finite(v, f"{path}[{i}]")
 
 
+def check_keys(raw: Mapping[str, Any], kinds: Iterable[str]) -> None:
+    """Refuse top-level keys that are neither runner options nor the node of a stage kind (typos)."""
+    known = set(TOP_LEVEL_KEYS) | set(kinds) | set(PAPER_STAGES) | {"hydra"}  # a blocked plugin's node may stay
+    unknown = sorted(str(k) for k in raw if k not in known)
+    if unknown:
+        raise ConfigError(
+            f"unknown top-level key(s) {unknown}: a config holds {', '.join(TOP_LEVEL_KEYS)} and one node per "
+            f"stage kind ({', '.join(sorted(set(kinds)))}); check the spelling, or install the plugin that "
+            "registers that stage kind"
+        )
+
+
 def parse_config(raw: Mapping[str, Any]) -> PipelineConfig:
     """Split a composed (plain, resolved) config into validated run options and stage nodes."""
+    if not isinstance(raw, Mapping):
+        raise ConfigError(f"a configuration is a mapping (pipeline, run, plugins, stage nodes), got {raw!r:.80}")
+    target = _find_target({k: v for k, v in raw.items() if k != "hydra"}, "")
+    if target:
+        target = target.lstrip(".")
+        group = target.split(".")[0].split("[")[0]
+        raise ConfigError(
+            f"{target}: `_target_` is refused. Variants are chosen by registered name only "
+            f"(`{group}=<variant>`), so that a config file can never import code."
+        )
     if "pipeline" not in raw:
         raise ConfigError("the config has no `pipeline` list (the stage kinds to run, dataset first)")
     kinds = raw["pipeline"]
     if isinstance(kinds, str) or not isinstance(kinds, (list, tuple)) or not kinds:
         raise ConfigError(f"`pipeline` must be a non-empty list of stage kinds, got {kinds!r}")
+    for kind in kinds:
+        if not isinstance(kind, str) or not kind:
+            raise ConfigError(f"`pipeline` lists stage kinds by name; {kind!r} is not a name")
     if len(set(kinds)) != len(kinds):
         raise ConfigError(f"`pipeline` lists a stage kind twice: {list(kinds)}")
     stages: dict[str, StageConfig] = {}
@@ -151,12 +182,6 @@ def parse_config(raw: Mapping[str, Any]) -> PipelineConfig:
             )
         if not isinstance(node, Mapping):
             raise ConfigError(f"{kind}: the config node must be a mapping with a `name` key, got {node!r}")
-        target = _find_target(node, kind)
-        if target:
-            raise ConfigError(
-                f"{target}: `_target_` is refused. Variants are chosen by registered name only "
-                f"(`{kind}=<variant>`), so that a config file can never import code."
-            )
         name = node.get("name")
         if not isinstance(name, str) or not name:
             raise ConfigError(f"{kind}: the config node needs a `name` (the variant), got {name!r}")

@@ -67,6 +67,14 @@ def _associate(reference: Trajectory, estimate: Trajectory, max_time_diff: float
         ) from None
 
 
+def _degenerate(align: str, exc: Exception) -> DataError:
+    """The error for a trajectory whose shape leaves the alignment undetermined."""
+    return DataError(
+        f"{align} alignment is not possible ({exc}): the associated positions lie on one point or one line "
+        "(a robot standing still or driving straight), which leaves the rotation undetermined; use align=none"
+    )
+
+
 def _check_alignment(align: str, pairs: int) -> None:
     if align not in ALIGNMENTS:
         raise DataError(f"unknown alignment {align!r}; choose one of {', '.join(ALIGNMENTS)}")
@@ -93,17 +101,21 @@ def ate(
 ) -> ErrorStatistics:
     """Absolute trajectory error: evo's APE of the translation part after ``none``/``se3``/``sim3`` alignment."""
     from evo.core import metrics
+    from evo.core.geometry import GeometryException
     from evo.main_ape import ape
 
     ref, est = _associate(reference, estimate, max_time_diff)
     _check_alignment(align, ref.num_poses)
-    result = ape(
-        ref,
-        est,
-        metrics.PoseRelation.translation_part,
-        align=align != "none",
-        correct_scale=align == "sim3",
-    )
+    try:
+        result = ape(
+            ref,
+            est,
+            metrics.PoseRelation.translation_part,
+            align=align != "none",
+            correct_scale=align == "sim3",
+        )
+    except GeometryException as exc:
+        raise _degenerate(align, exc) from None
     return _statistics(result, ref.num_poses)
 
 
@@ -131,6 +143,7 @@ def rpe(
     """Relative pose error (evo's RPE): ``translation`` in m or ``rotation`` angle in degrees per ``delta``."""
     from evo.core import metrics
     from evo.core.filters import FilterException
+    from evo.core.geometry import GeometryException
     from evo.core.units import Unit
     from evo.main_rpe import rpe as evo_rpe
 
@@ -160,6 +173,8 @@ def rpe(
         )
     except FilterException as exc:
         raise DataError(f"RPE: {exc}") from None
+    except GeometryException as exc:
+        raise _degenerate(align, exc) from None
     return _statistics(result, len(result.np_arrays["error_array"]))
 
 

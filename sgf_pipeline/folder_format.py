@@ -32,11 +32,12 @@ Rules the reader holds a folder to (docs/datasets.md has the full description):
 from __future__ import annotations
 
 import json
+import math
 import os
 import shutil
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import cv2
 import numpy as np
@@ -44,7 +45,7 @@ import yaml
 
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.errors import DataError
-from sgf_pipeline.io import atomic_write_text
+from sgf_pipeline.io import atomic_write_text, read_text, read_yaml
 from sgf_pipeline.trajectory import Trajectory, write_tum
 from sgf_pipeline.types import MarkingPass, MarkingTruth, RevisitPair, SequenceTruth
 
@@ -69,10 +70,7 @@ def read_calibration_yaml(path: str | os.PathLike[str]) -> Calibration:
     p = Path(path)
     if not p.is_file():
         raise DataError(f"calibration file not found: {p}")
-    try:
-        data = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise DataError(f"{p}: not valid YAML: {exc}") from None
+    data = read_yaml(p, "calibration file")
     if not isinstance(data, dict):
         raise DataError(f"{p}: expected a mapping with intrinsics, distortion and camera_to_base")
     try:
@@ -93,26 +91,125 @@ def truth_to_dict(truth: SequenceTruth) -> dict[str, Any]:
     }
 
 
-def truth_from_dict(data: dict[str, Any]) -> SequenceTruth:
-    """Inverse of :func:`truth_to_dict`."""
-    markings = {}
-    for m in data.get("markings", []):
-        m = dict(m)
-        m["pose"] = tuple(m["pose"])
-        m["size"] = tuple(m["size"])
-        markings[int(m["instance_id"])] = MarkingTruth(**m)
-    passes = [MarkingPass(**p) for p in data.get("passes", [])]
-    by_key = {(p.instance_id, p.number): p for p in passes}
-    revisits = [
-        RevisitPair(
-            r["instance_id"],
-            by_key[(r["instance_id"], r["first"])],
-            by_key[(r["instance_id"], r["second"])],
-            bool(r["reverse"]),
+class _TruthReader:
+    """Checks the plain data of ``truth.json`` field by field; errors name the entry and the key."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+
+    def fail(self, where: str, message: str) -> NoReturn:
+        """Raise a DataError about one entry."""
+        raise DataError(f"{self.source}{where}: {message}")
+
+    def entries(self, data: dict[str, Any], key: str, fields: tuple[str, ...]) -> list[dict[str, Any]]:
+        """The list under ``key``: mappings with exactly ``fields``."""
+        items = data.get(key, [])
+        if not isinstance(items, list):
+            self.fail(f" {key}", f"must be a list, got {type(items).__name__}")
+        for i, item in enumerate(items):
+            if not isinstance(item, dict):
+                self.fail(f" {key}[{i}]", f"must be a mapping with {', '.join(fields)}, got {item!r:.60}")
+            if set(item) != set(fields):
+                missing, extra = sorted(set(fields) - set(item)), sorted(set(item) - set(fields), key=str)
+                self.fail(f" {key}[{i}]", f"missing {missing}, unknown {extra}; the fields are {', '.join(fields)}")
+        return items
+
+    def integer(self, where: str, value: object, minimum: int | None = None) -> int:
+        """A whole number (not a bool), at least ``minimum``."""
+        if isinstance(value, bool) or not isinstance(value, int) or (minimum is not None and value < minimum):
+            bound = f" >= {minimum}" if minimum is not None else ""
+            self.fail(where, f"must be an integer{bound}, got {value!r:.40}")
+        return int(value)
+
+    def number(self, where: str, value: object, minimum: float | None = None) -> float:
+        """A finite number (not a bool), at least ``minimum``."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            self.fail(where, f"must be a finite number, got {value!r:.40}")
+        if minimum is not None and value < minimum:
+            self.fail(where, f"must be at least {minimum}, got {value!r:.40}")
+        return float(value)
+
+    def numbers(self, where: str, value: object, count: int, minimum: float | None = None) -> tuple[float, ...]:
+        """``count`` finite numbers."""
+        if not isinstance(value, list) or len(value) != count:
+            self.fail(where, f"must be a list of {count} numbers, got {value!r:.60}")
+        return tuple(self.number(f"{where}[{i}]", v, minimum) for i, v in enumerate(value))
+
+    def flag(self, where: str, value: object) -> bool:
+        """A JSON boolean."""
+        if not isinstance(value, bool):
+            self.fail(where, f"must be true or false, got {value!r:.40}")
+        return value
+
+
+def truth_from_dict(data: Any, source: str = "truth") -> SequenceTruth:
+    """Inverse of :func:`truth_to_dict`: every field checked, every reference resolved (else a DataError)."""
+    reader = _TruthReader(source)
+    if not isinstance(data, dict):
+        reader.fail("", f"must be a mapping with markings, passes and revisits, got {type(data).__name__}")
+    unknown = sorted(set(data) - {"markings", "passes", "revisits"}, key=str)
+    if unknown:
+        reader.fail("", f"unknown key(s) {unknown}; the keys are markings, passes, revisits")
+    markings: dict[int, MarkingTruth] = {}
+    for i, m in enumerate(reader.entries(data, "markings", _MARKING_FIELDS)):
+        at = f" markings[{i}]"
+        instance = reader.integer(f"{at}.instance_id", m["instance_id"], 1)
+        if instance in markings:
+            reader.fail(f"{at}.instance_id", f"{instance} is listed twice")
+        if not isinstance(m["design"], str):
+            reader.fail(f"{at}.design", f"must be a name, got {m['design']!r:.40}")
+        if m["category"] not in ("standard", "custom"):
+            reader.fail(f"{at}.category", f"must be standard or custom, got {m['category']!r:.40}")
+        pose = reader.numbers(f"{at}.pose", m["pose"], 3)
+        size = reader.numbers(f"{at}.size", m["size"], 2, 0.0)
+        symmetric = reader.flag(f"{at}.symmetric", m["symmetric"])
+        markings[instance] = MarkingTruth(
+            instance, m["design"], m["category"], symmetric, (pose[0], pose[1], pose[2]), (size[0], size[1])
         )
-        for r in data.get("revisits", [])
-    ]
-    return SequenceTruth(markings=markings, passes=passes, revisits=revisits)
+    passes: dict[tuple[int, int], MarkingPass] = {}
+    for i, p in enumerate(reader.entries(data, "passes", _PASS_FIELDS)):
+        at = f" passes[{i}]"
+        instance = reader.integer(f"{at}.instance_id", p["instance_id"], 1)
+        if instance not in markings:
+            reader.fail(f"{at}.instance_id", f"marking {instance} is not in markings")
+        number = reader.integer(f"{at}.number", p["number"], 0)
+        start = reader.integer(f"{at}.start_frame", p["start_frame"], 0)
+        end = reader.integer(f"{at}.end_frame", p["end_frame"], start)
+        if (instance, number) in passes:
+            reader.fail(at, f"pass {number} of marking {instance} is listed twice")
+        passes[(instance, number)] = MarkingPass(
+            instance, number, start, end, reader.number(f"{at}.heading", p["heading"])
+        )
+    revisits = []
+    for i, r in enumerate(reader.entries(data, "revisits", _REVISIT_FIELDS)):
+        at = f" revisits[{i}]"
+        instance = reader.integer(f"{at}.instance_id", r["instance_id"], 1)
+        ends = []
+        for key in ("first", "second"):
+            found = passes.get((instance, reader.integer(f"{at}.{key}", r[key], 0)))
+            if found is None:
+                reader.fail(f"{at}.{key}", f"marking {instance} has no pass {r[key]}")
+            ends.append(found)
+        revisits.append(RevisitPair(instance, ends[0], ends[1], reader.flag(f"{at}.reverse", r["reverse"])))
+    return SequenceTruth(markings=markings, passes=list(passes.values()), revisits=revisits)
+
+
+_MARKING_FIELDS = ("instance_id", "design", "category", "symmetric", "pose", "size")
+_PASS_FIELDS = ("instance_id", "number", "start_frame", "end_frame", "heading")
+_REVISIT_FIELDS = ("instance_id", "first", "second", "reverse")
+
+
+def read_truth_json(path: str | os.PathLike[str]) -> SequenceTruth:
+    """Read ``truth.json``; a malformed file gives a DataError that names the entry at fault."""
+    p = Path(path)
+    text = read_text(p, "truth file")
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise DataError(f"{p}:{exc.lineno}: not valid JSON: {exc.msg}") from None
+    except RecursionError:
+        raise DataError(f"{p}: not valid JSON: nested too deeply") from None
+    return truth_from_dict(data, str(p))
 
 
 class FolderDatasetWriter:

@@ -14,20 +14,37 @@ from sgf_pipeline.types import Frame
 log = logging.getLogger("sgf_pipeline")
 
 
+class _StageTime:
+    """Calls, total and longest wall time of one stage (constant memory over a run of any length)."""
+
+    __slots__ = ("calls", "longest", "total")
+
+    def __init__(self) -> None:
+        self.calls = 0
+        self.total = 0.0
+        self.longest = 0.0
+
+    def add(self, seconds: float) -> None:
+        """Count one call that took ``seconds``."""
+        self.calls += 1
+        self.total += seconds
+        self.longest = max(self.longest, seconds)
+
+
 class TimingObserver:
     """Per-stage wall time, frames per second and the real-time factor, for metrics.json."""
 
     def __init__(self) -> None:
-        self._stages: dict[int, dict[str, list[float]]] = {}
+        self._stages: dict[int, dict[str, _StageTime]] = {}
 
     @hookimpl
     def sgf_run_start(self, run: RunInfo) -> None:
-        self._stages[id(run)] = {node.kind: [] for node in run.stages[1:]}
+        self._stages[id(run)] = {node.kind: _StageTime() for node in run.stages[1:]}
 
     @hookimpl
     def sgf_after_stage(self, run: RunInfo, stage: StageNode, frame: Frame, output: Any, seconds: float) -> None:
         if output is not None or seconds > 0.0:
-            self._stages.setdefault(id(run), {}).setdefault(stage.kind, []).append(seconds)
+            self._stages.setdefault(id(run), {}).setdefault(stage.kind, _StageTime()).add(seconds)
 
     @hookimpl
     def sgf_report_metrics(self, run: RunInfo) -> dict[str, Any]:
@@ -47,14 +64,13 @@ class TimingObserver:
             "stages": {},
         }
         for node in run.stages[1:]:
-            times = stages.get(node.kind, [])
-            total = sum(times)
+            times = stages.get(node.kind, _StageTime())
             timing["stages"][node.kind] = {
                 "variant": node.name,
-                "calls": len(times),
-                "total_s": round(total, 4),
-                "mean_ms": round(1000.0 * total / len(times), 3) if times else None,
-                "max_ms": round(1000.0 * max(times), 3) if times else None,
+                "calls": times.calls,
+                "total_s": round(times.total, 4),
+                "mean_ms": round(1000.0 * times.total / times.calls, 3) if times.calls else None,
+                "max_ms": round(1000.0 * times.longest, 3) if times.calls else None,
             }
         return {"timing": timing}
 

@@ -34,10 +34,11 @@ METRIC_SKELETON: dict[str, Any] = {
 
 
 def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
+    """A new dict: ``extra`` merged into ``base`` key by key; nested dicts are copied, never shared."""
     out = dict(base)
     for key, value in extra.items():
-        if isinstance(value, dict) and isinstance(out.get(key), dict):
-            out[key] = _merge(out[key], value)
+        if isinstance(value, dict):
+            out[key] = _merge(out[key] if isinstance(out.get(key), dict) else {}, value)
         else:
             out[key] = value
     return out
@@ -64,6 +65,7 @@ def collect_metrics(pipeline: Pipeline, trajectories: dict[str, Trajectory]) -> 
                     log.warning("ATE of %s not computed: %s", name, exc)
                     metrics.setdefault("warnings", []).append(f"ATE of {name} not computed: {exc}")
     metrics = _merge(metrics, pipeline.context.metrics)
+    metrics["runner"] = pipeline.drop_report()
     for report in pipeline.plugins.manager.hook.sgf_report_metrics(run=pipeline.info):
         if report:
             metrics = _merge(metrics, report)
@@ -87,24 +89,38 @@ def write_run(pipeline: Pipeline, trajectories: dict[str, Trajectory], metrics: 
 
 
 def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:
-    """Record a failed or interrupted run, keeping whatever the run directory already holds."""
+    """Record a failed or interrupted run, keeping whatever the run directory already holds.
+
+    ``failure.json`` names the error (and the stage and frame of a stage error); the trajectories
+    so far are written as ``trajectory_<name>.partial.tum``: odometry and ground truth of the
+    processed frames, and any trajectory a stage published before the failure.
+    """
+    from sgf_pipeline.errors import StageError
+
     run_dir = pipeline.run_dir
     assert run_dir is not None
     info = pipeline.info
-    payload = {
+    payload: dict[str, Any] = {
         "status": status,
         "error": f"{type(exc).__name__}: {exc}",
+        "stage": None,
+        "frame": None,
         "frames_seen": info.frames_seen,
         "frames_processed": info.frames_processed,
+        "runner": pipeline.drop_report(),
         "traceback": traceback.format_exception(type(exc), exc, exc.__traceback__)[-6:],
     }
+    if isinstance(exc, StageError):
+        payload["stage"] = f"{exc.kind}={exc.name}"
+        payload["frame"] = exc.frame_index
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
-        for name, rows in (("odometry", pipeline._odometry), ("gt", pipeline._ground_truth)):
-            if len(rows) >= 1:
-                from sgf_pipeline.runner import _trajectory
-
-                write_tum(run_dir / f"trajectory_{name}.partial.tum", _trajectory(rows))
+        partial = dict(pipeline.context.trajectories)
+        for name, log_ in (("odometry", pipeline._odometry), ("gt", pipeline._ground_truth)):
+            if len(log_):
+                partial.setdefault(name, log_.trajectory())
+        for name, trajectory in partial.items():
+            write_tum(run_dir / f"trajectory_{name}.partial.tum", trajectory)
         atomic_write_json(run_dir / "failure.json", payload)
     except Exception:  # pragma: no cover - best effort while failing
         log.exception("could not record the failed run")
@@ -133,7 +149,8 @@ def plot_trajectories(path: Any, trajectories: dict[str, Trajectory], metrics: d
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+    if trajectories:
+        ax.legend(loc="best", fontsize=8)
     ax.set_title(f"{metrics.get('sequence', '')}: trajectories (SE(3)-aligned to ground truth)")
     fig.tight_layout()
     with atomic_path(path) as tmp:

@@ -12,10 +12,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from sgf_pipeline.errors import DataError
-from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text
+from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text, read_text, read_yaml
 
 #: The paper's Table 2 (ATE in m) per sequence: (odometry, ORB-SLAM3, odometry + SGF).
 PAPER_TABLE2 = {
@@ -39,6 +37,15 @@ PAPER_TABLE1 = {
     "LDF": (0.545, 0.179, 0.422, 0.664),
     "U2Net": (0.580, 0.140, 0.565, 0.679),
 }
+METRIC_LOOP_KEYS = (
+    "pairs_found",
+    "pairs_total",
+    "pairs_found_reverse",
+    "pairs_total_reverse",
+    "closed",
+    "closed_reverse",
+    "false_closed",
+)
 SEQUENCE_ORDER = ["campus_large_loop", "campus_reverse_slope", "campus_delivery", "campus_large_loop_night"]
 IGNORED_KEYS = ("run.progress", "run.torch_threads", "run.overwrite", "plugins.")
 
@@ -80,15 +87,62 @@ def find_runs(root: str | Path) -> list[RunRecord]:
     runs = []
     for metrics_path in sorted(base.rglob("metrics.json")):
         try:
-            metrics = json.loads(metrics_path.read_text())
+            metrics = json.loads(read_text(metrics_path, "metrics file"))
         except json.JSONDecodeError as exc:
             raise DataError(f"{metrics_path} is not valid JSON ({exc}); was the run interrupted?") from None
+        except RecursionError:
+            raise DataError(f"{metrics_path} is not valid JSON (nested too deeply)") from None
+        if not isinstance(metrics, dict):
+            raise DataError(f"{metrics_path} holds a {type(metrics).__name__}, not the mapping sgf-run writes")
+        _check_metrics(metrics_path, metrics)
         config_path = metrics_path.parent / "config.yaml"
-        config = yaml.safe_load(config_path.read_text()) if config_path.exists() else {}
+        config = read_yaml(config_path, "run config") if config_path.exists() else {}
+        if not isinstance(config, dict | None):
+            raise DataError(f"{config_path} holds a {type(config).__name__}, not the mapping sgf-run writes")
         runs.append(RunRecord(metrics_path.parent, metrics, config or {}))
     if not runs:
         raise DataError(f"no metrics.json below {base}; pass a directory written by sgf-run")
     return runs
+
+
+#: The numeric fields of metrics.json the report reads (each a number or null when present).
+_NUMERIC_FIELDS = (
+    ("ate_rmse_m", "odometry"),
+    ("ate_rmse_m", "sgf"),
+    ("sgf", "detected"),
+    ("sgf", "total"),
+    *(("loops", k) for k in METRIC_LOOP_KEYS),
+    ("timing", "fps"),
+    ("timing", "realtime_factor"),
+    ("peak_rss_mb",),
+)
+
+
+def _check_metrics(path: Path, metrics: dict[str, Any]) -> None:
+    """Refuse a metrics.json whose fields the report reads are not numbers (a hand-edited or foreign file)."""
+    for keys in _NUMERIC_FIELDS:
+        node: Any = metrics
+        for depth, key in enumerate(keys):
+            if node is None:
+                break
+            if not isinstance(node, dict):
+                raise DataError(f"{path}: {'.'.join(keys[:depth])} must be a mapping, got {node!r:.40}")
+            node = node.get(key)
+        if node is not None and (isinstance(node, bool) or not isinstance(node, (int, float))):
+            raise DataError(f"{path}: {'.'.join(keys)} must be a number or null, got {node!r:.40}")
+    stages = _get(metrics, "timing", "stages")
+    if stages is not None and not (
+        isinstance(stages, dict)
+        and all(
+            isinstance(row, dict)
+            and (row.get("mean_ms") is None or (type(row["mean_ms"]) in (int, float)))
+            and isinstance(row.get("variant", ""), str)
+            for row in stages.values()
+        )
+    ):
+        raise DataError(f"{path}: timing.stages must map stage kinds to {{variant, mean_ms, ...}}, got {stages!r:.60}")
+    if not isinstance(metrics.get("sequence", ""), str):
+        raise DataError(f"{path}: sequence must be a name, got {metrics['sequence']!r:.40}")
 
 
 def swept_keys(runs: Iterable[RunRecord]) -> list[str]:

@@ -10,24 +10,34 @@ from __future__ import annotations
 import graphlib
 import logging
 import math
+import os
 import resource
 import time
+from collections import Counter
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 
-from sgf_pipeline.config import PipelineConfig, StageConfig, format_validation_error, parse_config
+from sgf_pipeline.config import PipelineConfig, StageConfig, check_keys, format_validation_error, parse_config
 from sgf_pipeline.context import RunContext
-from sgf_pipeline.errors import ConfigError, PipelineGraphError, StageError
+from sgf_pipeline.errors import ConfigError, PipelineGraphError, SgfError, StageError
 from sgf_pipeline.registry import LoadedPlugins, VariantInfo, load_plugins
 from sgf_pipeline.stage import Dataset, InputSpec, Stage
 from sgf_pipeline.trajectory import Trajectory
 from sgf_pipeline.types import Frame, PoseEstimate
 
 log = logging.getLogger("sgf_pipeline")
+
+#: Files of a finished run that the runner writes (plus ``trajectory_*.tum``); cleared before an overwrite.
+RUN_FILES = ("metrics.json", "report.md", "trajectory.png", "config.yaml", "failure.json")
+#: The lock a running pipeline holds on its run directory (a second run into it is refused).
+LOCK_FILE = ".sgf-run.lock"
+#: Largest deviation of an odometry rotation from orthonormal that the runner accepts.
+_RIGID_TOLERANCE = 1e-3
+_LOGGED_PER_REASON = 5
 
 
 @dataclass
@@ -66,12 +76,35 @@ class RunInfo:
 
 @dataclass
 class StepResult:
-    """What ``process(frame)`` returns: every stage output and the current pose estimate."""
+    """What ``process(frame)`` returns: every stage output and the current pose estimate.
+
+    ``dropped`` names why the runner refused the frame (non-finite odometry, time going back, ...);
+    a dropped frame reaches no stage and is counted in metrics.json under ``runner``.
+    """
 
     frame_index: int
     timestamp: float
     outputs: dict[str, Any]
     pose: np.ndarray | None
+    dropped: str | None = None
+
+
+def frame_problem(frame: Frame, last_timestamp: float | None) -> str | None:
+    """Why a frame cannot enter the pipeline (a short reason), or None when it can."""
+    if not isinstance(frame.timestamp, (int, float)) or not math.isfinite(frame.timestamp):
+        return "non-finite timestamp"
+    if last_timestamp is not None and frame.timestamp <= last_timestamp:
+        return "timestamp not increasing"
+    odometry = np.asarray(frame.odometry)
+    if odometry.shape != (4, 4) or not np.issubdtype(odometry.dtype, np.number):
+        return "malformed odometry"
+    if not np.all(np.isfinite(odometry)):
+        return "non-finite odometry"
+    rotation = odometry[:3, :3].astype(np.float64)
+    rigid = np.abs(rotation @ rotation.T - np.eye(3)).max() <= _RIGID_TOLERANCE and np.allclose(
+        odometry[3], (0.0, 0.0, 0.0, 1.0)
+    )
+    return None if rigid else "non-rigid odometry"
 
 
 def _types_compatible(produced: tuple[type, ...], expected: tuple[type, ...]) -> bool:
@@ -104,12 +137,20 @@ class Pipeline:
             options=config.run,
         )
         self._previous: dict[str, Any] = {}
-        self._odometry: list[tuple[float, np.ndarray]] = []
-        self._ground_truth: list[tuple[float, np.ndarray]] = []
+        self._odometry = PoseLog()
+        self._ground_truth = PoseLog()
         self._last_key: np.ndarray | None = None
+        self._last_processed: float | None = None
+        self._dropped: Counter[str] = Counter()
+        self._ground_truth_dropped = 0
+        self._lock: IO[str] | None = None
         self._begun = False
         self._finished = False
-        if self.run_dir is not None and (self.run_dir / "metrics.json").exists() and not config.run.overwrite:
+        self._written = False
+        self._check_finished_run()
+
+    def _check_finished_run(self) -> None:
+        if self.run_dir is not None and (self.run_dir / "metrics.json").exists() and not self.config.run.overwrite:
             raise ConfigError(
                 f"{self.run_dir} already holds a finished run (metrics.json); choose another output "
                 "directory (hydra.run.dir=...) or pass run.overwrite=true to replace it"
@@ -129,6 +170,7 @@ class Pipeline:
         config = parse_config(raw)
         if plugins is None:
             plugins = load_plugins(allow=config.plugins.allow, block=config.plugins.block)
+        check_keys(raw, [*plugins.registry.kinds(), *config.pipeline])
         return cls(config, plugins, Path(run_dir) if run_dir is not None else None, effective_config=raw)
 
     def _instantiate(self, sc: StageConfig) -> StageNode:
@@ -240,9 +282,35 @@ class Pipeline:
         if self.context.sequence:  # the dataset's own name for the recording (else the variant's)
             self.info.sequence = self.context.sequence
         if self.run_dir is not None:
-            self.run_dir.mkdir(parents=True, exist_ok=True)
+            self._claim_run_dir(self.run_dir)
         self.plugins.manager.hook.sgf_run_start(run=self.info)
         self._begun = True
+
+    def _claim_run_dir(self, run_dir: Path) -> None:
+        """Lock the run directory for this run, and clear what an earlier run left there when allowed."""
+        run_dir.mkdir(parents=True, exist_ok=True)
+        self._lock = _lock_directory(run_dir)
+        try:
+            self._check_finished_run()  # again, under the lock: another run may have finished meanwhile
+        except ConfigError:
+            self.release()
+            raise
+        if (run_dir / "metrics.json").exists():  # run.overwrite=true: the old run's files go first
+            log.warning("run.overwrite=true: replacing the finished run in %s", run_dir)
+            stale = [run_dir / n for n in RUN_FILES] + sorted(run_dir.glob("trajectory_*.tum"))
+        elif (run_dir / "failure.json").exists():
+            log.warning("%s holds the record of a failed run (failure.json); a new run replaces it", run_dir)
+            stale = [run_dir / "failure.json", *sorted(run_dir.glob("trajectory_*.partial.tum"))]
+        else:
+            stale = []
+        for path in stale:  # metrics.json first: the directory stops claiming a finished run at once
+            path.unlink(missing_ok=True)
+
+    def release(self) -> None:
+        """Unlock the run directory (``run`` and ``finish`` do it; for code that stops feeding frames early)."""
+        if self._lock is not None:
+            self._lock.close()
+            self._lock = None
 
     def is_keyframe(self, frame: Frame) -> bool:
         """Whether the frame moved far enough from the last processed one to be processed."""
@@ -254,9 +322,34 @@ class Pipeline:
         turned = math.acos(max(-1.0, min(1.0, (np.trace(delta[:3, :3]) - 1.0) / 2.0)))
         return moved >= opts.keyframe_distance or turned >= opts.keyframe_angle
 
+    def _drop(self, frame: Frame, reason: str) -> None:
+        """Count (and log the first few of) a frame the runner refuses."""
+        self._dropped[reason] += 1
+        if self._dropped[reason] <= _LOGGED_PER_REASON:
+            log.warning("frame %s (t=%s) dropped: %s", frame.index, frame.timestamp, reason)
+        elif self._dropped[reason] == _LOGGED_PER_REASON + 1:
+            log.warning("more frames dropped for %r; logging no more of them (counted in metrics.json)", reason)
+
+    def drop_report(self) -> dict[str, Any]:
+        """Frames the runner refused, by reason, and ground-truth poses left out (for metrics.json)."""
+        return {
+            "dropped_frames": sum(self._dropped.values()),
+            "dropped_by_reason": dict(sorted(self._dropped.items())),
+            "ground_truth_dropped": self._ground_truth_dropped,
+        }
+
     def process(self, frame: Frame) -> StepResult:
-        """Run every stage after ``dataset`` on one frame."""
+        """Run every stage after ``dataset`` on one frame.
+
+        A frame with a non-finite or non-rigid odometry pose, or a timestamp not after the last
+        processed one, reaches no stage: it is counted, logged and returned with ``dropped`` set,
+        so that a robot feeding imperfect data keeps running.
+        """
         self.begin()
+        problem = frame_problem(frame, self._last_processed)
+        if problem is not None:
+            self._drop(frame, problem)
+            return StepResult(frame.index, frame.timestamp, {}, None, dropped=problem)
         hook = self.plugins.manager.hook
         self._last_key = frame.odometry
         values: dict[str, Any] = {"frame": frame}
@@ -294,9 +387,14 @@ class Pipeline:
         self.info.work_seconds += elapsed
         self.info.frames_processed += 1
         self._previous = values
-        self._odometry.append((frame.timestamp, frame.odometry))
+        self._last_processed = float(frame.timestamp)
+        self._odometry.append(frame.timestamp, frame.odometry)
         if frame.ground_truth is not None:
-            self._ground_truth.append((frame.timestamp, frame.ground_truth))
+            truth = np.asarray(frame.ground_truth, dtype=np.float64)
+            if truth.shape == (4, 4) and np.all(np.isfinite(truth)):
+                self._ground_truth.append(frame.timestamp, truth)
+            else:
+                self._ground_truth_dropped += 1
         hook.sgf_frame_end(run=self.info, frame=frame, seconds=elapsed)
         pose = next((v.latest for v in values.values() if isinstance(v, PoseEstimate)), None)
         return StepResult(frame.index, frame.timestamp, values, pose)
@@ -306,6 +404,7 @@ class Pipeline:
         self.begin()
         iterator = iter(self.dataset.frames())
         limit = self.config.run.max_frames
+        label = self.dataset_node.label
         while limit is None or self.info.frames_seen < limit:
             t0 = time.perf_counter()
             try:
@@ -313,7 +412,21 @@ class Pipeline:
             except StopIteration:
                 self.info.dataset_seconds += time.perf_counter() - t0
                 return
+            except SgfError:
+                raise
+            except Exception as exc:
+                raise StageError(
+                    f"dataset {label} failed after {self.info.frames_seen} frame(s): {type(exc).__name__}: {exc}",
+                    "dataset",
+                    self.dataset_node.name,
+                    None,
+                ) from exc
             self.info.frames_seen += 1
+            problem = frame_problem(frame, None)  # order is checked below: going back is the dataset's bug
+            if problem is not None:
+                self._drop(frame, problem)
+                self.info.dataset_seconds += time.perf_counter() - t0
+                continue
             if self.info.first_timestamp is None:
                 self.info.first_timestamp = frame.timestamp
             elif self.info.last_timestamp is not None and frame.timestamp <= self.info.last_timestamp:
@@ -327,8 +440,19 @@ class Pipeline:
             self.info.last_timestamp = frame.timestamp
             key = self.is_keyframe(frame)
             if key:
-                _ = frame.image  # load (decode or render) now, so it counts as dataset time
-                frame.truth_ids()
+                try:
+                    _ = frame.image  # load (decode or render) now, so it counts as dataset time
+                    frame.truth_ids()
+                except SgfError:
+                    raise
+                except Exception as exc:
+                    raise StageError(
+                        f"dataset {label} failed to load frame {frame.index} (t={frame.timestamp:.3f} s): "
+                        f"{type(exc).__name__}: {exc}",
+                        "dataset",
+                        self.dataset_node.name,
+                        frame.index,
+                    ) from exc
             self.info.dataset_seconds += time.perf_counter() - t0
             if key:
                 yield frame
@@ -342,6 +466,8 @@ class Pipeline:
         except BaseException as exc:
             self._write_failure(exc)
             raise
+        finally:
+            self.release()
 
     # -- finishing --------------------------------------------------------------------------
 
@@ -352,23 +478,34 @@ class Pipeline:
         if self._finished:
             raise RuntimeError("finish() was called twice")
         self.begin()
-        for node in self.order:
+        self._finished = True
+        failures: list[StageError] = []
+        for node in self.order:  # every stage finalizes, even after another failed (files, resources)
             try:
                 node.stage.finalize(self.context)
             except Exception as exc:
                 self.plugins.manager.hook.sgf_on_error(run=self.info, stage=node, frame=None, error=exc)
-                raise StageError(
+                error = StageError(
                     f"stage {node.label} failed in finalize: {type(exc).__name__}: {exc}", node.kind, node.name, None
-                ) from exc
-        self._finished = True
+                )
+                error.__cause__ = exc
+                failures.append(error)
+        if failures:
+            first = failures[0]
+            if len(failures) > 1:
+                others = ", ".join(f"{e.kind}={e.name}" for e in failures[1:])
+                first.args = (f"{first.args[0]} (finalize also failed in {others})",)
+            raise first
         trajectories = dict(self.context.trajectories)
-        if self._odometry:
-            trajectories.setdefault("odometry", _trajectory(self._odometry))
-        if self._ground_truth:
-            trajectories.setdefault("gt", _trajectory(self._ground_truth))
+        if len(self._odometry):
+            trajectories.setdefault("odometry", self._odometry.trajectory())
+        if len(self._ground_truth):
+            trajectories.setdefault("gt", self._ground_truth.trajectory())
         metrics = outputs.collect_metrics(self, trajectories)
         if self.run_dir is not None:
             outputs.write_run(self, trajectories, metrics)
+            self._written = True
+        self.release()
         self.plugins.manager.hook.sgf_run_end(run=self.info, metrics=metrics)
         return metrics
 
@@ -377,25 +514,98 @@ class Pipeline:
 
         if self.run_dir is None or not self._begun:
             return
+        if self._written:  # every file of the run is complete; the error came after (an observer)
+            log.error("the run in %s finished writing before it failed: %s: %s", self.run_dir, type(exc).__name__, exc)
+            return
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
         outputs.write_failure(self, status, exc)
 
 
-def _trajectory(rows: list[tuple[float, np.ndarray]]) -> Trajectory:
-    return Trajectory(np.array([t for t, _ in rows]), np.stack([p for _, p in rows]))
+class PoseLog:
+    """Timed poses appended frame by frame, kept as rows of 13 floats (t and the 3x4 pose) in a growing array.
+
+    About 100 bytes a pose: an hours-long run's odometry fits where a list of 4x4 arrays would not.
+    """
+
+    def __init__(self) -> None:
+        self._rows = np.empty((1024, 13), dtype=np.float64)
+        self._count = 0
+
+    def __len__(self) -> int:
+        return self._count
+
+    def append(self, timestamp: float, pose: np.ndarray) -> None:
+        """Add one pose (4x4; the last row is taken to be 0 0 0 1)."""
+        if self._count == len(self._rows):
+            self._rows = np.concatenate([self._rows, np.empty_like(self._rows)])
+        self._rows[self._count, 0] = timestamp
+        self._rows[self._count, 1:] = np.asarray(pose, dtype=np.float64)[:3, :4].reshape(12)
+        self._count += 1
+
+    def trajectory(self) -> Trajectory:
+        """The poses so far as a :class:`Trajectory`."""
+        rows = self._rows[: self._count]
+        poses = np.tile(np.eye(4), (self._count, 1, 1))
+        poses[:, :3, :4] = rows[:, 1:].reshape(-1, 3, 4)
+        return Trajectory(rows[:, 0].copy(), poses)
 
 
 def _to_plain(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    try:
-        from omegaconf import DictConfig, OmegaConf
+    from omegaconf import DictConfig, OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
 
-        if isinstance(cfg, DictConfig):
-            container = OmegaConf.to_container(cfg, resolve=True)
-            assert isinstance(container, dict)
-            return {str(k): v for k, v in container.items() if k != "hydra"}
-    except ImportError:  # pragma: no cover - omegaconf is a dependency
-        pass
+    if isinstance(cfg, DictConfig):
+        try:
+            container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+        except OmegaConfBaseException as exc:
+            raise ConfigError(describe_omegaconf_error(exc)) from None
+        assert isinstance(container, dict)
+        return {str(k): v for k, v in container.items() if k != "hydra"}
+    if not isinstance(cfg, Mapping):
+        raise ConfigError(f"a configuration is a mapping (pipeline, run, plugins, stage nodes), got {cfg!r:.80}")
     return {str(k): v for k, v in dict(cfg).items() if k != "hydra"}
+
+
+def describe_omegaconf_error(exc: Exception) -> str:
+    """One paragraph about a config value OmegaConf cannot resolve, with the resolvers on offer."""
+    from omegaconf.basecontainer import BaseContainer
+
+    key = getattr(exc, "full_key", None) or "?"
+    detail = [
+        line.strip()
+        for line in str(exc).splitlines()
+        if line.strip() and not line.strip().startswith(("full_key:", "object_type=", "reference_type="))
+    ]
+    message = " ".join(" ".join(detail).split())
+    resolvers = ", ".join(sorted(BaseContainer._resolvers))
+    return (
+        f"{key}: the value cannot be resolved: {message}. Interpolations may name other keys (${{run.max_frames}}) "
+        f"or the registered resolvers ({resolvers}); none of them imports or runs code"
+    )
+
+
+def _lock_directory(run_dir: Path) -> IO[str] | None:
+    """An exclusive lock on ``run_dir`` held while this process runs (released when it exits, even killed)."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not a POSIX system: no lock
+        return None
+    handle = open(run_dir / LOCK_FILE, "a+")  # noqa: SIM115  (held open for the run's duration)
+    try:
+        fcntl.flock(handle.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        handle.seek(0)
+        holder = handle.read().strip() or "?"
+        handle.close()
+        raise ConfigError(
+            f"another run (process {holder}) is writing into {run_dir}; wait for it to end or choose another "
+            "output directory (hydra.run.dir=...)"
+        ) from None
+    handle.seek(0)
+    handle.truncate()
+    handle.write(f"{os.getpid()}\n")
+    handle.flush()
+    return handle
 
 
 def peak_rss_mb() -> float:

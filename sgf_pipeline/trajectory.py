@@ -18,6 +18,7 @@ Formats:
 from __future__ import annotations
 
 import logging
+import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +30,10 @@ from sgf_pipeline.geometry import quaternion_from_rotation, rotation_from_quater
 from sgf_pipeline.io import atomic_write_text
 
 TrajectoryFormat = Literal["tum", "kitti", "euroc"]
+#: Largest deviation of ``R R^T`` from the identity (and of ``det R`` from 1) a file's rotation may have.
+ROTATION_TOLERANCE = 1e-3
+#: Quaternions shorter than this (or of non-finite length) carry no rotation.
+_MIN_QUATERNION_NORM = 1e-9
 Duplicates = Literal["error", "drop"]
 #: The formats ``read_trajectory`` and ``write_trajectory`` know.
 FORMATS: tuple[TrajectoryFormat, ...] = ("tum", "kitti", "euroc")
@@ -86,11 +91,7 @@ def _table(path: Path, separators: str, columns: tuple[int, ...], what: str) -> 
         raise TrajectoryError(f"{what} file not found: {path}")
     rows: list[list[float]] = []
     lines: list[int] = []
-    try:
-        text = path.read_text()
-    except UnicodeDecodeError:
-        raise TrajectoryError(f"{path}: not a text file (is it an image or a bag?)") from None
-    for number, line in enumerate(text.splitlines(), start=1):
+    for number, line in enumerate(_text(path).split("\n"), start=1):
         line = line.strip()
         if not line or line.startswith("#") or line.startswith("%"):
             continue
@@ -108,9 +109,33 @@ def _table(path: Path, separators: str, columns: tuple[int, ...], what: str) -> 
     if not rows:
         raise TrajectoryError(f"{path}: no poses")
     width = len(rows[0])
-    if any(len(r) != width for r in rows):
-        raise TrajectoryError(f"{path}: lines have different numbers of fields")
+    for row, number in zip(rows, lines, strict=True):
+        if len(row) != width:
+            raise TrajectoryError(
+                f"{path}:{number}: a line of {len(row)} fields after lines of {width} (line {lines[0]}); "
+                "every line of a trajectory file has the same fields"
+            )
     return np.asarray(rows, dtype=np.float64), lines
+
+
+def _text(path: Path) -> str:
+    """A file's text; a binary file gives a clear error instead of a decoding exception."""
+    try:
+        return path.read_bytes().decode("utf-8")  # no newline translation: a line ends at "\n" only
+    except UnicodeDecodeError as exc:
+        line = path.read_bytes()[: exc.start].count(b"\n") + 1
+        raise TrajectoryError(f"{path}:{line}: not a text file (is it an image or a bag?)") from None
+    except OSError as exc:
+        raise TrajectoryError(f"{path}: cannot be read: {exc.strerror or exc}") from None
+
+
+def _rotation(quaternion: np.ndarray) -> np.ndarray:
+    """The rotation of an ``(x, y, z, w)`` quaternion, or NaNs when it has no usable length."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm = float(np.linalg.norm(quaternion)) if np.all(np.isfinite(quaternion)) else math.nan
+    if not (math.isfinite(norm) and norm > _MIN_QUATERNION_NORM):
+        return np.full((3, 3), np.nan)
+    return rotation_from_quaternion(quaternion / norm)
 
 
 def _checked(
@@ -135,7 +160,9 @@ def _checked(
     finite = np.isfinite(poses).all(axis=(1, 2)) & np.isfinite(timestamps)
     if not finite.all():
         bad = [lines[i] for i in np.flatnonzero(~finite)[:5]]
-        raise TrajectoryError(f"{path}: non-finite pose (NaN or inf) on line(s) {bad}")
+        raise TrajectoryError(
+            f"{path}:{bad[0]}: non-finite pose (NaN or inf) or zero-length quaternion on line(s) {bad}"
+        )
     steps = np.diff(timestamps)
     if np.any(steps <= 0):
         row = int(np.flatnonzero(steps <= 0)[0]) + 1
@@ -157,10 +184,7 @@ def parse_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, lis
     data, lines = _table(p, ",", (8,), "TUM (t x y z qx qy qz qw)")
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     for i, row in enumerate(data):
-        if np.all(np.isfinite(row[4:8])) and np.linalg.norm(row[4:8]) > 0:
-            poses[i, :3, :3] = rotation_from_quaternion(row[4:8])
-        else:
-            poses[i, :3, :3] = np.nan
+        poses[i, :3, :3] = _rotation(row[4:8])
         poses[i, :3, 3] = row[1:4]
     return data[:, 0].copy(), poses, lines
 
@@ -215,6 +239,7 @@ def read_kitti(path: str | os.PathLike[str], times: str | os.PathLike[str] | np.
     data, lines = _table(p, ",", (12,), "KITTI pose (12 numbers, row-major 3x4)")
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     poses[:, :3, :4] = data.reshape(-1, 3, 4)
+    _check_rotations(p, poses, lines)
     if times is None:
         ts = np.arange(len(data), dtype=np.float64)
     else:
@@ -225,6 +250,22 @@ def read_kitti(path: str | os.PathLike[str], times: str | os.PathLike[str] | np.
                 f"have {len(ts)}; give the times file of this sequence"
             )
     return _checked(p, np.asarray(ts, dtype=np.float64), poses, lines)
+
+
+def _check_rotations(path: Path, poses: np.ndarray, lines: list[int]) -> None:
+    """Refuse 3x4 matrices whose left 3x3 block is not a rotation (KITTI files carry the matrix itself)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        rotations = poses[:, :3, :3]
+        deviation = np.abs(rotations @ rotations.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+        determinant = np.linalg.det(np.nan_to_num(rotations, nan=0.0, posinf=0.0, neginf=0.0))
+    finite = np.isfinite(poses).all(axis=(1, 2))
+    bad = np.flatnonzero(finite & ((deviation > ROTATION_TOLERANCE) | (determinant < 0.0)))
+    if bad.size:
+        i = int(bad[0])
+        raise TrajectoryError(
+            f"{path}:{lines[i]}: the pose's 3x3 block is not a rotation (|R R^T - I| = {deviation[i]:.3g}, "
+            f"det R = {determinant[i]:.3g}); a KITTI line is a row-major 3x4 pose [R | t]"
+        )
 
 
 def write_kitti(
@@ -238,6 +279,9 @@ def write_kitti(
 
 
 # -- EuRoC ----------------------------------------------------------------------------------
+
+
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
 
 
 def seconds_from_ns(ns: np.ndarray) -> np.ndarray:
@@ -258,7 +302,7 @@ def read_euroc_csv(path: str | os.PathLike[str], duplicates: Duplicates = "error
         raise TrajectoryError(f"EuRoC CSV file not found: {p}")
     rows: list[tuple[int, list[float]]] = []
     lines: list[int] = []
-    for number, line in enumerate(p.read_text().splitlines(), start=1):
+    for number, line in enumerate(_text(p).split("\n"), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -273,6 +317,10 @@ def read_euroc_csv(path: str | os.PathLike[str], duplicates: Duplicates = "error
             rows.append((stamp, [float(f) for f in fields[1:8]]))
         except ValueError:
             raise TrajectoryError(f"{p}:{number}: not a number in {line[:80]!r}") from None
+        except OverflowError:
+            raise TrajectoryError(f"{p}:{number}: timestamp {fields[0][:40]!r} is not a finite time in ns") from None
+        if not _INT64_MIN <= stamp <= _INT64_MAX:
+            raise TrajectoryError(f"{p}:{number}: timestamp {fields[0][:40]!r} ns is out of range (64-bit ns)")
         lines.append(number)
     if not rows:
         raise TrajectoryError(f"{p}: no poses")
@@ -281,10 +329,7 @@ def read_euroc_csv(path: str | os.PathLike[str], duplicates: Duplicates = "error
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     for i, v in enumerate(values):
         q = v[3:7]
-        if np.all(np.isfinite(q)) and np.linalg.norm(q) > 0:
-            poses[i, :3, :3] = rotation_from_quaternion(np.array([q[1], q[2], q[3], q[0]]))
-        else:
-            poses[i, :3, :3] = np.nan
+        poses[i, :3, :3] = _rotation(np.array([q[1], q[2], q[3], q[0]]))
         poses[i, :3, 3] = v[:3]
     return _checked(p, seconds_from_ns(ns), poses, lines, duplicates)
 
@@ -316,13 +361,16 @@ def detect_format(path: str | os.PathLike[str]) -> TrajectoryFormat:
         return "euroc"
     if not p.is_file():
         raise TrajectoryError(f"trajectory file not found: {p}")
-    with p.open("rb") as fh:
-        head = fh.read(65536)
+    try:
+        with p.open("rb") as fh:
+            head = fh.read(65536)
+    except OSError as exc:
+        raise TrajectoryError(f"{p}: cannot be read: {exc.strerror or exc}") from None
     try:
         text = head.decode("utf-8")
     except UnicodeDecodeError:
         raise TrajectoryError(f"{p}: not a text file, so not a trajectory") from None
-    for line in text.splitlines():
+    for line in text.split("\n"):
         line = line.strip()
         if not line or line.startswith("#"):
             continue

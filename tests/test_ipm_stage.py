@@ -195,8 +195,9 @@ def test_clear_errors_for_bad_input(view) -> None:
         stage.process(_frame(image[:240]), CameraImage(image[:240], 0))
     with pytest.raises(DataError, match="instance id mask"):
         stage.process(_frame(image, ids[:100]), CameraImage(image, 0))
-    with pytest.raises(DataError, match="finite"):
-        stage.process(_frame(image, imu=(float("nan"), 0.0)), CameraImage(image, 0))
+    # An IMU dropout is not an error: the odometry's attitude stands in (attitude=auto), and it is counted.
+    bev = stage.process(_frame(image, imu=(float("nan"), 0.0)), CameraImage(image, 0))
+    assert (bev.roll, bev.pitch) == (0.0, 0.0) and stage.counts["attitude_from_odometry"] == 1
     kitti = Intrinsics(fx=718.856, fy=718.856, cx=607.1928, cy=185.2157, width=1241, height=376)
     far = Calibration.from_mounting(kitti, 1.65, 0.0)
     frame = Frame(0, 0.0, np.zeros((376, 1241), np.uint8), np.eye(4), far, (0.0, 0.0))

@@ -10,7 +10,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from pydantic import BaseModel, ConfigDict, Field
 
-from sgf_pipeline.cli.common import friendly_errors
+from sgf_pipeline.cli.common import console, friendly_errors
 from sgf_pipeline.config import config_dir, validate_options
 from sgf_pipeline.errors import DataError
 from sgf_pipeline.evaluation import Alignment, DeltaUnit, ErrorStatistics, ate, rpe
@@ -99,7 +99,7 @@ def table(report: dict[str, Any]) -> str:
 
 @hydra.main(config_path=str(config_dir()), config_name="sgf_eval", version_base="1.3")
 @friendly_errors
-def main(cfg: DictConfig) -> float:
+def app(cfg: DictConfig) -> float:
     """Compute, print and write the trajectory errors; returns the ATE RMSE (for sweeps)."""
     container = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(container, dict)
@@ -117,6 +117,9 @@ def main(cfg: DictConfig) -> float:
     print(f"\n  {output}", flush=True)
     return float(report["ate"]["rmse"])
 
+
+#: The ``sgf-eval`` console script.
+main = console(app)
 
 if __name__ == "__main__":
     main()

@@ -8,8 +8,9 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
-from sgf_pipeline.cli.common import friendly_errors
+from sgf_pipeline.cli.common import console, friendly_errors
 from sgf_pipeline.config import config_dir
+from sgf_pipeline.errors import ConfigError
 from sgf_pipeline.registry import describe_params, load_plugins
 
 
@@ -17,6 +18,9 @@ def listing(kind: str | None = None, as_json: bool = False) -> str:
     """Text (or JSON) listing of every registered variant."""
     loaded = load_plugins()
     registry = loaded.registry
+    if kind and kind not in registry.kinds():
+        known = ", ".join(registry.kinds())
+        raise ConfigError(f"kind={kind}: no plugin registers stages of that kind; registered: {known}")
     kinds = [kind] if kind else registry.kinds()
     entries: list[dict[str, Any]] = []
     for k in kinds:
@@ -61,10 +65,13 @@ def listing(kind: str | None = None, as_json: bool = False) -> str:
 
 @hydra.main(config_path=str(config_dir()), config_name="sgf_plugins", version_base="1.3")
 @friendly_errors
-def main(cfg: DictConfig) -> None:
+def app(cfg: DictConfig) -> None:
     """Print the registered plugins."""
     print(listing(cfg.get("kind"), cfg.get("format") == "json"), end="")
 
+
+#: The ``sgf-plugins`` console script.
+main = console(app)
 
 if __name__ == "__main__":
     main()

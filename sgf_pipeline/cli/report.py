@@ -8,7 +8,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from sgf_pipeline.cli.common import friendly_errors
+from sgf_pipeline.cli.common import console, friendly_errors
 from sgf_pipeline.config import config_dir
 from sgf_pipeline.errors import ConfigError
 from sgf_pipeline.report import write_report
@@ -31,7 +31,7 @@ def main() -> None:
     args = sys.argv[1:]
     if args and "=" not in args[0] and not args[0].startswith("-"):
         sys.argv = [sys.argv[0], f"dir={args[0]}", *args[1:]]
-    _app()
+    console(_app)()
 
 
 if __name__ == "__main__":

@@ -11,7 +11,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, open_dict
 
-from sgf_pipeline.cli.common import friendly_errors
+from sgf_pipeline.cli.common import console, friendly_errors, raise_terminated
 from sgf_pipeline.config import config_dir
 from sgf_pipeline.runner import Pipeline
 
@@ -61,17 +61,9 @@ def _parallel_sweep(hydra_cfg: Any) -> bool:
     return "BasicLauncher" not in target
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM, turned into an interrupt so that the run records itself and leaves no half file."""
-
-
-def _on_sigterm(signum: int, frame: Any) -> None:
-    raise Terminated(f"signal {signum}")
-
-
 @hydra.main(config_path=str(config_dir()), config_name="config", version_base="1.3")
 @friendly_errors
-def main(cfg: DictConfig) -> float | None:
+def app(cfg: DictConfig) -> float | None:
     """Build the configured pipeline, stream the dataset through it and write the run directory."""
     hydra_cfg = HydraConfig.get()
     run_dir = Path(hydra_cfg.runtime.output_dir)
@@ -81,12 +73,15 @@ def main(cfg: DictConfig) -> float | None:
             cfg.run.torch_threads = 1
     pipeline = Pipeline.from_config(cfg, run_dir=run_dir)
     if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _on_sigterm)
+        signal.signal(signal.SIGTERM, raise_terminated)
     metrics = pipeline.run()
     print(summary(metrics, run_dir), flush=True)
     value = metrics["ate_rmse_m"]["sgf"]
     return float(value) if value is not None else None
 
+
+#: The ``sgf-run`` console script.
+main = console(app)
 
 if __name__ == "__main__":
     main()

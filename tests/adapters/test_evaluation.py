@@ -155,4 +155,7 @@ def test_sgf_eval_cli_names_a_bad_file(tmp_path: Path):
         timeout=120,
     )
     assert proc.returncode == 2
-    assert "reference:" in proc.stderr and "bad.tum: non-finite pose (NaN or inf) on line(s) [2]" in proc.stderr
+    assert (
+        "reference:" in proc.stderr
+        and "bad.tum:2: non-finite pose (NaN or inf) or zero-length quaternion on line(s) [2]" in proc.stderr
+    )

@@ -93,7 +93,11 @@ def test_euroc_csv_with_velocity_and_bias_columns(tmp_path: Path):
     ("name", "text", "message"),
     [
         ("a.tum", "0 0 0 0 0 0 0 1\n1 0 0 0 0 0 1\n", r"a.tum:2: a TUM .* line has 8 fields, got 7"),
-        ("b.tum", "0 0 0 0 0 0 0 1\n1 nan 0 0 0 0 0 1\n", r"b.tum: non-finite pose \(NaN or inf\) on line\(s\) \[2\]"),
+        (
+            "b.tum",
+            "0 0 0 0 0 0 0 1\n1 nan 0 0 0 0 0 1\n",
+            r"b.tum:2: non-finite pose \(NaN or inf\) or zero-length quaternion on line\(s\) \[2\]",
+        ),
         (
             "c.tum",
             "# c\n0 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n",

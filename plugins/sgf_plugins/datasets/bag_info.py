@@ -10,7 +10,7 @@ import hydra
 from omegaconf import DictConfig
 
 from sgf_pipeline import DataError
-from sgf_pipeline.cli.common import friendly_errors
+from sgf_pipeline.cli.common import console, friendly_errors
 from sgf_pipeline.config import config_dir
 from sgf_plugins.datasets.rosbag import (
     CAMERA_INFO_TYPES,
@@ -76,7 +76,7 @@ def render(summary: dict[str, Any]) -> str:
 
 @hydra.main(config_path=str(config_dir()), config_name="sgf_bag_info", version_base="1.3")
 @friendly_errors
-def main(cfg: DictConfig) -> None:
+def app(cfg: DictConfig) -> None:
     """Print the topics of the bag given as ``path=...``."""
     if not cfg.get("path"):
         raise DataError("give the bag: sgf-bag-info path=<file.bag | ROS 2 bag folder | file.mcap>")
@@ -86,6 +86,9 @@ def main(cfg: DictConfig) -> None:
     else:
         print(render(summary))
 
+
+#: The ``sgf-bag-info`` console script.
+main = console(app)
 
 if __name__ == "__main__":
     main()

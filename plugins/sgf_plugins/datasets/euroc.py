@@ -30,9 +30,10 @@ from pydantic import Field
 
 from sgf_pipeline import DataError, RunContext, StageRegistry, hookimpl
 from sgf_pipeline.calibration import Calibration
-from sgf_pipeline.calibration_io import read_euroc_sensor_yaml
+from sgf_pipeline.calibration_io import euroc_matrix, read_euroc_sensor_yaml
 from sgf_pipeline.geometry import invert
 from sgf_pipeline.imu import roll_pitch_from_inertial
+from sgf_pipeline.io import read_text, read_yaml
 from sgf_pipeline.timesync import PoseSeries, ValueSeries
 from sgf_pipeline.trajectory import TrajectoryError, read_euroc_csv, read_trajectory, seconds_from_ns
 from sgf_pipeline.types import Frame
@@ -67,7 +68,7 @@ def _read_csv_ns(path: Path, min_columns: int, what: str) -> tuple[np.ndarray, l
     stamps: list[int] = []
     rows: list[list[str]] = []
     lines: list[int] = []
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
+    for number, line in enumerate(read_text(path).split("\n"), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -75,9 +76,12 @@ def _read_csv_ns(path: Path, min_columns: int, what: str) -> tuple[np.ndarray, l
         if len(fields) < min_columns:
             raise DataError(f"{path}:{number}: a {what} line has at least {min_columns} fields, got {len(fields)}")
         try:
-            stamps.append(int(fields[0]))
+            stamp = int(fields[0])
         except ValueError:
-            raise DataError(f"{path}:{number}: timestamp {fields[0]!r} is not an integer of nanoseconds") from None
+            raise DataError(f"{path}:{number}: timestamp {fields[0]!r:.40} is not an integer of nanoseconds") from None
+        if not -(2**63) <= stamp < 2**63:
+            raise DataError(f"{path}:{number}: timestamp {fields[0]!r:.40} ns is out of range (64-bit ns)")
+        stamps.append(stamp)
         rows.append(fields[1:])
         lines.append(number)
     return np.asarray(stamps, dtype=np.int64), rows, lines
@@ -147,6 +151,13 @@ class EurocDataset(RecordedDataset):
                 continue
             keep.append(i)
             last = t
+        for i in keep:
+            name = Path(rows[i][0])
+            if not rows[i][0] or name.is_absolute() or ".." in name.parts:
+                raise DataError(
+                    f"{cam_dir / 'data.csv'}:{lines[i]}: image name {rows[i][0]!r:.60} must be a file name inside "
+                    f"{cam_dir / 'data'} (no absolute path, no '..')"
+                )
         paths = [cam_dir / "data" / rows[i][0] for i in keep]
         return ns[keep], paths
 
@@ -197,29 +208,27 @@ class EurocDataset(RecordedDataset):
             data = np.asarray([[float(v) for v in r[:6]] for r in rows], dtype=np.float64).reshape(-1, 6)
         except ValueError:
             raise DataError(f"{path}: non-numeric gyro or accelerometer value") from None
-        good = np.isfinite(data).all(axis=1)
-        if ns.size > 1:
-            order = np.ones(ns.size, dtype=bool)
-            order[1:] = np.diff(ns) > 0
-            if not order.all():
-                i = int(np.flatnonzero(~order)[0])
-                self.skips.problem(
-                    "imu timestamp", f"{path}:{lines[i]}: IMU timestamp {int(ns[i])} ns is not increasing"
-                )
-            good &= order
-        for i in np.flatnonzero(~np.isfinite(data).all(axis=1)):
+        good = np.asarray(np.isfinite(data).all(axis=1), dtype=bool)
+        for i in np.flatnonzero(~good):
             self.skips.problem("bad imu", f"{path}:{lines[int(i)]}: non-finite IMU sample")
+        last: int | None = None
+        for i in np.flatnonzero(good):  # each kept sample after the last kept one (a running maximum)
+            if last is not None and ns[i] <= last:
+                self.skips.problem(
+                    "imu timestamp", f"{path}:{lines[int(i)]}: IMU timestamp {int(ns[i])} ns is not after {last} ns"
+                )
+                good[i] = False
+            else:
+                last = int(ns[i])
         ns, data = ns[good], data[good]
         if ns.size == 0:
             raise DataError(f"{path} has no usable IMU samples")
         imu_to_body = np.eye(4)
         if (imu_dir / "sensor.yaml").is_file():
-            import yaml
-
-            meta = yaml.safe_load((imu_dir / "sensor.yaml").read_text()) or {}
+            meta = read_yaml(imu_dir / "sensor.yaml", "IMU sensor file") or {}
             node = meta.get("T_BS") if isinstance(meta, dict) else None
-            if isinstance(node, dict) and "data" in node:
-                imu_to_body = np.asarray(node["data"], dtype=np.float64).reshape(4, 4)
+            if node is not None:
+                imu_to_body = euroc_matrix(node, "T_BS", imu_dir / "sensor.yaml")
         imu_to_base = self.body_to_base @ imu_to_body
         ts = seconds_from_ns(ns)
         roll_pitch = roll_pitch_from_inertial(ts, data[:, 0:3], data[:, 3:6], self.params.imu_gain, imu_to_base)

@@ -2,18 +2,17 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
 
 import cv2
 import numpy as np
-import yaml
 from pydantic import Field
 
 from sgf_pipeline import DataError, RunContext, StageRegistry, hookimpl
-from sgf_pipeline.folder_format import FORMAT, VERSION, read_calibration_yaml, truth_from_dict
+from sgf_pipeline.folder_format import FORMAT, VERSION, read_calibration_yaml, read_truth_json
+from sgf_pipeline.io import read_text, read_yaml
 from sgf_pipeline.timesync import PoseSeries
 from sgf_pipeline.trajectory import TrajectoryError, parse_tum
 from sgf_pipeline.types import Frame, SequenceTruth
@@ -83,10 +82,7 @@ class FolderDataset(RecordedDataset):
         path = self.root / "sequence.yaml"
         if not path.is_file():
             return {"name": self.root.name}
-        try:
-            meta = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise DataError(f"{path}: not valid YAML: {exc}") from None
+        meta = read_yaml(path, "sequence file") or {}
         if not isinstance(meta, dict):
             raise DataError(f"{path}: expected a mapping (format, version, name, rate_hz, frames)")
         if meta.get("format", FORMAT) != FORMAT:
@@ -104,7 +100,7 @@ class FolderDataset(RecordedDataset):
     def _read_timestamps(self, n: int) -> np.ndarray:
         path = self._need("timestamps.txt")
         values: list[float] = []
-        for number, line in enumerate(path.read_text().splitlines(), start=1):
+        for number, line in enumerate(read_text(path).split("\n"), start=1):
             line = line.strip()
             if not line or line.startswith("#"):
                 continue
@@ -140,11 +136,11 @@ class FolderDataset(RecordedDataset):
         path = self.root / "imu.csv"
         if not path.is_file():
             return None
-        lines = [ln.strip() for ln in path.read_text().splitlines() if ln.strip()]
-        if not lines or [h.strip() for h in lines[0].split(",")] != ["timestamp", "roll", "pitch"]:
+        lines = [(k, ln.strip()) for k, ln in enumerate(read_text(path).split("\n"), start=1) if ln.strip()]
+        if not lines or [h.strip() for h in lines[0][1].split(",")] != ["timestamp", "roll", "pitch"]:
             raise DataError(f"{path}: the first line must be the header 'timestamp,roll,pitch'")
         rows = []
-        for number, line in enumerate(lines[1:], start=2):
+        for number, line in lines[1:]:
             try:
                 rows.append([float(v) for v in line.split(",")])
             except ValueError:
@@ -207,10 +203,7 @@ class FolderDataset(RecordedDataset):
         path = self.root / "truth.json"
         if not path.is_file():
             return None
-        try:
-            return truth_from_dict(json.loads(path.read_text()))
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-            raise DataError(f"{path}: not a valid truth file: {type(exc).__name__}: {exc}") from None
+        return read_truth_json(path)
 
     # -- the Dataset contract -----------------------------------------------------------------
 

@@ -371,7 +371,21 @@ class RosbagDataset(RecordedDataset):
         """``(topic, position, ns, message, type)`` of some topics in bag order; bad messages are reported."""
         connections = [c for c in reader.connections if c.topic in topics]
         positions = dict.fromkeys(topics, -1)
-        for connection, bag_ns, raw in reader.messages(connections=connections):
+        stream = iter(reader.messages(connections=connections))
+        while True:
+            try:
+                connection, bag_ns, raw = next(stream)
+            except StopIteration:
+                return
+            except Exception as exc:  # a damaged chunk or index: the reader cannot go on past it
+                read = ", ".join(f"{n + 1} on {t}" for t, n in sorted(positions.items()))
+                self.skips.problem(
+                    "unreadable bag",
+                    f"{self.path}: the bag cannot be read past this point ({type(exc).__name__}: {exc}); messages "
+                    f"read so far: {read}. It is corrupt or truncated there; `rosbag reindex` (ROS 1) or "
+                    "`ros2 bag reindex` (ROS 2) may repair it",
+                )
+                return
             topic = connection.topic
             positions[topic] += 1
             try:

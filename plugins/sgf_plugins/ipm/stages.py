@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+import logging
 import math
-from typing import Literal
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -17,6 +18,8 @@ from sgf_plugins.ipm.geometry import RollAxis, bev_to_image_homography, visible_
 from sgf_plugins.ipm.reference import PoseQueue, ReferenceAttitude, ReferenceCenter
 
 _INTERPOLATION = {"linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST, "cubic": cv2.INTER_CUBIC}
+_LOGGED_DROPOUTS = 5
+log = logging.getLogger("sgf_pipeline.ipm")
 
 
 class IpmParams(StageParams):
@@ -161,6 +164,15 @@ class InversePerspectiveMapping(Stage):
         self._checked = calibration
 
 
+def _odometry_attitude(frame: Frame) -> tuple[float, float]:
+    """Roll and pitch (rad) of the frame's odometry pose; NaN when the pose is not a finite 4x4 matrix."""
+    odometry = np.asarray(frame.odometry, dtype=np.float64)
+    if odometry.shape != (4, 4) or not np.all(np.isfinite(odometry)):
+        return math.nan, math.nan
+    roll, pitch, _ = rpy_from_rotation(odometry[:3, :3])
+    return roll, pitch
+
+
 def _nearest_visible(calibration: Calibration) -> float:
     """Distance ahead of the camera of the ground seen by the bottom image row (inf when none)."""
     intr = calibration.intrinsics
@@ -213,6 +225,14 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
     ``Bev.roll`` and ``Bev.pitch`` carry the compensated relative roll and pitch; the BEV shows the
     ground plane under the robot as seen at the reference attitude, so ground points lifted from
     it (eq. 9) belong with the planar part (x, y, yaw) of the robot's pose.
+
+    A frame whose attitude is not finite (an IMU dropout) keeps the run going: with
+    ``attitude=auto`` the odometry pose's attitude stands in (``attitude_from_odometry``), else the
+    frame is warped at the reference attitude without compensation and is not queued
+    (``attitude_dropouts``). ``finalize`` writes these counts to metrics.json under ``ipm``, with
+    ``outlier_frames`` (frames whose own pitch lay beyond ``pitch_threshold`` of the reference pitch,
+    compensated by their full relative pitch) and ``reference_without_inliers`` (frames whose queue
+    had no pose within the threshold of its centre, e.g. on rough ground).
     """
 
     name = "mc"
@@ -225,12 +245,31 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
             params.queue_size, params.pitch_threshold, params.reference_center, params.roll_threshold, params.settle
         )
         self.last_reference: ReferenceAttitude | None = None
+        self.counts: dict[str, int] = {}
+        self._reset_counts()
+
+    def _reset_counts(self) -> None:
+        self.counts = {
+            "frames": 0,
+            "attitude_from_odometry": 0,
+            "attitude_dropouts": 0,
+            "outlier_frames": 0,
+            "reference_without_inliers": 0,
+        }
+        self._max_theta = 0.0
 
     def begin(self, context: RunContext) -> None:
         """Empty the pose queue: a new sequence starts with no reference."""
         super().begin(context)
         self.queue.reset()
         self.last_reference = None
+        self._reset_counts()
+
+    def finalize(self, context: RunContext) -> None:
+        """Write the frame counts and the largest pitch compensation to metrics.json under ``ipm``."""
+        entry: dict[str, Any] = dict(self.counts)
+        entry["max_abs_pitch_compensation"] = round(self._max_theta, 6)
+        context.metrics.setdefault("ipm", {}).update(entry)
 
     def attitude(self, frame: Frame) -> tuple[float, float]:
         """The frame's ``(roll, pitch)`` in rad from the configured source."""
@@ -243,23 +282,35 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
                 )
             roll, pitch = frame.imu_roll_pitch
             return float(roll), float(pitch)
-        odometry = np.asarray(frame.odometry, dtype=np.float64)
-        if odometry.shape != (4, 4) or not np.all(np.isfinite(odometry)):
-            raise DataError(f"frame {frame.index}: the odometry pose must be a finite 4x4 matrix")
-        roll, pitch, _ = rpy_from_rotation(odometry[:3, :3])
-        return roll, pitch
+        return _odometry_attitude(frame)
 
     def compensation(self, frame: Frame) -> tuple[float, float]:
         """``(psi, theta)`` of eq. 1-2: the current attitude relative to the queue's reference."""
+        self.counts["frames"] += 1
         roll, pitch = self.attitude(frame)
+        if not (math.isfinite(roll) and math.isfinite(pitch)) and self.params.attitude == "auto":
+            roll, pitch = _odometry_attitude(frame)
+            if math.isfinite(roll) and math.isfinite(pitch):
+                self._count("attitude_from_odometry", frame, "the IMU roll/pitch is not finite; the odometry's is used")
         if not (math.isfinite(roll) and math.isfinite(pitch)):
-            raise DataError(f"frame {frame.index}: roll/pitch must be finite, got ({roll}, {pitch})")
+            self._count("attitude_dropouts", frame, "no finite roll/pitch; warped at the reference attitude")
+            return 0.0, 0.0
         self.queue.push(roll, pitch)
         reference = self.queue.reference()
         self.last_reference = reference
+        if reference.inliers == 0:
+            self.counts["reference_without_inliers"] += 1
+        if abs(pitch - reference.pitch) > self.params.pitch_threshold:
+            self.counts["outlier_frames"] += 1
         psi = -(roll - reference.roll) if self.params.compensate_roll else 0.0
         theta = pitch - reference.pitch if self.params.compensate_pitch else 0.0
+        self._max_theta = max(self._max_theta, abs(theta))
         return psi, theta
+
+    def _count(self, key: str, frame: Frame, what: str) -> None:
+        self.counts[key] += 1
+        if self.counts[key] <= _LOGGED_DROPOUTS:
+            log.warning("ipm=mc: frame %s: %s (%s so far)", frame.index, what, self.counts[key])
 
     def homography(self, calibration: Calibration, psi: float = 0.0, theta: float = 0.0) -> np.ndarray:
         """BEV index coordinates -> image pixels, compensated by ``psi`` and ``theta`` (eq. 1-4)."""

@@ -32,6 +32,9 @@ from sgf_plugins.sgf.polar import (
     yaw_to_shift,
 )
 
+#: Frames whose odometry and travelled distance are remembered (older ones only for group members).
+HISTORY_FRAMES = 20_000
+
 
 @dataclass
 class SgfGroup:
@@ -163,6 +166,7 @@ class OnlineSgfGroups(Stage):
         self._groups: list[SgfGroup] = []
         self._odometry: dict[int, np.ndarray] = {}
         self._travelled: dict[int, float] = {}
+        self._member_travelled: dict[int, float] = {}
         self._last_position: np.ndarray | None = None
         self._distance = 0.0
         self._next_id = 0
@@ -204,6 +208,7 @@ class OnlineSgfGroups(Stage):
         self._next_id = max((g.group_id for g in self._prior), default=-1) + 1
         self._odometry = {}
         self._travelled = {}
+        self._member_travelled = {}
         self._last_position = None
         self._distance = 0.0
 
@@ -220,7 +225,7 @@ class OnlineSgfGroups(Stage):
     # -- map positions and the spatial gate ---------------------------------------------------
 
     def _record(self, frame: Frame) -> None:
-        """Remember the frame's odometry and the distance travelled up to it."""
+        """Remember the frame's odometry and the distance travelled up to it (the last HISTORY_FRAMES frames)."""
         odometry = np.asarray(frame.odometry, dtype=np.float64)
         position = odometry[:3, 3]
         if self._last_position is not None:
@@ -228,6 +233,16 @@ class OnlineSgfGroups(Stage):
         self._last_position = position
         self._odometry[frame.index] = odometry
         self._travelled[frame.index] = self._distance
+        while len(self._travelled) > HISTORY_FRAMES:  # bounded memory over hours; members keep theirs
+            oldest = next(iter(self._travelled))
+            del self._travelled[oldest]
+            self._odometry.pop(oldest, None)
+
+    def _remember_member(self, descriptor: SgfDescriptor) -> None:
+        """Keep a new group member's travelled distance beyond the frame history."""
+        frame = descriptor.sgf.frame_index
+        if frame in self._travelled:
+            self._member_travelled[frame] = self._travelled[frame]
 
     def pose_of(self, frame_index: int, odometry: np.ndarray, estimate: PoseEstimate | None) -> np.ndarray:
         """The map pose of a frame: the estimate's, else its odometry corrected like the estimate's newest frame."""
@@ -250,7 +265,8 @@ class OnlineSgfGroups(Stage):
         return pose[:2, :2] @ np.asarray(c[:2], dtype=np.float64) + pose[:2, 3]
 
     def _travelled_between(self, a: SgfDescriptor, b: SgfDescriptor) -> float:
-        sa, sb = self._travelled.get(a.sgf.frame_index), self._travelled.get(b.sgf.frame_index)
+        sa = self._travelled.get(a.sgf.frame_index, self._member_travelled.get(a.sgf.frame_index))
+        sb = self._travelled.get(b.sgf.frame_index, self._member_travelled.get(b.sgf.frame_index))
         if sa is None or sb is None:
             return float(np.linalg.norm(np.asarray(a.sgf.odometry)[:3, 3] - np.asarray(b.sgf.odometry)[:3, 3]))
         return abs(sa - sb)
@@ -302,6 +318,7 @@ class OnlineSgfGroups(Stage):
             ties = np.flatnonzero(per_group <= per_group.min() + p.tie_margin)
             i = int(min(ties, key=lambda t: candidates[t][1]))
             best = _Candidate(candidates[i][0], float(per_group[i]))
+        self._remember_member(query)
         if best is None or best.distance > p.new_group_distance:
             group = SgfGroup(self._next_id)
             self._next_id += 1

@@ -29,13 +29,15 @@ def describe(
     sgf: SalientGroundFeature,
     params: PolarContextParams,
 ) -> SgfDescriptor | None:
-    """The descriptor of one SGF, or None when it has fewer than ``min_points`` ground points."""
+    """The descriptor of one SGF, or None when fewer than ``min_points`` ground points lie within L_max."""
     pixels = np.asarray(sgf.pixels).reshape(-1, 2)
     x, y = sgf.grid.pixel_to_ground(pixels[:, 0], pixels[:, 1])  # eq. 9
     points = voxel_downsample(np.stack([x, y], axis=1), params.voxel_size)
     if len(points) < params.min_points:
         return None
     centroid = points.mean(axis=0)
+    if np.count_nonzero(np.hypot(*(points - centroid).T) < params.max_radius) < params.min_points:
+        return None  # a ring wider than L_max: an empty descriptor, which eq. 10 can never match
     matrix = polar_context(points, centroid, params.num_rings, params.num_sectors, params.max_radius, params.bin_value)
     return SgfDescriptor(sgf=sgf, points=points, centroid=centroid, matrix=matrix, ring_key=ring_key(matrix))
 

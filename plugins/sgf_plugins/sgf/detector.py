@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import cv2
@@ -19,6 +20,7 @@ log = logging.getLogger("sgf_pipeline.sgf")
 
 #: Most pixels of a view projected into the next frame to predict where its feature went.
 PREDICTION_SAMPLES = 4000
+_NO_PIXELS = np.zeros((0, 2), dtype=np.int32)
 
 
 @dataclass(frozen=True)
@@ -131,6 +133,15 @@ class HuWindowParams(StageParams):
     truth_min_fraction: float = Field(
         0.3, gt=0.0, le=1.0, description="share of a region a ground-truth marking must cover to label it"
     )
+    min_view_motion: float = Field(
+        0.01, ge=0.0, description="a track takes a new view only once the robot moved this far (m) since its last..."
+    )
+    min_view_turn: float = Field(
+        0.01, ge=0.0, description="...or turned this much (rad); 0 in either of the two: a view every frame"
+    )
+    max_track_views: int = Field(
+        1000, ge=2, description="a track with this many views is closed (its SGF selected) and a new one begins"
+    )
 
     @model_validator(mode="after")
     def _check(self) -> HuWindowParams:
@@ -162,6 +173,14 @@ class HuMomentDetector(Stage):
     Tracks still open when the sequence ends are dropped (``finalize`` cannot emit outputs) and
     counted in the metrics as ``open_at_end``.
 
+    Long runs keep the detector's memory bounded: a track takes a new view only once the robot has
+    moved ``min_view_motion`` or turned ``min_view_turn`` since the track's last view (a robot
+    standing still for minutes sees nothing new; such frames are counted as ``stationary_views``),
+    the pixels of a superseded view that touches the border are dropped (such a view is never
+    selected), and a track that reaches ``max_track_views`` is closed and continued by a new one
+    (``tracks_split``; a marking the robot circles around, a saliency map firing on the whole view).
+    Candidate components below ``min_area`` are counted as ``regions_too_small``.
+
     Hu scale (the ambiguity of eq. 8): on ``raw`` invariants, consecutive wholly-visible views of
     rendered markings differ by a median 0.0011 (0.0024 with noisy masks), so the paper's 0.005
     groups 88 % (62 %) of them, while 86-93 % of entering or leaving pairs and all pairs of
@@ -188,7 +207,14 @@ class HuMomentDetector(Stage):
         self._tracks = []
         self._selected = []
         self._next_id = 0
-        self._stats = {"tracks": 0, "too_short": 0, "border_only": 0}
+        self._stats = {
+            "tracks": 0,
+            "too_short": 0,
+            "border_only": 0,
+            "stationary_views": 0,
+            "tracks_split": 0,
+            "regions_too_small": 0,
+        }
 
     @property
     def stats(self) -> dict[str, int]:
@@ -220,6 +246,7 @@ class HuMomentDetector(Stage):
             mask = (cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel) > 0) & valid
         count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
         keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= self.params.min_area) + 1
+        self._stats["regions_too_small"] = self._stats.get("regions_too_small", 0) + (count - 1 - len(keep))
         remap = np.zeros(count, dtype=np.int32)
         remap[keep] = np.arange(1, len(keep) + 1)
         labels = remap[labels]
@@ -344,9 +371,25 @@ class HuMomentDetector(Stage):
         still_open: list[FeatureTrack] = []
         for t, track in enumerate(self._tracks):
             if t in matches:
-                track.views.append(FeatureView(frame.index, frame.timestamp, odometry, regions[matches[t]]))
                 track.missed = 0
-                still_open.append(track)
+                if not self._moved(track.last.odometry, odometry):
+                    self._stats["stationary_views"] = self._stats.get("stationary_views", 0) + 1
+                    still_open.append(track)
+                    continue
+                last = track.last
+                if last.region.touches_border and len(last.region.pixels):
+                    # A border view is never selected; only the newest view's pixels predict the next frame.
+                    track.views[-1] = replace(last, region=replace(last.region, pixels=_NO_PIXELS))
+                track.views.append(FeatureView(frame.index, frame.timestamp, odometry, regions[matches[t]]))
+                if len(track.views) >= self.params.max_track_views:
+                    self._stats["tracks_split"] = self._stats.get("tracks_split", 0) + 1
+                    finished.append(track)
+                    successor = FeatureTrack(self._next_id, [track.views[-1]])
+                    self._next_id += 1
+                    self._stats["tracks"] = self._stats.get("tracks", 0) + 1
+                    still_open.append(successor)
+                else:
+                    still_open.append(track)
             elif t in left or track.missed >= self.params.max_missed:
                 finished.append(track)
             else:
@@ -368,6 +411,15 @@ class HuMomentDetector(Stage):
         self._selected.extend(out)
         return SgfDetections(tuple(out))
 
+    def _moved(self, before: np.ndarray, now: np.ndarray) -> bool:
+        """Whether the robot moved or turned enough since a track's last view for a new view."""
+        p = self.params
+        if p.min_view_motion <= 0.0 and p.min_view_turn <= 0.0:
+            return True
+        delta = invert(before) @ now
+        turned = math.acos(max(-1.0, min(1.0, (float(np.trace(delta[:3, :3])) - 1.0) / 2.0)))
+        return float(np.linalg.norm(delta[:3, 3])) >= p.min_view_motion or turned >= p.min_view_turn
+
     def finalize(self, context: RunContext) -> None:
         """Write ``sgf.detected``/``sgf.total`` (null without ground truth) and share the selected SGFs."""
         context.artifacts["sgf_selected"] = list(self._selected)
@@ -378,6 +430,9 @@ class HuMomentDetector(Stage):
                 "tracks": self._stats.get("tracks", 0),
                 "rejected_short": self._stats.get("too_short", 0),
                 "rejected_border": self._stats.get("border_only", 0),
+                "stationary_views": self._stats.get("stationary_views", 0),
+                "tracks_split": self._stats.get("tracks_split", 0),
+                "regions_too_small": self._stats.get("regions_too_small", 0),
                 "open_at_end": len(self._tracks),
                 "detected": None,
                 "total": None,

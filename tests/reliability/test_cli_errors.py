@@ -1,0 +1,158 @@
+"""Console scripts given bad arguments: exit status 2 and one paragraph on stderr, never a traceback."""
+
+from __future__ import annotations
+
+import json
+import re
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+from adapters.recordings import calibration, make_frames, write_folder
+from conftest import run_cli
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    base = tmp_path_factory.mktemp("cli")
+    folder = write_folder(base / "seq", make_frames(2, seed=1), calibration())
+    broken = write_folder(base / "broken", make_frames(2, seed=1), calibration())
+    (broken / "calibration.yaml").write_text("intrinsics: {fx: 100, fy: [\n")
+    binary = base / "junk.tum"
+    binary.write_bytes(b"\x89PNG\r\n\x1a\n\x00\xff\xfe")
+    still = base / "still.tum"
+    still.write_text("".join(f"{i}.0 1 2 0 0 0 0 1\n" for i in range(6)))
+    fine = base / "fine.tum"
+    fine.write_text("".join(f"{i}.0 {i} {i % 2} 0 0 0 0 1\n" for i in range(6)))
+    bag = base / "garbage.bag"
+    bag.write_bytes(b"#ROSBAG V2.0\n" + bytes(range(256)) * 4)
+    empty = base / "empty"
+    empty.mkdir()
+    corrupt_run = base / "runs_corrupt" / "r1"
+    corrupt_run.mkdir(parents=True)
+    (corrupt_run / "metrics.json").write_text('{"status": "finished", "ate_rmse_m": {')
+    tagged_run = base / "runs_tagged" / "r1"
+    tagged_run.mkdir(parents=True)
+    (tagged_run / "metrics.json").write_text(json.dumps({"status": "finished", "sequence": "s"}))
+    (tagged_run / "config.yaml").write_text("!!python/object/apply:os.system ['touch pwned']\n")
+    return {
+        "folder": folder,
+        "broken": broken,
+        "binary": binary,
+        "still": still,
+        "fine": fine,
+        "bag": bag,
+        "empty": empty,
+        "corrupt_runs": corrupt_run.parent,
+        "tagged_runs": tagged_run.parent,
+        "base": base,
+    }
+
+
+RUN = ["dataset=folder", "pipeline=[dataset]", "run.progress=false"]
+
+CASES: list[tuple[str, str, list[str], str]] = [
+    ("unknown key", "sgf-run", [*RUN, "foo=1"], r"Could not override 'foo'\.\n  To append to your config use \+foo=1"),
+    ("unknown variant", "sgf-run", [*RUN, "ipm=nope"], r"Could not find 'ipm/nope'\n  Available options in 'ipm':"),
+    ("bad override syntax", "sgf-run", [*RUN, "enhance.clip_limit=["], r"no viable alternative at input '\['"),
+    ("missing dataset path", "sgf-run", RUN, r"dataset=folder cannot start: dataset=folder needs the sequence folder"),
+    (
+        "unset environment variable",
+        "sgf-run",
+        [*RUN, "dataset.path=${oc.env:SGF_SURELY_UNSET_456}"],
+        r"dataset.path: the value cannot be resolved: .*Environment variable 'SGF_SURELY_UNSET_456' not found",
+    ),
+    ("a _target_", "sgf-run", [*RUN, "+enhance._target_=os.system"], r"enhance._target_: `_target_` is refused"),
+    ("a pickle rerun", "sgf-run", ["--experimental-rerun=config.pickle"], r"--experimental-rerun is not supported: "),
+    ("broken calibration", "sgf-run", [*RUN, "dataset.path={broken}"], r"calibration.yaml:\d+: not valid YAML"),
+    ("no trajectories", "sgf-eval", [], r"give the reference trajectory: sgf-eval reference=<file> estimate=<file>"),
+    (
+        "binary trajectory",
+        "sgf-eval",
+        ["reference={binary}", "estimate={binary}"],
+        r"reference: .*junk.tum.*not a text",
+    ),
+    (
+        "a robot that never moved",
+        "sgf-eval",
+        ["reference={still}", "estimate={still}"],
+        r"se3 alignment is not possible .*one point or one line .*use align=none",
+    ),
+    ("unknown alignment", "sgf-eval", ["reference={fine}", "estimate={fine}", "align=affine"], r"sgf-eval.align: "),
+    ("garbage bag", "sgf-bag-info", ["path={bag}"], r"cannot open bag .*garbage.bag: .*truncated or corrupt"),
+    ("a folder that is no bag", "sgf-bag-info", ["path={empty}"], r"empty is a folder without metadata.yaml"),
+    ("no run directory", "sgf-report", [], r"which runs\? pass a run or multirun directory"),
+    (
+        "corrupt metrics",
+        "sgf-report",
+        ["{corrupt_runs}"],
+        r"r1/metrics.json is not valid JSON .*was the run interrupted\?",
+    ),
+    (
+        "python tag in a config",
+        "sgf-report",
+        ["{tagged_runs}"],
+        r"r1/config.yaml:1: not valid YAML: could not determine",
+    ),
+    ("unknown kind", "sgf-plugins", ["kind=teleport"], r"kind=teleport: no plugin registers stages of that kind"),
+]
+
+
+def test_bad_arguments_exit_2_with_one_paragraph(files: dict[str, Path]):
+    def launch(case: tuple[str, str, list[str], str]):
+        _, script, args, _ = case
+        for key, value in files.items():
+            args = [a.replace("{" + key + "}", str(value)) for a in args]
+        if script == "sgf-run" or script == "sgf-eval":
+            args.append(f"hydra.run.dir={files['base'] / 'out' / case[0].replace(' ', '_')}")
+        return run_cli(script, *args, cwd=files["base"], timeout=120)
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        results = list(pool.map(launch, CASES))
+    failures = []
+    for (label, script, _, pattern), result in zip(CASES, results, strict=True):
+        stderr = result.stderr.rstrip("\n")
+        problems = []
+        if result.returncode != 2:
+            problems.append(f"exit status {result.returncode}")
+        if not stderr.startswith("error: "):
+            problems.append("stderr does not start with 'error: '")
+        if "Traceback" in stderr + result.stdout or "HYDRA_FULL_ERROR" in stderr:
+            problems.append("a traceback or Hydra's traceback hint")
+        if "\n\n" in stderr:
+            problems.append("more than one paragraph")
+        if not re.search(pattern, stderr, re.DOTALL):
+            problems.append(f"no match for {pattern!r}")
+        if problems:
+            failures.append(f"{script} ({label}): {'; '.join(problems)}\n{stderr[:600]}")
+    assert not failures, "\n\n".join(failures)
+    assert not (files["base"] / "pwned").exists()
+
+
+def test_a_traceback_on_request(files: dict[str, Path]):
+    result = run_cli(
+        "sgf-eval", f"reference={files['binary']}", f"estimate={files['binary']}", env={"SGF_PIPELINE_TRACEBACK": "1"}
+    )
+    assert result.returncode == 1
+    assert "Traceback (most recent call last)" in result.stderr and "DataError: reference: " in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("metrics", "message"),
+    [
+        ({"ate_rmse_m": {"sgf": "1.2 m"}}, r"ate_rmse_m.sgf must be a number or null, got '1.2 m'"),
+        ({"loops": {"closed": True}}, r"loops.closed must be a number or null, got True"),
+        ({"timing": [1, 2]}, r"timing must be a mapping, got \[1, 2\]"),
+        ({"timing": {"stages": {"ipm": {"mean_ms": "fast"}}}}, r"timing.stages must map stage kinds to"),
+        ({"sequence": ["a"]}, r"sequence must be a name, got \['a'\]"),
+    ],
+)
+def test_sgf_report_refuses_metrics_of_another_shape(tmp_path: Path, metrics: dict, message: str):
+    from sgf_pipeline.errors import DataError
+    from sgf_pipeline.report import find_runs
+
+    run = tmp_path / "r1"
+    run.mkdir()
+    (run / "metrics.json").write_text(json.dumps({"status": "finished", **metrics}))
+    with pytest.raises(DataError, match=rf"r1/metrics.json: {message}"):
+        find_runs(tmp_path)
