@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
-
 from sgf_plugins.world import CampusWorld, build_world
 
 

@@ -56,6 +56,7 @@ def test_sgf_world_exports_a_folder_dataset_with_map_and_samples(tmp_path: Path)
 
 def test_sgf_world_refuses_a_dataset_that_is_not_a_campus_preset(tmp_path: Path):
     from sgf_plugins.world.cli import WorldAppOptions, run_world_app
+
     from sgf_pipeline.errors import ConfigError
 
     with pytest.raises(ConfigError, match="campus presets only"):

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import yaml
 from hydra import compose, initialize_config_dir
+from sgf_plugins.world import PRESETS, WorldParams, build_world
+from sgf_plugins.world.dataset import CampusDataset
 
 from sgf_pipeline import ConfigError, Pipeline, load_plugins
 from sgf_pipeline.config import config_dir
 from sgf_pipeline.types import Frame
-from sgf_plugins.world import PRESETS, WorldParams, build_world
-from sgf_plugins.world.dataset import CampusDataset
 
 VARIANTS = ("campus_delivery", "campus_large_loop", "campus_reverse_slope", "campus_large_loop_night")
 

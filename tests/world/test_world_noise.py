@@ -1,5 +1,4 @@
 import numpy as np
-
 from sgf_plugins.world.noise import fbm, lattice_noise, rng_for
 
 

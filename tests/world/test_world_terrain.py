@@ -2,10 +2,10 @@ import math
 
 import numpy as np
 import pytest
-
-from sgf_pipeline.geometry import rpy_from_rotation
 from sgf_plugins.world.layout import Hill, RoughPatch, SpeedBump
 from sgf_plugins.world.terrain import TRACK, WHEELBASE, Terrain
+
+from sgf_pipeline.geometry import rpy_from_rotation
 
 
 def _bump(height=0.1, half_length=0.3, half_width=2.0, centre=(10.0, 0.0)) -> SpeedBump:

@@ -27,7 +27,7 @@ def ground_map(world: CampusWorld, bounds: tuple[float, float, float, float], re
     gen = world.renderer.generator
     for j in range(rows):
         for i in range(cols):
-            rgba, _ = gen.region(x0 + i * MAP_TILE, y1 - j * MAP_TILE, n, n, res)
+            rgba, _ = gen.region(x0 + i * MAP_TILE, y1 - j * MAP_TILE, n, n, res, geometry_step=2)
             lit = rgba[..., :3].astype(np.float32) * (0.55 + 0.45 * rgba[..., 3:] / 255.0) * 1.15
             out[j * n : (j + 1) * n, i * n : (i + 1) * n] = np.clip(lit, 0, 255).astype(np.uint8)
     _draw_buildings_and_trees(world, out, x0, y1, res)
@@ -62,7 +62,7 @@ def save_map(world: CampusWorld, path: str | os.PathLike[str], res: float | None
     margin = 30.0
     bounds = (xy[:, 0].min() - margin, xy[:, 1].min() - margin, xy[:, 0].max() + margin, xy[:, 1].max() + margin)
     span = max(bounds[2] - bounds[0], bounds[3] - bounds[1])
-    res = res or max(0.08, span / 1800.0)
+    res = res or max(0.1, span / 1600.0)
     image = ground_map(world, bounds, res)
     gx0 = math.floor(bounds[0] / MAP_TILE) * MAP_TILE
     gy1 = math.ceil(bounds[3] / MAP_TILE) * MAP_TILE

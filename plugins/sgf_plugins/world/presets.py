@@ -70,7 +70,7 @@ PRESETS: dict[str, Preset] = {
         ),
         Preset(
             "campus_delivery",
-            RouteSpec(("H", "B1", "BC1", "B2", "B1", "H"), stops={"B2": 6.0}),
+            RouteSpec(("H", "B1", "BC1", "DO", "B1", "H"), stops={"DO": 6.0}),
             False,
             "Seq. Delivery: from the robot's home out to a drop-off, a stop, and back home",
             {"markings": 23, "pairs": 1, "pairs_reverse": 1, "ate_odometry_m": 71.147},

@@ -20,7 +20,7 @@ import numpy as np
 from sgf_pipeline.calibration import Calibration
 from sgf_plugins.world.layout import Agent, CampusLayout
 from sgf_plugins.world.noise import lattice_noise, rng_for
-from sgf_plugins.world.scenery import Lighting, Scenery
+from sgf_plugins.world.scenery import Lighting, PlacedAgent, Scenery
 from sgf_plugins.world.terrain import Terrain
 from sgf_plugins.world.texture import LEVELS, Level, Sun, TileCache, TileGenerator
 
@@ -316,14 +316,14 @@ class Renderer:
     def _levels(self, pose: np.ndarray, pts: np.ndarray, hit: np.ndarray, t: np.ndarray, far_field: bool) -> np.ndarray:
         """Weights (3, nv, nu) of the levels of detail per sample; loads the tiles each level needs.
 
-        Level 0 up to 8 m of depth, level 1 from 9.5 to 28 m, level 2 beyond 34 m, blended in
+        Level 0 up to 6 m of depth, level 1 from 7.5 to 28 m, level 2 beyond 34 m, blended in
         between; a level whose window does not hold the point hands its weight to the next one.
         """
         heading = math.atan2(pose[1, 0], pose[0, 0])
         fwd = np.array([math.cos(heading), math.sin(heading)])
         base_xy = pose[:2, 3]
         anchors = (base_xy + 4.0 * fwd, base_xy + 16.0 * fwd, base_xy)
-        lam = np.interp(np.where(hit, t, 1e9), [8.0, 9.5, 28.0, 34.0], [0.0, 1.0, 1.0, 2.0])
+        lam = np.interp(np.where(hit, t, 1e9), [6.0, 7.5, 28.0, 34.0], [0.0, 1.0, 1.0, 2.0])
         weights = np.stack([np.clip(1.0 - np.abs(lam - k), 0.0, 1.0) for k in range(3)]) * hit
         for k, mosaic in enumerate(self.mosaics):
             mosaic.set_centre(*anchors[k])
@@ -331,8 +331,9 @@ class Renderer:
             half = mosaic.level.window // 2
             # usable when 1 m or more inside the window
             margin = 1.0 / tile
-            fx = pts[..., 0] / tile - (mosaic.centre[0] - half)
-            fy = pts[..., 1] / tile - (mosaic.centre[1] - half)
+            cx, cy = mosaic.centre or (0, 0)
+            fx = pts[..., 0] / tile - (cx - half)
+            fy = pts[..., 1] / tile - (cy - half)
             size = mosaic.level.window
             inside = (fx > margin) & (fx < size - margin) & (fy > margin) & (fy < size - margin)
             if k < 2:
@@ -377,7 +378,9 @@ class Renderer:
                 axis=1,
             ).astype(np.int64)
             needed: set[tuple[int, int]] = set()
-            for a0, a1, b0, b1 in np.unique(ranges, axis=0).tolist():
+            packed = np.unique(((ranges + 32768) * np.array([1 << 48, 1 << 32, 1 << 16, 1])).sum(axis=1))
+            for key in packed.tolist():
+                a0, a1, b0, b1 = (((key >> shift_) & 0xFFFF) - 32768 for shift_ in (48, 32, 16, 0))
                 for ta in range(a0, a1 + 1):
                     for tb in range(b0, b1 + 1):
                         if mosaic.in_window(ta, tb):
@@ -519,8 +522,12 @@ class Renderer:
         idx = np.flatnonzero(bumps & ok & (td < DETAIL_RADIUS))
         bumpy = np.zeros(n, bool)
         if idx.size:
-            td[idx], gxd[idx], gyd[idx] = self._march(centre, dd[idx], td[idx], slope[idx], gxd[idx], gyd[idx])
-            bumpy[down[idx]] = True
+            before = td[idx]
+            td[idx], gxd[idx], gyd[idx] = self._march(centre, dd[idx], before, slope[idx], gxd[idx], gyd[idx])
+            # the samples whose ray meets a bump (on it, or cut short by it) need exact pixels around them
+            xi, yi = centre[0] + td[idx] * dd[idx, 0], centre[1] + td[idx] * dd[idx, 1]
+            on_bump, _, _ = self.terrain.height_and_gradient(xi, yi, near_feature, smooth=False, rough=False)
+            bumpy[down[idx]] = (on_bump > 0.002) | (np.abs(td[idx] - before) > 0.01)
         t[down], hit[down], gx[down], gy[down] = td, ok, gxd, gyd
         return (t.reshape(shape), hit.reshape(shape), gx.reshape(shape), gy.reshape(shape), bumpy.reshape(shape))
 
@@ -705,9 +712,9 @@ class Renderer:
 
     # -- occluders -------------------------------------------------------------------------------
 
-    def _agents(self, conditions: RenderConditions, pose: np.ndarray) -> list[tuple[Agent, float]]:
-        """The people and vehicles near the camera at this time, with their ground heights."""
-        out: list[Agent] = []
+    def _agents(self, conditions: RenderConditions, pose: np.ndarray) -> list[PlacedAgent]:
+        """The people and vehicles near the camera at this time, where they are."""
+        candidates: list[Agent] = []
         x, y = pose[0, 3], pose[1, 3]
         if conditions.occluders and self.layout.agents:
             if self._agent_boxes is None:
@@ -716,11 +723,7 @@ class Renderer:
                 )
             box = self._agent_boxes
             near = (box[:, 0] < x + 60) & (box[:, 2] > x - 60) & (box[:, 1] < y + 60) & (box[:, 3] > y - 60)
-            for i in np.flatnonzero(near):
-                agent = self.layout.agents[int(i)]
-                p, _, _ = agent.state(conditions.time)
-                if abs(p[0] - x) < 60 and abs(p[1] - y) < 60:
-                    out.append(agent)
+            candidates = [self.layout.agents[int(i)] for i in np.flatnonzero(near)]
         if conditions.extra_occluders:
             rng = rng_for(self.seed, 411, conditions.noise_seed)
             heading = math.atan2(pose[1, 0], pose[0, 0])
@@ -736,27 +739,29 @@ class Renderer:
                     tuple(int(v) for v in rng.integers(140, 235, 3)),
                     (30, 30, 30),
                 )
-                out.append(Agent("pedestrian", pts, 0.0, 0.0, 0.0, (0.3, 0.45, float(rng.uniform(1.55, 1.9))), colours))  # type: ignore[arg-type]
-        if not out:
-            return []
-        xy = np.array([a.state(conditions.time)[0] for a in out])
-        # people step aside: nobody walks through the robot (no one closer than 1.2 m to the camera)
+                size = (0.3, 0.45, float(rng.uniform(1.55, 1.9)))
+                candidates.append(Agent("pedestrian", pts, 0.0, 0.0, 0.0, size, colours))  # type: ignore[arg-type]
+        states = [a.state(conditions.time) for a in candidates]
         cam_xy = (pose @ self.camera_to_base)[:2, 3]
-        room = np.hypot(xy[:, 0] - cam_xy[0], xy[:, 1] - cam_xy[1]) > 1.2
-        out = [a for a, keep in zip(out, room, strict=True) if keep]
-        xy = xy[room]
-        if not out:
+        kept = [
+            (a, s)
+            for a, s in zip(candidates, states, strict=True)
+            # within 60 m, and people step aside: nobody is closer than 1.2 m to the camera
+            if abs(s[0][0] - x) < 60 and abs(s[0][1] - y) < 60 and math.hypot(*(s[0] - cam_xy)) > 1.2
+        ]
+        if not kept:
             return []
+        xy = np.array([s[0] for _, s in kept])
         z = self.terrain.height(xy[:, 0], xy[:, 1])
-        return [(a, float(zz)) for a, zz in zip(out, z, strict=True)]
+        return [PlacedAgent(a, s[0], s[1], s[2], float(zz)) for (a, s), zz in zip(kept, z, strict=True)]
 
-    def _agent_shadows(self, agents: list[tuple[Agent, float]], cam: np.ndarray, sunlit: np.ndarray) -> None:
+    def _agent_shadows(self, agents: list[PlacedAgent], cam: np.ndarray, sunlit: np.ndarray) -> None:
         """Darken the sunlit fraction (uint8) where people and vehicles shade the ground."""
         h, w = self.height, self.width
         world_to_cam = np.linalg.inv(cam)
         off = self.sun.shadow_offset
-        for agent, z0 in agents:
-            p, heading, _ = agent.state(self.scenery._time)
+        for placed in agents:
+            agent, p, heading, z0 = placed.agent, placed.position, placed.heading, placed.z
             length, width, height = agent.size
             if agent.kind == "pedestrian":
                 a = np.linspace(0, 2 * math.pi, 16, endpoint=False)

@@ -53,6 +53,7 @@ class Terrain:
         near: tuple[float, float, float] | None = None,
         detail: bool = True,
         smooth: bool = True,
+        rough: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Height ``H`` and its partial derivatives ``dH/dx``, ``dH/dy`` at points (any shape).
 
@@ -76,7 +77,7 @@ class Terrain:
                 lo_x, hi_x, lo_y, hi_y = float(x.min()), float(x.max()), float(y.min()), float(y.max())
             for i in self._bump_index.query(lo_x, lo_y, hi_x, hi_y):
                 _add_bump(self.bumps[i], x, y, h, gx, gy)
-            for i in self._rough_index.query(lo_x, lo_y, hi_x, hi_y):
+            for i in self._rough_index.query(lo_x, lo_y, hi_x, hi_y) if rough else ():
                 _add_rough(self.rough[i], x, y, h, gx, gy)
         return h.reshape(shape), gx.reshape(shape), gy.reshape(shape)
 
