@@ -168,7 +168,7 @@ class TileGenerator:
         any_lawn = bool((sdf > -0.1).any())
 
         def up(*channels: np.ndarray) -> list[np.ndarray]:
-            stack = np.dstack(channels).astype(np.float32)
+            stack: np.ndarray = np.dstack(channels).astype(np.float32)
             if step > 1:
                 stack = cv2.resize(stack, (gnx * step, gny * step), interpolation=cv2.INTER_LINEAR)
             stack = stack[:ny, :nx]
