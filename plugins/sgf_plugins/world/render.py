@@ -206,6 +206,7 @@ class Renderer:
         bank = 128.0 + 32.0 * rng.standard_normal((2, self.height + 32, self.width + 32, 3))
         self.noise_bank = np.clip(bank, 0, 255).astype(np.uint8)
         self._agent_boxes: np.ndarray | None = None
+        self._smooth_hits = np.zeros((4, self.nv, self.nu))
         self.detail = _detail_texture(rng)
         self.stopwatch = Stopwatch()
 
@@ -237,12 +238,16 @@ class Renderer:
         # L0 texel coordinates (small numbers: relative to a multiple of the mosaic size)
         lv0, m0 = LEVELS[0], self.mosaics[0]
         shift = m0.shift
-        mx = np.where(hit, pts[..., 0] / lv0.res - 0.5 - shift[0], 0.0)
-        my = np.where(hit, -pts[..., 1] / lv0.res - 0.5 - shift[1], 0.0)
-        depth = np.where(hit, t, 1e4)
+        # Around bumps the samples keep their smooth-ground hit (the bump faces are ray cast per
+        # pixel below), so that interpolation between samples stays exact for the ground.
+        t_map = np.where(bumpy, self._smooth_hits[0], t)
+        ground_pts = centre + t_map[..., None] * dirs
+        mx = np.where(hit, ground_pts[..., 0] / lv0.res - 0.5 - shift[0], 0.0)
+        my = np.where(hit, -ground_pts[..., 1] / lv0.res - 0.5 - shift[1], 0.0)
+        depth = np.where(hit, t_map, 1e4)
         # Texel coordinates over depth, and inverse depth, are linear in the pixel coordinates on a
         # plane: interpolating them and dividing is exact on flat ground (perspective-correct).
-        inv = np.where(hit, 1.0 / np.maximum(t, 1e-3), 1e-4)
+        inv = np.where(hit, 1.0 / np.maximum(t_map, 1e-3), 1e-4)
         homog = self._upsample(np.stack([mx * inv, my * inv, inv], axis=-1).astype(np.float32))
         maps = np.ascontiguousarray(homog[..., :2])
         maps /= homog[..., 2:3]
@@ -250,7 +255,7 @@ class Renderer:
         s2_f = self._upsample((s2 * self.vignette).astype(np.float32))
         depth_f = self._upsample(depth.astype(np.float32))
         if bumpy.any():
-            self._refine_bumps(maps, depth_f, bumpy, cam, shift)
+            self._refine_bumps(maps, homog[..., 2], depth_f, bumpy, cam, shift)
         # rows below ``top`` see only near ground (level 0, inside its window): the fast path
         pure_coarse = ((weights[0] == 1.0) & hit).all(axis=1)
         full_rows = np.arange(self.height)
@@ -502,6 +507,10 @@ class Renderer:
             if active.size == 0:
                 break
         ok = (residual < 0.02) & (td > 0.0) & (td < t_max * 0.999)
+        # the smooth solution, kept for the exact pixels around speed bumps
+        smooth = np.zeros((4, n))
+        smooth[0, down], smooth[1, down], smooth[2, down], smooth[3, down] = td, slope, gxd, gyd
+        self._smooth_hits = smooth.reshape(4, *shape)
         near_feature = (float(centre[0]), float(centre[1]), DETAIL_RADIUS)
         x = centre[0] + td * dd[:, 0]
         y = centre[1] + td * dd[:, 1]
@@ -532,25 +541,44 @@ class Renderer:
         return (t.reshape(shape), hit.reshape(shape), gx.reshape(shape), gy.reshape(shape), bumpy.reshape(shape))
 
     def _refine_bumps(
-        self, maps: np.ndarray, depth: np.ndarray, bumpy: np.ndarray, cam: np.ndarray, shift: tuple[int, int]
+        self,
+        maps: np.ndarray,
+        inverse_depth: np.ndarray,
+        depth: np.ndarray,
+        bumpy: np.ndarray,
+        cam: np.ndarray,
+        shift: tuple[int, int],
     ) -> None:
-        """Ray cast every pixel around a speed bump exactly (its faces are too sharp to interpolate)."""
-        grown = cv2.dilate(bumpy.astype(np.uint8), np.ones((3, 3), np.uint8))
-        full = cv2.resize(grown, (self.nu * STEP, self.nv * STEP), interpolation=cv2.INTER_NEAREST)
-        vs, us = np.nonzero(full[STEP : STEP + self.height, STEP : STEP + self.width])
+        """Ray cast exactly the pixels that see a speed bump (its faces are too sharp to interpolate).
+
+        The maps hold every pixel's smooth-ground hit; the pixels whose hit lies within a bump's
+        reach (its box grown by the 0.8 m a bump can hide behind it) are marched through its
+        height band and their ground point and depth replaced.
+        """
+        rows = np.flatnonzero(cv2.dilate(bumpy.astype(np.uint8), np.ones((3, 3), np.uint8)).any(axis=1))
+        r0 = max(0, STEP * int(rows[0]) - STEP)
+        r1 = min(self.height, STEP * int(rows[-1]) + STEP)
+        res = LEVELS[0].res
+        x = (maps[r0:r1, :, 0] + np.float32(0.5 + shift[0])) * np.float32(res)
+        y = -(maps[r0:r1, :, 1] + np.float32(0.5 + shift[1])) * np.float32(res)
+        c = cam[:3, 3]
+        reach = np.zeros(x.shape, bool)
+        for b in self.terrain.bumps_near(float(c[0]), float(c[1]), DETAIL_RADIUS):
+            rx, ry = x - np.float32(b.centre[0]), y - np.float32(b.centre[1])
+            along = rx * np.float32(b.direction[0]) + ry * np.float32(b.direction[1])
+            across = ry * np.float32(b.direction[0]) - rx * np.float32(b.direction[1])
+            reach |= (np.abs(along) < b.half_length + 0.8) & (np.abs(across) < b.half_width + 0.4)
+        vs, us = np.nonzero(reach)
         if vs.size == 0:
             return
+        vs = vs + r0
+        _, slope_s, gx_s, gy_s = self._smooth_hits
+        coarse = np.stack([slope_s, gx_s, gy_s], axis=-1).astype(np.float32)
+        up = self._upsample(coarse, rows=r1, start=r0)[vs - r0, us].astype(np.float64)
         intr = self.calibration.intrinsics
         d = np.stack([(us - intr.cx) / intr.fx, (vs - intr.cy) / intr.fy, np.ones(us.size)], axis=1) @ cam[:3, :3].T
-        c = cam[:3, 3]
-        t = np.clip(depth[vs, us].astype(np.float64), 0.05, 2 * DETAIL_RADIUS)
-        gx = gy = slope = np.zeros_like(t)
-        for _ in range(3):
-            hgt, gx, gy = self.terrain.height_and_gradient(c[0] + t * d[:, 0], c[1] + t * d[:, 1], detail=False)
-            slope = np.minimum(d[:, 2] - gx * d[:, 0] - gy * d[:, 1], -1e-3)
-            t = np.clip(t - (c[2] + t * d[:, 2] - hgt) / slope, 0.05, 2 * DETAIL_RADIUS)
-        t, _, _ = self._march(c, d, t, slope, gx, gy)
-        res = LEVELS[0].res
+        t = np.clip(1.0 / np.maximum(inverse_depth[vs, us].astype(np.float64), 1e-4), 0.05, 2 * DETAIL_RADIUS)
+        t, _, _ = self._march(c, d, t, np.minimum(up[:, 0], -1e-3), up[:, 1], up[:, 2], rough=False)
         maps[vs, us, 0] = (c[0] + t * d[:, 0]) / res - 0.5 - shift[0]
         maps[vs, us, 1] = -(c[1] + t * d[:, 1]) / res - 0.5 - shift[1]
         depth[vs, us] = t
@@ -582,6 +610,7 @@ class Renderer:
         slope: np.ndarray,
         gx: np.ndarray,
         gy: np.ndarray,
+        rough: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """First crossing of rays with the full terrain within the height band of bumps and patches.
 
@@ -592,30 +621,34 @@ class Renderer:
         rate = np.maximum(-slope, 1e-3)  # metres of height lost per unit of t over the smooth ground
         lo = np.maximum(t_smooth - 0.16 / rate, 1e-3)
         hi = t_smooth + 0.04 / rate
-        n = 10
+        n = 8
         ts = lo[:, None] + (hi - lo)[:, None] * np.linspace(0.0, 1.0, n)[None, :]
 
-        def above(t: np.ndarray) -> np.ndarray:
+        def clearance(t: np.ndarray) -> np.ndarray:
+            """Height of the ray over the ground (hills linearised) at ray parameters ``t``."""
             x = centre[0] + t * d[:, 0:1] if t.ndim == 2 else centre[0] + t * d[:, 0]
             y = centre[1] + t * d[:, 1:2] if t.ndim == 2 else centre[1] + t * d[:, 1]
-            bump, _, _ = self.terrain.height_and_gradient(x, y, near, smooth=False)
+            bump, _, _ = self.terrain.height_and_gradient(x, y, near, smooth=False, rough=rough, gradient=False)
             base = slope[:, None] * (t - t_smooth[:, None]) if t.ndim == 2 else slope * (t - t_smooth)
-            out: np.ndarray = base - bump > 0.0
+            out: np.ndarray = base - bump
             return out
 
-        below = ~above(ts)
+        f = clearance(ts)
+        below = f <= 0.0
         first = np.where(below.any(axis=1), below.argmax(axis=1), n - 1)
         rows = np.arange(len(d))
-        a = ts[rows, np.maximum(first - 1, 0)]
-        b = ts[rows, first]
-        for _ in range(4):
+        a, b = ts[rows, np.maximum(first - 1, 0)], ts[rows, first]
+        fa, fb = f[rows, np.maximum(first - 1, 0)], f[rows, first]
+        for _ in range(3):
             m = 0.5 * (a + b)
-            up = above(m)
-            a = np.where(up, m, a)
-            b = np.where(up, b, m)
-        t = 0.5 * (a + b)
+            fm = clearance(m)
+            up = fm > 0.0
+            a, fa = np.where(up, m, a), np.where(up, fm, fa)
+            b, fb = np.where(up, b, m), np.where(up, fb, fm)
+        # a last secant step inside the bracket
+        t = np.where(fa - fb > 1e-12, a + (b - a) * fa / np.maximum(fa - fb, 1e-12), 0.5 * (a + b))
         _, dx, dy = self.terrain.height_and_gradient(
-            centre[0] + t * d[:, 0], centre[1] + t * d[:, 1], near, smooth=False
+            centre[0] + t * d[:, 0], centre[1] + t * d[:, 1], near, smooth=False, rough=rough
         )
         return t, gx + dx, gy + dy
 

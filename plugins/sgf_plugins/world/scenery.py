@@ -116,6 +116,10 @@ class Scenery:
         )
         self._facades: OrderedDict[tuple[int, int, bool, int], np.ndarray] = OrderedDict()
         self._canopies = [_pyramid(self._canopy_sprite(k)) for k in range(4)]
+        self._canopy_colours = [
+            (p[0][..., :3] * p[0][..., 3:]).sum(axis=(0, 1)) / max(float(p[0][..., 3].sum()), 1e-6)
+            for p in self._canopies
+        ]
         self._trees = np.array(
             [
                 [t.position[0], t.position[1], z, t.canopy_height, t.canopy_radius]
@@ -398,7 +402,7 @@ class Scenery:
         if c1 <= c0 or r1 <= r0:
             return
         level = 0.9 * light.gain if light.night else light.at(np.array([*((a + c) / 2), base_z + 2.0]), normal)
-        if r1 - r0 < 6:
+        if r1 - r0 < 10:
             # a far wall a few pixels high: its mean colour (the windows are below a pixel)
             colour = self.facade_texture(index, side, length, light.night).reshape(-1, 3).mean(axis=0) * level
             self._fill(image, depth, uv, colour.astype(np.float32), max(float(pc[:, 2].min()), 0.5))
@@ -469,8 +473,13 @@ class Scenery:
                 tuv = project(tc)
                 col = tuple(float(v) for v in np.array([78, 64, 52], np.float32) * level)
                 cv2.fillPoly(image, [np.round(tuv * 16).astype(np.int32)], col, cv2.LINE_AA, 4)
-            if r_px >= 1.0:
+            if r_px >= 12.0:
                 self._sprite(image, depth, self._canopies[tree.variant], uv[1], r_px, level, float(pts[1, 2]))
+            elif r_px >= 1.0:  # a far crown: a blob of its mean colour (its leaves are below a pixel)
+                col = tuple(float(v) for v in self._canopy_colours[tree.variant] * level)
+                centre_px = (round(uv[1, 0] * 16), round(uv[1, 1] * 16))
+                axes = (round(r_px * 16), round(r_px * 0.92 * 16))
+                cv2.ellipse(image, centre_px, axes, 0.0, 0, 360, col, -1, cv2.LINE_AA, 4)
 
         return dist, draw
 
