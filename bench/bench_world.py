@@ -74,6 +74,7 @@ def main() -> None:
 
     # 2. stream the whole campus_delivery preset (fresh world: cold tiles, every frame rendered)
     world = build_world("campus_delivery", seed=0)
+    world.renderer.stopwatch.enabled = True
     n = len(world) if args.stream_frames <= 0 else min(args.stream_frames, len(world))
     c0, w0 = time.process_time(), time.perf_counter()
     per_frame = []
@@ -91,6 +92,10 @@ def main() -> None:
         f"({1000 * cpu / n:.1f} ms CPU per frame, median {1000 * statistics.median(per_frame):.1f} ms, "
         f"{tiles} tiles generated); the sequence lasts {duration:.0f} s: "
         f"{duration / cpu:.1f}x faster than real time (CPU)"
+    )
+    print(
+        "  mean CPU ms per frame by stage: "
+        + ", ".join(f"{k} {v:.1f}" for k, v in world.renderer.stopwatch.report().items())
     )
 
     # 3. memory along a long route: RSS after N/4 frames and after N frames of the large loop
