@@ -274,8 +274,8 @@ class Renderer:
         rgba = np.zeros((h, w, 4), np.uint8)
         ids = np.zeros((h, w), np.uint16)
         if top < h:
-            rgba[top:] = _remap(m0.rgba, maps[top:], cv2.INTER_LINEAR)
-            ids[top:] = _remap(m0.ids, maps[top:], cv2.INTER_NEAREST)
+            cv2.remap(m0.rgba, maps[top:], None, cv2.INTER_LINEAR, dst=rgba[top:], borderMode=cv2.BORDER_REPLICATE)  # type: ignore[call-overload]
+            cv2.remap(m0.ids, maps[top:], None, cv2.INTER_NEAREST, dst=ids[top:], borderMode=cv2.BORDER_REPLICATE)  # type: ignore[call-overload]
         watch.lap("near ground lookup")
         if top > 0:
             self._blend_levels(rgba, ids, maps, weights_f, ground, top, shift)
@@ -408,7 +408,6 @@ class Renderer:
         ground = ground_all[:top]
         acc = np.zeros((top, self.width, 4), np.float32)
         total = np.zeros((top, self.width), np.float32)
-        level_here = np.argmax(weights_f[:top], axis=-1)
         for k, mosaic in enumerate(self.mosaics):
             weight = weights_f[:top, :, k] * ground
             rows = np.flatnonzero(weight.max(axis=1) > 0)
@@ -421,16 +420,16 @@ class Renderer:
             sx, sy = mosaic.shift
             offset = np.array([(shift[0] + 0.5) * ratio - 0.5 - sx, (shift[1] + 0.5) * ratio - 0.5 - sy], np.float32)
             map_k = maps[r0:r1] * np.float32(ratio) + offset
-            limit = np.float32(mosaic.size - 1)
-            valid = ((map_k >= 0.0) & (map_k <= limit)).all(axis=-1)
-            np.clip(map_k, 0.0, limit, out=map_k)  # keep remap on its fast in-range path
-            wk = weight[r0:r1] * valid
+            # pixels with weight lie in the window (their tiles are loaded); clipping keeps the
+            # others on remap's fast in-range path
+            np.clip(map_k, 0.0, np.float32(mosaic.size - 1), out=map_k)
+            wk = weight[r0:r1]
             sample = _remap(mosaic.rgba, map_k, cv2.INTER_LINEAR)
             ident = _remap(mosaic.ids, map_k, cv2.INTER_NEAREST)
             acc[r0:r1] += sample.astype(np.float32) * wk[..., None]
             total[r0:r1] += wk
-            choose = valid & (level_here[r0:r1] == k) & ground[r0:r1]
-            ids[r0:r1] = np.where(choose, ident, ids[r0:r1])
+            # ids from the heaviest level (never blended)
+            np.copyto(ids[r0:r1], ident, where=wk > 0.5)
         acc /= np.maximum(total, 1e-6)[..., None]
         rgba[:top] = np.clip(acc, 0, 255).astype(np.uint8)
 

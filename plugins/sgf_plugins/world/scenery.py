@@ -428,7 +428,7 @@ class Scenery:
         alpha = np.zeros((r1 - r0, c1 - c0), np.float32)
         cv2.fillPoly(alpha, [np.round((uv - [c0, r0]) * 16).astype(np.int32)], 1.0, cv2.LINE_AA, 4)
         nearest = float(pc[:, 2].min())
-        alpha *= depth[r0:r1, c0:c1] > max(nearest, 0.5)
+        alpha *= depth[r0:r1, c0:c1] > max(nearest, 0.5)  # a rise of the ground can hide a wall's foot
         # night walls are stored dark with their lit windows: they glow on their own
         roi = image[r0:r1, c0:c1]
         _blend_into(roi, warped.astype(np.float32) * level, alpha)
