@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import maximum_filter1d, uniform_filter1d
@@ -12,19 +12,8 @@ from scipy.ndimage import maximum_filter1d, uniform_filter1d
 from sgf_pipeline.geometry import rotation_rpy, rpy_from_rotation
 from sgf_plugins.world.layout import CampusLayout
 from sgf_plugins.world.noise import lattice_noise, rng_for
+from sgf_plugins.world.presets import RouteSpec
 from sgf_plugins.world.terrain import Terrain
-
-
-@dataclass(frozen=True)
-class RouteSpec:
-    """A route as the network nodes it passes, with stops (seconds of standing still) at some nodes.
-
-    ``end_fraction`` of the last edge is driven (the route may end part-way along a path).
-    """
-
-    nodes: tuple[str, ...]
-    stops: dict[str, float] = field(default_factory=dict)
-    end_fraction: float = 1.0
 
 
 @dataclass

@@ -4,7 +4,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from sgf_plugins.world.drive import RouteSpec
+
+@dataclass(frozen=True)
+class RouteSpec:
+    """A route as the network nodes it passes, with stops (seconds of standing still) at some nodes.
+
+    ``end_fraction`` of the last edge is driven (the route may end part-way along a path).
+    """
+
+    nodes: tuple[str, ...]
+    stops: dict[str, float] = field(default_factory=dict)
+    end_fraction: float = 1.0
 
 
 @dataclass(frozen=True)
