@@ -116,6 +116,7 @@ class Scenery:
         )
         self._facades: OrderedDict[tuple[int, int, bool, int], np.ndarray] = OrderedDict()
         self._canopies = [_pyramid(self._canopy_sprite(k)) for k in range(4)]
+        self._scaled_sprites: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
         self._canopy_colours = [
             (p[0][..., :3] * p[0][..., 3:]).sum(axis=(0, 1)) / max(float(p[0][..., 3].sum()), 1e-6)
             for p in self._canopies
@@ -552,7 +553,13 @@ class Scenery:
         rr0, rr1 = max(0, r0), min(h, r0 + size)
         if cc1 <= cc0 or rr1 <= rr0:
             return
-        scaled = cv2.resize(sprite, (size, size), interpolation=cv2.INTER_LINEAR)
+        key = (id(pyramid), size)
+        scaled = self._scaled_sprites.get(key)
+        if scaled is None:
+            scaled = cv2.resize(sprite, (size, size), interpolation=cv2.INTER_LINEAR)
+            self._scaled_sprites[key] = scaled
+            while len(self._scaled_sprites) > 256:
+                self._scaled_sprites.popitem(last=False)
         part = scaled[rr0 - r0 : rr1 - r0, cc0 - c0 : cc1 - c0]
         alpha = part[..., 3]
         roi = image[rr0:rr1, cc0:cc1]

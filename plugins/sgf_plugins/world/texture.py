@@ -130,7 +130,7 @@ class TileGenerator:
             marking.wear_seed,
         )
         self._rasters[key] = r
-        while len(self._rasters) > 256:
+        while len(self._rasters) > 96:
             self._rasters.popitem(last=False)
         return r
 
