@@ -1,11 +1,13 @@
 """The camera: every pixel's ray cast onto the terrain, textured from tile mosaics, lit, and exposed.
 
-Per frame the rays of a coarse grid (every 4th pixel) are intersected with the height field
-(plane start, Newton steps); the hit points, depths and lighting are upsampled bilinearly to
-full resolution (exact bilinear interpolation of the coarse samples; under 0.1 px of the true
-projective map below the horizon's first rows), and the ground colour and marking ids are
-looked up with one ``cv2.remap`` per level of detail in toroidal tile mosaics. Sky, walls,
-trees, people and vehicles are drawn on top; exposure and sensor noise come last.
+Per frame the rays of a coarse grid (every 8th pixel) are intersected with the height field
+(plane start, Newton steps on the hills, a march through the height band of nearby bumps). The
+hit points are carried to every pixel perspective-correctly: texel coordinates over depth and
+inverse depth are interpolated bilinearly and divided, which is exact on a plane and within a
+few hundredths of a pixel on the campus hills. Pixels that see a speed bump are ray cast one by
+one (its faces are too sharp to interpolate). Ground colour and marking ids come from one
+``cv2.remap`` per level of detail in window mosaics of generated tiles; sky, walls, trees, lamps,
+people and vehicles are drawn on top; the camera gain, sensor noise and 8-bit output come last.
 """
 
 from __future__ import annotations
