@@ -11,15 +11,15 @@ from __future__ import annotations
 import os
 
 for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
-    os.environ[var] = "1"
+    os.environ[var] = "1"  # before numpy is imported: one core
 
-import argparse
-import platform
-import statistics
-import time
+import argparse  # noqa: E402
+import platform  # noqa: E402
+import statistics  # noqa: E402
+import time  # noqa: E402
 
-import cv2
-import numpy as np
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
 
 cv2.setNumThreads(1)
 try:
@@ -53,9 +53,8 @@ def main() -> None:
     ap.add_argument("--stream-frames", type=int, default=0, help="frames of campus_delivery to stream (0 = all)")
     ap.add_argument("--memory-frames", type=int, default=3000)
     args = ap.parse_args()
-    print(
-        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, python {platform.python_version()}"
-    )
+    cpu = platform.processor() or platform.machine()
+    print(f"machine: {cpu}, {os.cpu_count()} cores, python {platform.python_version()}")
     print(f"load average: {os.getloadavg()}")
 
     # 1. one frame (warm tiles): the renderer alone, day and night, with and without the far field
@@ -75,6 +74,7 @@ def main() -> None:
 
     # 2. stream the whole campus_delivery preset (fresh world: cold tiles, every frame rendered)
     world = build_world("campus_delivery", seed=0)
+    world.renderer.stopwatch.enabled = True
     n = len(world) if args.stream_frames <= 0 else min(args.stream_frames, len(world))
     c0, w0 = time.process_time(), time.perf_counter()
     per_frame = []
@@ -92,6 +92,10 @@ def main() -> None:
         f"({1000 * cpu / n:.1f} ms CPU per frame, median {1000 * statistics.median(per_frame):.1f} ms, "
         f"{tiles} tiles generated); the sequence lasts {duration:.0f} s: "
         f"{duration / cpu:.1f}x faster than real time (CPU)"
+    )
+    print(
+        "  mean CPU ms per frame by stage: "
+        + ", ".join(f"{k} {v:.1f}" for k, v in world.renderer.stopwatch.report().items())
     )
 
     # 3. memory along a long route: RSS after N/4 frames and after N frames of the large loop

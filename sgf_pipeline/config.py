@@ -15,7 +15,7 @@ from sgf_pipeline.errors import ConfigError
 RESERVED_KEYS = ("name", "rename")
 
 #: Top-level keys of a run's config besides the stage nodes (``hydra`` is Hydra's own and never validated).
-TOP_LEVEL_KEYS = ("pipeline", "run", "plugins")
+TOP_LEVEL_KEYS = ("pipeline", "run", "plugins", "map")
 
 #: The paper's pipeline, in data-flow order (DESIGN.md section 1).
 PAPER_STAGES = ("dataset", "enhance", "ipm", "saliency", "detector", "descriptor", "association", "loop", "backend")

@@ -104,6 +104,7 @@ def test_sgf_run_cli_on_a_ros2_bag(tmp_path: Path):
                 str(BIN / "sgf-run"),
                 *overrides,
                 "pipeline=[dataset,enhance]",
+                "enhance=none",
                 "run.progress=false",
                 f"hydra.run.dir={out}",
             ],

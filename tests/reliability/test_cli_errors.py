@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 from adapters.recordings import calibration, make_frames, write_folder
-from conftest import run_cli
+from sgf_testing import run_cli
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 from adapters.recordings import calibration, make_frames, write_folder
-from conftest import ROOT
+from sgf_testing import ROOT
 from hydra import compose, initialize_config_dir
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 import yaml
 from adapters.recordings import calibration, make_frames, write_folder
-from conftest import run_cli
+from sgf_testing import run_cli
 from toy_stages import CALIBRATION, ToyPlugin
 
 from sgf_pipeline import ConfigError, Dataset, Pipeline, Stage, StageError, hookimpl, load_plugins

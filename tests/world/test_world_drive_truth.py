@@ -18,10 +18,10 @@ def test_the_robot_drives_at_campus_speed_on_a_ten_hertz_clock(delivery):
     assert cruising.mean() > 0.9
     assert step[cruising].min() > 0.97 and step.max() < 1.53
     assert drive.speed.max() <= 1.5
-    assert np.median(step[step > 0.5]) == pytest.approx(1.25, abs=0.15)
+    assert 1.0 <= np.median(step[step > 0.5]) <= 1.5 and np.percentile(step, 95) > 1.2
     # the drop-off stop: the robot stands still for six seconds
     assert (step < 1e-9).sum() >= 59
-    assert 250.0 < drive.length < 450.0
+    assert 180.0 < drive.length < 400.0
 
 
 def test_ground_truth_poses_stand_on_the_terrain(delivery):

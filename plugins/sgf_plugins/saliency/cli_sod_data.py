@@ -8,7 +8,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from sgf_pipeline.cli.common import friendly_errors
+from sgf_pipeline.cli.common import console, friendly_errors
 from sgf_pipeline.config import config_dir
 from sgf_pipeline.errors import ConfigError
 from sgf_pipeline.io import atomic_write_json
@@ -17,7 +17,7 @@ from sgf_plugins.saliency.synthetic_data import WorldSpec, generate
 
 @hydra.main(config_path=str(config_dir()), config_name="sgf_sod_data", version_base="1.3")
 @friendly_errors
-def main(cfg: DictConfig) -> None:
+def app(cfg: DictConfig) -> None:
     """Stream each configured world through enhance + IPM and write one SOD folder with its splits."""
     plain: Any = OmegaConf.to_container(cfg, resolve=True)
     if not plain.get("out"):
@@ -47,6 +47,9 @@ def main(cfg: DictConfig) -> None:
     )
     print(f"wrote {report.count} samples to {report.root}: " + ", ".join(f"{k} {v}" for k, v in sizes.items()))
 
+
+#: The console script.
+main = console(app)
 
 if __name__ == "__main__":
     main()

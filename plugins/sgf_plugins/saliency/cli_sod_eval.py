@@ -14,7 +14,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from sgf_pipeline import Stage
-from sgf_pipeline.cli.common import friendly_errors
+from sgf_pipeline.cli.common import console, friendly_errors
 from sgf_pipeline.config import config_dir
 from sgf_pipeline.errors import ConfigError, DataError
 from sgf_pipeline.io import atomic_write_json
@@ -146,7 +146,7 @@ def run(cfg: Mapping[str, Any], out_dir: Path) -> dict[str, dict[str, Any]]:
 
 @hydra.main(config_path=str(config_dir()), config_name="sgf_sod_eval", version_base="1.3")
 @friendly_errors
-def main(cfg: DictConfig) -> None:
+def app(cfg: DictConfig) -> None:
     """Print Table 1 for the chosen predictions or models and write sod_metrics.json."""
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     raw = OmegaConf.to_container(cfg, resolve=True)
@@ -155,6 +155,9 @@ def main(cfg: DictConfig) -> None:
     print(format_table(results))
     print(f"\n  {out_dir / OUTPUT}", flush=True)
 
+
+#: The console script.
+main = console(app)
 
 if __name__ == "__main__":
     main()

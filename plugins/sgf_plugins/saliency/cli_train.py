@@ -9,7 +9,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from sgf_pipeline.cli.common import friendly_errors
+from sgf_pipeline.cli.common import console, friendly_errors
 from sgf_pipeline.config import RESERVED_KEYS, config_dir, validate_options
 from sgf_pipeline.errors import ConfigError
 from sgf_plugins.saliency.stages import LEARNED_VARIANTS, LearnedParams
@@ -43,7 +43,7 @@ def run(cfg: dict[str, Any], out_dir: Path, command: str) -> dict[str, Any]:
 
 @hydra.main(config_path=str(config_dir()), config_name="sgf_train", version_base="1.3")
 @friendly_errors
-def main(cfg: DictConfig) -> float:
+def app(cfg: DictConfig) -> float:
     """Train the configured network and write its weights and model card in the output directory."""
     hc = HydraConfig.get()
     out_dir = Path(hc.runtime.output_dir)
@@ -62,6 +62,9 @@ def main(cfg: DictConfig) -> float:
     val = card["metrics"]["val"]
     return float(val[card["training"]["monitor"]])
 
+
+#: The console script.
+main = console(app)
 
 if __name__ == "__main__":
     main()

@@ -4,14 +4,40 @@
 robot pose (``render(pose, night=True, ...)``), knows the orthographic marking layout under any
 pose (``marking_layout``), drives the preset's route (``frames()``) and holds its ground truth
 (``truth``). The four presets are registered as ``dataset`` variants by
-:mod:`sgf_plugins.world.dataset`.
+:mod:`sgf_plugins.world.dataset`. Names are imported on first use, so that loading the plugin
+(``sgf-plugins``) does not import the renderer.
 """
 
-from sgf_plugins.world.designs import DESIGNS, HELD_OUT_FAMILIES, MarkingDesign, allowed_designs, families
-from sgf_plugins.world.presets import PRESETS, Preset
-from sgf_plugins.world.render import RenderConditions, RenderLayers
-from sgf_plugins.world.terrain import Terrain
-from sgf_plugins.world.world import CampusWorld, WorldParams, build_world, world_params
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from sgf_plugins.world.designs import DESIGNS, HELD_OUT_FAMILIES, MarkingDesign, allowed_designs, families
+    from sgf_plugins.world.params import NightWorldParams, WorldParams
+    from sgf_plugins.world.presets import PRESETS, Preset
+    from sgf_plugins.world.render import RenderConditions, RenderLayers
+    from sgf_plugins.world.terrain import Terrain
+    from sgf_plugins.world.world import CampusWorld, build_world, world_params
+
+_WHERE = {
+    "DESIGNS": "designs",
+    "HELD_OUT_FAMILIES": "designs",
+    "MarkingDesign": "designs",
+    "allowed_designs": "designs",
+    "families": "designs",
+    "NightWorldParams": "params",
+    "WorldParams": "params",
+    "PRESETS": "presets",
+    "Preset": "presets",
+    "RenderConditions": "render",
+    "RenderLayers": "render",
+    "Terrain": "terrain",
+    "CampusWorld": "world",
+    "build_world": "world",
+    "world_params": "world",
+}
 
 __all__ = [
     "DESIGNS",
@@ -19,6 +45,7 @@ __all__ = [
     "PRESETS",
     "CampusWorld",
     "MarkingDesign",
+    "NightWorldParams",
     "Preset",
     "RenderConditions",
     "RenderLayers",
@@ -29,3 +56,12 @@ __all__ = [
     "families",
     "world_params",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    """Import a public name of the package from its module on first use."""
+    if name not in _WHERE:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)
+    globals()[name] = value
+    return value

@@ -13,7 +13,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from sgf_pipeline.cli.common import friendly_errors
 from sgf_pipeline.config import config_dir, format_validation_error
-from sgf_pipeline.errors import ConfigError
+from sgf_pipeline.errors import ConfigError, DataError
 from sgf_pipeline.folder_format import FolderDatasetWriter
 from sgf_pipeline.io import atomic_write_json
 from sgf_plugins.world.presets import PRESETS
@@ -44,6 +44,9 @@ def run_world_app(options: WorldAppOptions, dataset: dict[str, Any], out: Path) 
         raise ConfigError(
             f"sgf-world exports the synthetic campus presets only ({', '.join(PRESETS)}); got dataset={name!r}"
         )
+    target = out / name
+    if options.export and target.exists() and not options.overwrite:
+        raise DataError(f"{target} exists already; choose another out=... or pass overwrite=true to replace it")
     world = CampusWorld(PRESETS[name], world_params(**dataset))
     out.mkdir(parents=True, exist_ok=True)
     summary: dict[str, Any] = {

@@ -8,21 +8,16 @@ truth (marking table, passes, revisit pairs) before the first frame.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import ClassVar
-
-from pydantic import Field
+from typing import TYPE_CHECKING, ClassVar
 
 from sgf_pipeline import Dataset, StageRegistry, hookimpl
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.types import Frame
+from sgf_plugins.world.params import NightWorldParams, WorldParams
 from sgf_plugins.world.presets import PRESETS
-from sgf_plugins.world.world import CampusWorld, WorldParams
 
-
-class NightWorldParams(WorldParams):
-    """Parameters of the night sequence (the same as by day, with ``night`` on by default)."""
-
-    night: bool = Field(True, description="drive after dark: LED headlight, street lamps, high gain and noise")
+if TYPE_CHECKING:
+    from sgf_plugins.world.world import CampusWorld
 
 
 class CampusDataset(Dataset):
@@ -40,6 +35,8 @@ class CampusDataset(Dataset):
     def world(self) -> CampusWorld:
         """The world (built on first use: layout, terrain, drive)."""
         if self._world is None:
+            from sgf_plugins.world.world import CampusWorld
+
             self._world = CampusWorld(PRESETS[self.preset], self.world_params)
         return self._world
 

@@ -4,27 +4,16 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import maximum_filter1d
+from scipy.ndimage import maximum_filter1d, uniform_filter1d
 
 from sgf_pipeline.geometry import rotation_rpy, rpy_from_rotation
 from sgf_plugins.world.layout import CampusLayout
 from sgf_plugins.world.noise import lattice_noise, rng_for
+from sgf_plugins.world.presets import RouteSpec
 from sgf_plugins.world.terrain import Terrain
-
-
-@dataclass(frozen=True)
-class RouteSpec:
-    """A route as the network nodes it passes, with stops (seconds of standing still) at some nodes.
-
-    ``end_fraction`` of the last edge is driven (the route may end part-way along a path).
-    """
-
-    nodes: tuple[str, ...]
-    stops: dict[str, float] = field(default_factory=dict)
-    end_fraction: float = 1.0
 
 
 @dataclass
@@ -114,7 +103,8 @@ def build_legs(layout: CampusLayout, spec: RouteSpec, corner_radius: float = 4.0
             dense = _resample(_fillet(raw, corner_radius))
             d = np.gradient(dense, axis=0)
             heading = np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
-            curvature = np.gradient(heading) / STEP
+            # arcs are sampled every 0.2 m: smooth the curvature over 0.5 m
+            curvature = uniform_filter1d(np.gradient(heading) / STEP, size=11, mode="nearest")
             legs.append(Leg(dense, heading, curvature, stop))
             current = [pts[-1:]]
     return legs
@@ -149,7 +139,11 @@ def drive(
     lateral_wander: float = 0.25,
     max_lateral_accel: float = 0.35,
 ) -> DriveLog:
-    """Drive the legs at a varying speed in ``speed_range`` (m/s), wandering a little sideways."""
+    """Drive the legs at a varying speed in ``speed_range`` (m/s), wandering a little sideways.
+
+    The speed is the robot's own (off the centre line of a bend it covers less or more of it);
+    it drops below the range only to start, to stop and in tight corners (lateral acceleration).
+    """
     dt = 1.0 / rate_hz
     v_lo, v_hi = speed_range
     times: list[float] = []
@@ -163,13 +157,15 @@ def drive(
         total = (n - 1) * STEP
         # Cruise speed: smooth noise along the route, capped on curves by the lateral acceleration.
         noise = lattice_noise(seed * 7 + k, 0.0, 1.0, n, 1, STEP, 25.6)[0].astype(np.float64)
-        cruise = v_lo + (v_hi - v_lo) * np.clip(0.5 + 0.8 * noise, 0.05, 0.95)
+        # a slow wander around 60 % of the range (1.3 m/s by default), whatever the seed
+        cruise = v_lo + (v_hi - v_lo) * np.clip(0.6 + 0.7 * (noise - noise.mean()), 0.05, 0.95)
         kappa = np.abs(leg.curvature)
         # Look ahead 2 m for curvature so the robot slows before a corner, not in it.
         window = int(2.0 / STEP)
         ahead = maximum_filter1d(kappa, size=window, origin=-(window // 2), mode="nearest")
         cap = np.sqrt(max_lateral_accel / np.maximum(ahead, 1e-6))
-        profile = np.clip(np.minimum(cruise, cap), v_lo, v_hi)
+        # cruise between v_lo and v_hi; only tight corners (radius under ~3 m) are taken slower
+        profile = np.clip(np.minimum(cruise, cap), 0.5 * v_lo, v_hi)
         wander = lateral_wander * lattice_noise(seed * 13 + k, 0.0, 1.0, n, 1, STEP, 12.8)[0].astype(np.float64)
         wander = np.clip(wander, -lateral_wander, lateral_wander)
         # Fade the wander in and out at the ends of a leg (the robot starts and stops on the line).
@@ -195,7 +191,8 @@ def drive(
             t += dt
             if s >= total - 1e-6:
                 break
-            s = min(total, s + v * dt)
+            # the robot's own speed is v: off the centre line of a bend it covers less (or more) of it
+            s = min(total, s + v * dt / max(0.5, 1.0 - lat * leg.curvature[i]))
         for _ in range(round(leg.stop_after * rate_hz)):
             times.append(t)
             xs.append(xs[-1])

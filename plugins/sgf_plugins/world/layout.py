@@ -28,6 +28,7 @@ _ROWS = {"0": 0.0, "1": 110.0, "2": 220.0, "3": 330.0}
 NODES: dict[str, tuple[float, float]] = {c + r: (x, y) for c, x in _COLS.items() for r, y in _ROWS.items()}
 NODES["BC1"] = (195.0, 110.0)
 NODES["H"] = (114.0, 93.0)
+NODES["DO"] = (160.0, 166.0)
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,8 @@ def _edge_specs() -> list[EdgeSpec]:
         EdgeSpec("C2", "D3", 2.5, "bricks", bow=-10.0),
         EdgeSpec("A2", "B3", 2.2, "slabs", bow=6.0),
         EdgeSpec("H", "B1", 2.6, "slabs"),
+        EdgeSpec("BC1", "DO", 2.6, "bricks", bow=4.0),
+        EdgeSpec("DO", "B1", 2.4, "slabs", bow=-5.0),
     ]
     return specs
 
@@ -78,6 +81,9 @@ EDGE_SPECS: tuple[EdgeSpec, ...] = tuple(_edge_specs())
 #: the paths that meet them.
 BUSY_NODES = frozenset({"B1", "BC1", "B2", "C1", "H"})
 BUSY_SPACING = 0.6
+#: The footpaths to the dormitory drop-off are painted most densely (delivery markers, signs).
+DORM_NODES = frozenset({"DO"})
+DORM_SPACING = 0.35
 
 
 # --- layout records ----------------------------------------------------------------------------
@@ -228,17 +234,22 @@ class Agent:
     size: tuple[float, float, float]
     colours: tuple[tuple[int, int, int], ...]
 
-    def state(self, t: float) -> tuple[np.ndarray, float, float]:
-        """Position, heading (rad) and distance walked at time ``t`` (s)."""
+    def __post_init__(self) -> None:
         seg = np.diff(self.points, axis=0)
         lengths = np.linalg.norm(seg, axis=1)
-        total = float(lengths.sum())
+        object.__setattr__(self, "_seg", seg)
+        object.__setattr__(self, "_lengths", lengths)
+        object.__setattr__(self, "_cum", np.concatenate([[0.0], np.cumsum(lengths)]))
+
+    def state(self, t: float) -> tuple[np.ndarray, float, float]:
+        """Position, heading (rad) and distance walked at time ``t`` (s)."""
+        seg, lengths, cum = self._seg, self._lengths, self._cum  # type: ignore[attr-defined]
+        total = float(cum[-1])
         walked = self.phase + self.speed * t
         u = walked % (2 * total) if total > 0 else 0.0
         forward = u <= total
         s = u if forward else 2 * total - u
-        cum = np.concatenate([[0.0], np.cumsum(lengths)])
-        i = int(np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1))
+        i = min(max(int(np.searchsorted(cum, s, side="right")) - 1, 0), len(seg) - 1)
         tangent = seg[i] / max(lengths[i], 1e-9)
         p = self.points[i] + (s - cum[i]) * tangent
         if not forward:
@@ -462,6 +473,9 @@ def build_layout(seed: int, scale: float, options: LayoutOptions) -> CampusLayou
         if name == "H":
             plazas.append(Plaza(pos, 2.4, False, "slabs"))
             continue
+        if name == "DO":  # the drop-off: a small square at a dormitory entrance
+            plazas.append(Plaza(pos, 4.0, False, "bricks"))
+            continue
         big = name in ("C1", "A0", "B2", "D2")
         half = max(widths) / 2 + (6.0 if big else 1.6)
         material = "bricks" if big else str(rng.choice(["slabs", "bricks"]))
@@ -548,8 +562,8 @@ def _place_buildings(layout: CampusLayout, rng: np.random.Generator) -> list[Bui
         c1, r1 = min(w_px, math.ceil((x1 - x_lo) / res) + 1), min(h_px, math.ceil((y1 - y_lo) / res) + 1)
         return c1 > c0 and r1 > r0 and not occupied[r0:r1, c0:c1].any()
 
-    xs = sorted({float(v[0]) for k, v in layout.nodes.items() if k not in ("H", "BC1")})
-    ys = sorted({float(v[1]) for k, v in layout.nodes.items() if k not in ("H", "BC1")})
+    xs = sorted({float(v[0]) for k, v in layout.nodes.items() if k not in ("H", "BC1", "DO")})
+    ys = sorted({float(v[1]) for k, v in layout.nodes.items() if k not in ("H", "BC1", "DO")})
     blocks = []
     for x0, x1 in zip([xs[0] - 90 * s, *xs], [*xs, xs[-1] + 90 * s], strict=True):
         for y0, y1 in zip([ys[0] - 80 * s, *ys], [*ys, ys[-1] + 80 * s], strict=True):
@@ -602,13 +616,13 @@ def _place_trees_and_lamps(layout: CampusLayout, rng: np.random.Generator) -> tu
     for e in layout.edges:
         length = e.length
         side_offsets = (e.width / 2 + rng.uniform(1.6, 3.2), -(e.width / 2 + rng.uniform(1.6, 3.2)))
-        spacing = rng.uniform(9.0, 15.0)
+        spacing = rng.uniform(11.0, 18.0)
         s = rng.uniform(4.0, spacing)
         while s < length - 4.0:
             p, t = e.at(s)
             n = np.array([-t[1], t[0]])
             for off in side_offsets:
-                if rng.random() < 0.7:
+                if rng.random() < 0.6:
                     q = p + n * (off + rng.normal(0, 0.3))
                     trees.append(_tree(q, rng))
             s += spacing * rng.uniform(0.85, 1.15)
@@ -749,7 +763,9 @@ def _place_markings(layout: CampusLayout, rng: np.random.Generator, options: Lay
                 if fits(p[0], p[1], 0.5 * math.hypot(d.size[0], width)):
                     add(d, float(p[0]), float(p[1]), yaw, d.size[0], width, e.index)
         # 3. regular sites along the path (closer together in the busy middle of the campus)
-        spacing = options.marking_spacing * (BUSY_SPACING if {e.a, e.b} & BUSY_NODES else 1.0)
+        nodes = {e.a, e.b}
+        factor = DORM_SPACING if nodes & DORM_NODES else (BUSY_SPACING if nodes & BUSY_NODES else 1.0)
+        spacing = options.marking_spacing * factor
         if length < 30.0:
             sites = [0.5 * length]
         else:

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 
 from sgf_pipeline.io import atomic_write_bytes
+from sgf_pipeline.types import MarkingPass
 from sgf_plugins.world.world import CampusWorld
 
 MAP_TILE = 64.0
@@ -27,7 +28,7 @@ def ground_map(world: CampusWorld, bounds: tuple[float, float, float, float], re
     gen = world.renderer.generator
     for j in range(rows):
         for i in range(cols):
-            rgba, _ = gen.region(x0 + i * MAP_TILE, y1 - j * MAP_TILE, n, n, res)
+            rgba, _ = gen.region(x0 + i * MAP_TILE, y1 - j * MAP_TILE, n, n, res, geometry_step=2)
             lit = rgba[..., :3].astype(np.float32) * (0.55 + 0.45 * rgba[..., 3:] / 255.0) * 1.15
             out[j * n : (j + 1) * n, i * n : (i + 1) * n] = np.clip(lit, 0, 255).astype(np.uint8)
     _draw_buildings_and_trees(world, out, x0, y1, res)
@@ -62,12 +63,13 @@ def save_map(world: CampusWorld, path: str | os.PathLike[str], res: float | None
     margin = 30.0
     bounds = (xy[:, 0].min() - margin, xy[:, 1].min() - margin, xy[:, 0].max() + margin, xy[:, 1].max() + margin)
     span = max(bounds[2] - bounds[0], bounds[3] - bounds[1])
-    res = res or max(0.08, span / 1800.0)
+    res = res or max(0.1, span / 1600.0)
     image = ground_map(world, bounds, res)
     gx0 = math.floor(bounds[0] / MAP_TILE) * MAP_TILE
     gy1 = math.ceil(bounds[3] / MAP_TILE) * MAP_TILE
     extent = (gx0, gx0 + image.shape[1] * res, gy1 - image.shape[0] * res, gy1)
-    fig, ax = plt.subplots(figsize=(12, 12 * image.shape[0] / image.shape[1] + 0.8), dpi=150)
+    aspect = (bounds[3] - bounds[1]) / (bounds[2] - bounds[0])
+    fig, ax = plt.subplots(figsize=(12, 12 * aspect + 0.8), dpi=150)
     ax.imshow(image, extent=extent, interpolation="antialiased")
     points = ax.scatter(xy[:, 0], xy[:, 1], c=drive.timestamps, cmap="plasma", s=1.2, linewidths=0, zorder=3)
     step = max(1, len(xy) // 40)
@@ -106,11 +108,11 @@ def save_map(world: CampusWorld, path: str | os.PathLike[str], res: float | None
         Line2D([], [], marker="*", ls="", color="#00e676", mec="black", ms=12, label="start"),
         Line2D([], [], marker="X", ls="", color="#ff1744", mec="black", ms=10, label="end"),
     ]
-    ax.legend(handles=handles, loc="upper right", fontsize=8, framealpha=0.85)
+    ax.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, -0.07), ncol=6, fontsize=8, frameon=False)
     fig.colorbar(points, ax=ax, fraction=0.03, pad=0.01, label="time (s)")
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png")
+    fig.savefig(buf, format="png", bbox_inches="tight")
     plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())
     return Path(path)
@@ -131,9 +133,15 @@ def sample_frames(world: CampusWorld) -> dict[str, int]:
     """Frames worth looking at: a marking in full view by day, the same place at night, a speed bump."""
     truth = world.truth
     drive = world.drive
-    passes = sorted(truth.passes, key=lambda p: -(p.end_frame - p.start_frame))
-    custom = [p for p in passes if truth.markings[p.instance_id].category == "custom"]
-    chosen = custom or passes
+
+    def area(p: MarkingPass) -> float:
+        size = truth.markings[p.instance_id].size
+        return size[0] * size[1]
+
+    # the largest custom marking seen for a while (a logo or painted text rather than a drain)
+    long_enough = [p for p in truth.passes if p.end_frame - p.start_frame >= 8] or list(truth.passes)
+    custom = sorted((p for p in long_enough if truth.markings[p.instance_id].category == "custom"), key=area)[::-1]
+    chosen = custom or sorted(long_enough, key=area)[::-1]
     day = (chosen[0].start_frame + chosen[0].end_frame) // 2 if chosen else len(drive) // 2
     pitch = np.array([math.asin(max(-1.0, min(1.0, -float(p[2, 0])))) for p in drive.poses])
     bump = int(np.argmax(np.abs(pitch)))

@@ -4,7 +4,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from sgf_plugins.world.drive import RouteSpec
+
+@dataclass(frozen=True)
+class RouteSpec:
+    """A route as the network nodes it passes, with stops (seconds of standing still) at some nodes.
+
+    ``end_fraction`` of the last edge is driven (the route may end part-way along a path).
+    """
+
+    nodes: tuple[str, ...]
+    stops: dict[str, float] = field(default_factory=dict)
+    end_fraction: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -70,7 +80,7 @@ PRESETS: dict[str, Preset] = {
         ),
         Preset(
             "campus_delivery",
-            RouteSpec(("H", "B1", "BC1", "B2", "B1", "H"), stops={"B2": 6.0}),
+            RouteSpec(("H", "B1", "BC1", "DO", "B1", "H"), stops={"DO": 6.0}),
             False,
             "Seq. Delivery: from the robot's home out to a drop-off, a stop, and back home",
             {"markings": 23, "pairs": 1, "pairs_reverse": 1, "ate_odometry_m": 71.147},

@@ -71,6 +71,17 @@ class Lighting:
         return level * self.gain
 
 
+@dataclass(frozen=True)
+class PlacedAgent:
+    """A person or vehicle where it is at the frame's time: position, heading, distance walked, ground height."""
+
+    agent: Agent
+    position: np.ndarray
+    heading: float
+    walked: float
+    z: float
+
+
 def clip_near(points: np.ndarray, z_near: float = 0.05) -> np.ndarray:
     """Clip a convex polygon (N, 3) in camera coordinates against the plane ``z = z_near``."""
     out: list[np.ndarray] = []
@@ -105,6 +116,11 @@ class Scenery:
         )
         self._facades: OrderedDict[tuple[int, int, bool, int], np.ndarray] = OrderedDict()
         self._canopies = [_pyramid(self._canopy_sprite(k)) for k in range(4)]
+        self._scaled_sprites: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self._canopy_colours = [
+            (p[0][..., :3] * p[0][..., 3:]).sum(axis=(0, 1)) / max(float(p[0][..., 3].sum()), 1e-6)
+            for p in self._canopies
+        ]
         self._trees = np.array(
             [
                 [t.position[0], t.position[1], z, t.canopy_height, t.canopy_radius]
@@ -217,7 +233,7 @@ class Scenery:
         camera_to_world: np.ndarray,
         K: np.ndarray,
         light: Lighting,
-        agents: list[tuple[Agent, float]],
+        agents: list[PlacedAgent],
         far_field: bool,
     ) -> None:
         """Draw everything above the ground (far first) into ``image`` (uint8 RGB, already exposed)."""
@@ -245,8 +261,8 @@ class Scenery:
 
         if far_field:
             self._cull_and_queue(items, centre, rot, trans, image, depth, K, light, to_cam, project)
-        for agent, z0 in agents:
-            item = self._agent_item(agent, z0, to_cam, project, image, occlusion, K, light)
+        for placed in agents:
+            item = self._agent_item(placed, to_cam, project, image, occlusion, K, light)
             if item is not None:
                 items.append(item)
         for _, draw in sorted(items, key=lambda it: -it[0]):
@@ -387,7 +403,7 @@ class Scenery:
         if c1 <= c0 or r1 <= r0:
             return
         level = 0.9 * light.gain if light.night else light.at(np.array([*((a + c) / 2), base_z + 2.0]), normal)
-        if r1 - r0 < 6:
+        if r1 - r0 < 10:
             # a far wall a few pixels high: its mean colour (the windows are below a pixel)
             colour = self.facade_texture(index, side, length, light.night).reshape(-1, 3).mean(axis=0) * level
             self._fill(image, depth, uv, colour.astype(np.float32), max(float(pc[:, 2].min()), 0.5))
@@ -413,7 +429,7 @@ class Scenery:
         alpha = np.zeros((r1 - r0, c1 - c0), np.float32)
         cv2.fillPoly(alpha, [np.round((uv - [c0, r0]) * 16).astype(np.int32)], 1.0, cv2.LINE_AA, 4)
         nearest = float(pc[:, 2].min())
-        alpha *= depth[r0:r1, c0:c1] > max(nearest, 0.5)
+        alpha *= depth[r0:r1, c0:c1] > max(nearest, 0.5)  # a rise of the ground can hide a wall's foot
         # night walls are stored dark with their lit windows: they glow on their own
         roi = image[r0:r1, c0:c1]
         _blend_into(roi, warped.astype(np.float32) * level, alpha)
@@ -456,10 +472,15 @@ class Scenery:
             tc = clip_near(to_cam(quad))
             if len(tc) >= 3:
                 tuv = project(tc)
-                col = np.array([78, 64, 52], np.float32) * level
-                self._fill(image, depth, tuv, col, float(tc[:, 2].min()))
-            if r_px >= 1.0:
+                col = tuple(float(v) for v in np.array([78, 64, 52], np.float32) * level)
+                cv2.fillPoly(image, [np.round(tuv * 16).astype(np.int32)], col, cv2.LINE_AA, 4)
+            if r_px >= 12.0:
                 self._sprite(image, depth, self._canopies[tree.variant], uv[1], r_px, level, float(pts[1, 2]))
+            elif r_px >= 1.0:  # a far crown: a blob of its mean colour (its leaves are below a pixel)
+                col = tuple(float(v) for v in self._canopy_colours[tree.variant] * level)
+                centre_px = (round(uv[1, 0] * 16), round(uv[1, 1] * 16))
+                axes = (round(r_px * 16), round(r_px * 0.92 * 16))
+                cv2.ellipse(image, centre_px, axes, 0.0, 0, 360, col, -1, cv2.LINE_AA, 4)
 
         return dist, draw
 
@@ -532,9 +553,15 @@ class Scenery:
         rr0, rr1 = max(0, r0), min(h, r0 + size)
         if cc1 <= cc0 or rr1 <= rr0:
             return
-        scaled = cv2.resize(sprite, (size, size), interpolation=cv2.INTER_LINEAR)
+        key = (id(pyramid), size)
+        scaled = self._scaled_sprites.get(key)
+        if scaled is None:
+            scaled = cv2.resize(sprite, (size, size), interpolation=cv2.INTER_LINEAR)
+            self._scaled_sprites[key] = scaled
+            while len(self._scaled_sprites) > 256:
+                self._scaled_sprites.popitem(last=False)
         part = scaled[rr0 - r0 : rr1 - r0, cc0 - c0 : cc1 - c0]
-        alpha = part[..., 3] * (depth[rr0:rr1, cc0:cc1] > z * 0.9)
+        alpha = part[..., 3]
         roi = image[rr0:rr1, cc0:cc1]
         _blend_into(roi, part[..., :3] * level, alpha)
 
@@ -542,8 +569,7 @@ class Scenery:
 
     def _agent_item(
         self,
-        agent: Agent,
-        z0: float,
+        placed: PlacedAgent,
         to_cam: Callable[[np.ndarray], np.ndarray],
         project: Callable[[np.ndarray], np.ndarray],
         image: np.ndarray,
@@ -551,8 +577,8 @@ class Scenery:
         K: np.ndarray,
         light: Lighting,
     ) -> tuple[float, Callable[[], None]] | None:
-        pos, heading, walked = agent.state(self._time)
-        base = np.array([pos[0], pos[1], z0])
+        agent, heading, walked = placed.agent, placed.heading, placed.walked
+        base = np.array([placed.position[0], placed.position[1], placed.z])
         pc = to_cam(base[None] + np.array([[0.0, 0.0, 0.9]]))[0]
         if pc[2] < 0.15 or pc[2] > 70.0:
             return None
@@ -586,45 +612,50 @@ class Scenery:
         f = np.array([math.cos(heading), math.sin(heading), 0.0])
         left = np.array([-f[1], f[0], 0.0])
         up = np.array([0.0, 0.0, 1.0])
-        moving = agent.speed > 0
-        phase = 2 * math.pi * walked / 1.4 if moving else 0.0
-        swing = 0.28 * math.sin(phase) if moving else 0.0
+        swing = 0.28 * math.sin(2 * math.pi * walked / 1.4) if agent.speed > 0 else 0.0
         hip_h, shoulder_h = 0.52 * height, 0.81 * height
-        parts: list[tuple[np.ndarray, np.ndarray, float, np.ndarray]] = []
-        for side, sgn in ((1.0, 1.0), (-1.0, -1.0)):
+        starts, ends, widths, colours = [], [], [], []
+
+        def limb(a: np.ndarray, b: np.ndarray, width: float, colour: np.ndarray) -> None:
+            starts.append(a)
+            ends.append(b)
+            widths.append(width)
+            colours.append(colour)
+
+        for side in (1.0, -1.0):
             hip = base + side * 0.09 * left + hip_h * up
-            foot = base + side * 0.1 * left + sgn * swing * f + 0.05 * up
+            foot = base + side * 0.1 * left + side * swing * f + 0.05 * up
             knee = 0.5 * (hip + foot) + 0.04 * f + 0.02 * up
-            parts.append((hip, knee, 0.14, trousers))
-            parts.append((knee, foot, 0.12, trousers))
-            parts.append((foot, foot + 0.22 * f, 0.09, shoes))
+            limb(hip, knee, 0.14, trousers)
+            limb(knee, foot, 0.12, trousers)
+            limb(foot, foot + 0.22 * f, 0.09, shoes)
             shoulder = base + side * 0.19 * left + shoulder_h * up
-            hand = base + side * 0.22 * left - sgn * 0.7 * swing * f + 0.43 * height * up
-            parts.append((shoulder, hand, 0.09, shirt))
-            parts.append((hand, hand - 0.06 * up, 0.08, skin))
-        parts.append((base + (hip_h - 0.02) * up, base + (shoulder_h - 0.03) * up, 0.36, shirt))
-        parts.append((base + 0.87 * height * up, base + 0.96 * height * up, 0.2, skin))
+            hand = base + side * 0.22 * left - side * 0.7 * swing * f + 0.43 * height * up
+            limb(shoulder, hand, 0.09, shirt)
+            limb(hand, hand - 0.06 * up, 0.08, skin)
+        limb(base + (hip_h - 0.02) * up, base + (shoulder_h - 0.03) * up, 0.36, shirt)
+        limb(base + 0.87 * height * up, base + 0.96 * height * up, 0.2, skin)
+        a = to_cam(np.asarray(starts))
+        b = to_cam(np.asarray(ends))
+        # clip every limb to the part in front of the camera
+        za, zb = a[:, 2], b[:, 2]
+        keep = np.maximum(za, zb) >= 0.05
+        s = np.clip((0.05 - za) / np.where(np.abs(zb - za) > 1e-9, zb - za, 1e-9), 0.0, 1.0)
+        a = np.where((za < 0.05)[:, None], a + s[:, None] * (b - a), a)
+        s = np.clip((0.05 - zb) / np.where(np.abs(za - zb) > 1e-9, za - zb, 1e-9), 0.0, 1.0)
+        b = np.where((zb < 0.05)[:, None], b + s[:, None] * (a - b), b)
+        depth = 0.5 * (a[:, 2] + b[:, 2])
+        ua, ub = project(a), project(b)
         lit = light.at(base + 1.0 * up)
-        drawn: list[tuple[float, np.ndarray, float, np.ndarray]] = []
-        for a, b, width, colour in parts:
-            seg = to_cam(np.stack([a, b]))
-            if seg[:, 2].max() < 0.05:
+        for i in np.argsort(-depth):
+            thick = max(1, round(K[0, 0] * widths[i] / max(float(depth[i]), 0.05)))
+            if not keep[i] or thick > 4000:
                 continue
-            if seg[:, 2].min() < 0.05:
-                t = (0.05 - seg[0, 2]) / (seg[1, 2] - seg[0, 2])
-                clipped = seg[0] + t * (seg[1] - seg[0])
-                seg = np.stack([clipped, seg[1]]) if seg[0, 2] < 0.05 else np.stack([seg[0], clipped])
-            drawn.append((float(seg[:, 2].mean()), seg, width, colour))
-        for z, seg, width, colour in sorted(drawn, key=lambda d: -d[0]):
-            uv = project(seg)
-            thick = max(1, round(K[0, 0] * width / max(z, 0.05)))
-            if thick > 4000:
-                continue
-            p0 = (round(uv[0, 0] * 16), round(uv[0, 1] * 16))
-            p1 = (round(uv[1, 0] * 16), round(uv[1, 1] * 16))
+            p0 = (round(ua[i, 0] * 16), round(ua[i, 1] * 16))
+            p1 = (round(ub[i, 0] * 16), round(ub[i, 1] * 16))
             if max(abs(v) for v in (*p0, *p1)) > 2_000_000:
                 continue
-            col = tuple(float(v) for v in colour * lit)
+            col = tuple(float(v) for v in colours[i] * lit)
             cv2.line(image, p0, p1, col, thick, cv2.LINE_AA, 4)
             cv2.line(occlusion, p0, p1, 255, thick, cv2.LINE_8, 4)
 

@@ -53,12 +53,15 @@ class Terrain:
         near: tuple[float, float, float] | None = None,
         detail: bool = True,
         smooth: bool = True,
+        rough: bool = True,
+        gradient: bool = True,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Height ``H`` and its partial derivatives ``dH/dx``, ``dH/dy`` at points (any shape).
 
         ``near = (x, y, radius)`` limits the bumps and rough patches to those within ``radius`` of
         a point (the renderer skips sub-pixel features far from the camera); ``detail=False``
-        leaves them out (the smooth hills only), ``smooth=False`` leaves the hills out.
+        leaves them out (the smooth hills only), ``smooth=False`` leaves the hills out, and
+        ``gradient=False`` skips the derivatives (returned as zeros) where it saves work.
         """
         x = np.asarray(x, np.float64)
         y = np.asarray(y, np.float64)
@@ -75,10 +78,14 @@ class Terrain:
             else:
                 lo_x, hi_x, lo_y, hi_y = float(x.min()), float(x.max()), float(y.min()), float(y.max())
             for i in self._bump_index.query(lo_x, lo_y, hi_x, hi_y):
-                _add_bump(self.bumps[i], x, y, h, gx, gy)
-            for i in self._rough_index.query(lo_x, lo_y, hi_x, hi_y):
+                _add_bump(self.bumps[i], x, y, h, gx if gradient else None, gy if gradient else None)
+            for i in self._rough_index.query(lo_x, lo_y, hi_x, hi_y) if rough else ():
                 _add_rough(self.rough[i], x, y, h, gx, gy)
         return h.reshape(shape), gx.reshape(shape), gy.reshape(shape)
+
+    def bumps_near(self, x: float, y: float, radius: float) -> list[SpeedBump]:
+        """The speed bumps within ``radius`` of a point."""
+        return [self.bumps[i] for i in self._bump_index.query(x - radius, y - radius, x + radius, y + radius)]
 
     def detail_boxes(self, x: float, y: float, radius: float, kind: str = "bumps") -> np.ndarray:
         """Bounding boxes (K, 4: x0, y0, x1, y1) of the ``bumps`` or ``rough`` patches within ``radius``."""
@@ -173,30 +180,30 @@ def _hill(hill: Hill, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndar
     return e, c * du - s * dv, s * du + c * dv
 
 
-def _add_bump(b: SpeedBump, x: np.ndarray, y: np.ndarray, h: np.ndarray, gx: np.ndarray, gy: np.ndarray) -> None:
-    """Add a cos^2 speed bump (tapered at its lateral ends over 0.15 m) in place."""
+def _add_bump(
+    b: SpeedBump, x: np.ndarray, y: np.ndarray, h: np.ndarray, gx: np.ndarray | None, gy: np.ndarray | None
+) -> None:
+    """Add a cos^2 speed bump (tapered at its lateral ends over 0.15 m) in place (``gx is None``: height only)."""
     taper = 0.15
-    r = max(b.half_length, b.half_width) + taper
-    box = np.flatnonzero((np.abs(x - b.centre[0]) < r) & (np.abs(y - b.centre[1]) < r))
-    if box.size == 0:
-        return
-    dx, dy = x[box] - b.centre[0], y[box] - b.centre[1]
     d = b.direction
+    dx, dy = x - b.centre[0], y - b.centre[1]
     s_all = dx * d[0] + dy * d[1]
-    lat_all = -dx * d[1] + dy * d[0]
-    inside = (np.abs(s_all) < b.half_length) & (np.abs(lat_all) < b.half_width + taper)
-    if not inside.any():
+    lat_all = dy * d[0] - dx * d[1]
+    sel = np.flatnonzero((np.abs(s_all) < b.half_length) & (np.abs(lat_all) < b.half_width + taper))
+    if sel.size == 0:
         return
-    sel = box[inside]
-    lat = lat_all[inside]
-    ss, ll = s_all[inside], np.abs(lat)
+    lat = lat_all[sel]
+    ss, ll = s_all[sel], np.abs(lat)
     phase = math.pi * ss / (2 * b.half_length)
-    prof = np.cos(phase) ** 2
-    dprof = -2 * np.cos(phase) * np.sin(phase) * math.pi / (2 * b.half_length)
+    cos_p = np.cos(phase)
+    prof = cos_p * cos_p
     edge = np.clip((b.half_width + taper - ll) / taper, 0.0, 1.0)
     w = np.where(ll < b.half_width, 1.0, np.sin(0.5 * math.pi * edge) ** 2)
-    dw_dl = np.where(ll < b.half_width, 0.0, -np.sin(math.pi * edge) * 0.5 * math.pi / taper * np.sign(lat))
     h[sel] += b.height * prof * w
+    if gx is None or gy is None:
+        return
+    dprof = -2 * cos_p * np.sin(phase) * math.pi / (2 * b.half_length)
+    dw_dl = np.where(ll < b.half_width, 0.0, -np.sin(math.pi * edge) * 0.5 * math.pi / taper * np.sign(lat))
     # d/dx of s is d[0], of lat is -d[1]; d/dy of s is d[1], of lat is d[0].
     gs = b.height * dprof * w
     gl = b.height * prof * dw_dl

@@ -17,7 +17,7 @@ import numpy as np
 
 from sgf_plugins.world.designs import Raster, rasterise
 from sgf_plugins.world.layout import MATERIAL_ID, CampusLayout, MarkingInstance
-from sgf_plugins.world.noise import fbm, hash_uniform, lattice_noise, rng_for
+from sgf_plugins.world.noise import fbm, lattice_noise, rng_for
 
 
 @dataclass(frozen=True)
@@ -69,7 +69,7 @@ class Sun:
         return np.array([ce * math.cos(self.azimuth), ce * math.sin(self.azimuth), math.sin(self.elevation)])
 
 
-def _periodic_cover(u: np.ndarray, period: float, width: float, texel: float) -> np.ndarray:
+def _periodic_cover(u: np.ndarray, period: float | np.ndarray, width: float, texel: float) -> np.ndarray:
     """Box-filtered coverage of lines ``width`` wide every ``period`` (at u = 0 mod period)."""
 
     def integral(v: np.ndarray) -> np.ndarray:
@@ -99,12 +99,16 @@ class TileGenerator:
         self._rasters: OrderedDict[tuple[int, int], Raster] = OrderedDict()
         self._features: OrderedDict[tuple[int, int], CellFeatures] = OrderedDict()
         self._tree_shadows: np.ndarray | None = None
-        self._brick_palettes = [
+        brick_palettes = [
             [(152, 74, 58), (168, 92, 66), (136, 64, 52)],
             [(176, 110, 72), (160, 98, 64), (186, 124, 84)],
             [(128, 124, 118), (112, 108, 104), (142, 138, 130)],
             [(96, 92, 90), (110, 104, 100), (84, 82, 80)],
         ]
+        tables = rng_for(seed, 201)
+        self._tints = tables.random((256, 256), dtype=np.float32)
+        self._palettes = np.asarray(brick_palettes, np.float32)
+        self._area_palette = tables.integers(0, len(brick_palettes), 2048)
 
     # -- rasters of markings (small LRU) --------------------------------------------------------
 
@@ -126,7 +130,7 @@ class TileGenerator:
             marking.wear_seed,
         )
         self._rasters[key] = r
-        while len(self._rasters) > 256:
+        while len(self._rasters) > 96:
             self._rasters.popitem(last=False)
         return r
 
@@ -156,51 +160,57 @@ class TileGenerator:
         # 1. smooth fields on the coarse grid
         sdf, s, t, mat, area = self._geometry(x0, y_top, gnx, gny, g)
         large = fbm(seed + 10, x0, y_top, gnx, gny, g, (5.12, 2.56, 1.28))
-        medium = lattice_noise(seed + 11, x0, y_top, gnx, gny, g, 0.16)
         edge = lattice_noise(seed + 3, x0, y_top, gnx, gny, g, 0.32)
         sdf = sdf + 0.03 * edge * (sdf > -0.05)
-        tone = 0.1 * large + 0.05 * medium
-        lawn = self._lawn_base(x0, y_top, gnx, gny, g, large)
         stains = 1.0 - 0.22 * self._stains(x0, y_top, gnx, gny, g) * (sdf < 0.0)
         shade = self._shadows(x0, y_top, gnx, gny, g)
-        smooth = np.dstack([sdf, s, t, tone, stains, shade, lawn]).astype(np.float32)
-        if step > 1:
-            smooth = cv2.resize(smooth, (gnx * step, gny * step), interpolation=cv2.INTER_LINEAR)
-            cats = cv2.resize(
-                np.dstack([mat, area]).astype(np.int32), (gnx * step, gny * step), interpolation=cv2.INTER_NEAREST
-            )
-            mat, area = cats[..., 0], cats[..., 1]
-        smooth = smooth[:ny, :nx]
-        mat, area = mat[:ny, :nx], area[:ny, :nx]
-        sdf, s, t, tone, factor, shade = (smooth[..., k] for k in range(6))
-        lawn = smooth[..., 6:9]
+        any_paving = bool((sdf < CURB_WIDTH + 0.1).any())
+        any_lawn = bool((sdf > -0.1).any())
+
+        def up(*channels: np.ndarray) -> list[np.ndarray]:
+            stack: np.ndarray = np.dstack(channels).astype(np.float32)
+            if step > 1:
+                stack = cv2.resize(stack, (gnx * step, gny * step), interpolation=cv2.INTER_LINEAR)
+            stack = stack[:ny, :nx]
+            return [np.ascontiguousarray(stack[..., k]) for k in range(stack.shape[2])]
+
+        sdf_f, factor, shade_f = up(sdf, stains, shade)
         # 2. full-resolution detail: lawn grain, paving patterns, curbs
         grain = self._grain(x0, y_top, nx, ny, res)
-        shading = 1.0 + 0.25 * grain
-        if res <= 0.04:
-            shading += 0.15 * lattice_noise(seed + 22, x0, y_top, nx, ny, res, 0.08)
-        rgb = lawn * shading[..., None]
-        paved = sdf < 0.0
-        for material in np.unique(mat[paved]) if paved.any() else ():
-            sel = paved & (mat == material)
-            rgb[sel] = self._paving(int(material), s[sel], t[sel], area[sel], tone[sel], grain[sel], res)
-        curb = (sdf >= 0.0) & (sdf < CURB_WIDTH)
-        if curb.any():
-            joints = _periodic_cover(s[curb], 1.0, 0.012, res)
-            level = 176.0 * (1.0 + 0.05 * grain[curb] + 0.4 * tone[curb]) * (1.0 - 0.35 * joints)
-            rgb[curb] = level[:, None] * np.array([1.0, 0.99, 0.96], np.float32)
-        # 3. cracks and repairs on the paving, stains, building bases
-        factor = np.array(factor)
-        self._cracks(factor, x0, y_top, nx, ny, res, paved, mat)
+        if any_lawn:
+            lawn = up(*np.moveaxis(self._lawn_base(x0, y_top, gnx, gny, g, large), -1, 0))
+            shading = 1.0 + 0.25 * grain
+            if res <= 0.04:
+                shading += 0.15 * lattice_noise(seed + 22, x0, y_top, nx, ny, res, 0.08)
+            rgb = np.dstack([c * shading for c in lawn])
+        else:
+            rgb = np.empty((ny, nx, 3), np.float32)
+        paved = sdf_f < 0.0
+        if any_paving:
+            tone_c = 0.1 * large + 0.05 * lattice_noise(seed + 11, x0, y_top, gnx, gny, g, 0.16)
+            s_f, t_f, tone = up(s, t, tone_c)
+            if step > 1:
+                cats = cv2.resize(
+                    np.dstack([mat, area]).astype(np.int32), (gnx * step, gny * step), interpolation=cv2.INTER_NEAREST
+                )[:ny, :nx]
+                mat, area = cats[..., 0], cats[..., 1]
+            for material in np.unique(mat[paved]) if paved.any() else ():
+                sel = paved & (mat == material)
+                rgb[sel] = self._paving(int(material), s_f[sel], t_f[sel], area[sel], tone[sel], grain[sel], res)
+            curb = (sdf_f >= 0.0) & (sdf_f < CURB_WIDTH)
+            if curb.any():
+                joints = _periodic_cover(s_f[curb], 1.0, 0.012, res)
+                level = 176.0 * (1.0 + 0.05 * grain[curb] + 0.4 * tone[curb]) * (1.0 - 0.35 * joints)
+                rgb[curb] = level[:, None] * np.array([1.0, 0.99, 0.96], np.float32)
+            # 3. cracks and repairs on the paving
+            self._cracks(factor, x0, y_top, nx, ny, res, paved, mat)
         rgb *= factor[..., None]
         self._buildings(rgb, x0, y_top, nx, ny, res)
         # 4. markings
         ids = np.zeros((ny, nx), np.uint16)
         self._markings(rgb, ids, x0, y_top, nx, ny, res, grain)
-        out = np.empty((ny, nx, 4), np.uint8)
-        np.clip(rgb, 0.0, 255.0, out=rgb)
-        out[:, :, :3] = rgb
-        out[:, :, 3] = np.clip(255.0 * (1.0 - 0.92 * shade), 0, 255)
+        sunlit = cv2.convertScaleAbs(shade_f, alpha=-0.92 * 255.0, beta=255.0)
+        out = cv2.merge([*cv2.split(cv2.convertScaleAbs(rgb)), sunlit])
         if crop:
             return out[crop:-crop, crop:-crop].copy(), ids[crop:-crop, crop:-crop].copy()
         return out, ids
@@ -292,38 +302,40 @@ class TileGenerator:
         gr: np.ndarray,
         res: float,
     ) -> np.ndarray:
-        """Colours (K, 3) of paved texels from their path coordinates, area, tone and grain."""
+        """Colours (K, 3) of paved texels from their path coordinates, area, tone and grain.
+
+        Per-slab and per-brick tints come from a 256 x 256 random table indexed by the unit's
+        row and column (repeating every 256 units, far beyond what a camera sees at once).
+        """
+        table = self._tints
         if material == _ASPHALT:
             tone = 1.0 + 1.2 * tn + 0.12 * gr + (gr > 0.97) * np.float32(0.15)
             return tone[:, None] * np.array([86, 87, 90], np.float32)
         if material == _SLABS:
-            plaza = area >= 1000
-            period = np.where(plaza, np.float32(0.6), np.float32(1.0))
+            period = np.where(area >= 1000, np.float32(0.6), np.float32(1.0))
             i = np.floor(ss / period).astype(np.int64)
             j = np.floor(tt / period).astype(np.int64)
-            tint = hash_uniform(self.seed + 31, i, j) - 0.5
-            joint = np.maximum(_periodic_cover(ss, 1.0, 0.012, res), _periodic_cover(tt, 1.0, 0.012, res))
-            joint = np.where(
-                plaza,
-                np.maximum(_periodic_cover(ss, 0.6, 0.012, res), _periodic_cover(tt, 0.6, 0.012, res)),
-                joint,
-            )
+            tint = table[i & 255, j & 255] - 0.5
+            joint = np.maximum(_periodic_cover(ss, period, 0.012, res), _periodic_cover(tt, period, 0.012, res))
             detail = min(1.0, 0.6 / (4 * res))
             tone = (1.0 + tn + 0.06 * gr + 0.12 * detail * tint) * (1.0 - 0.45 * joint)
             return tone[:, None] * np.array([166, 163, 156], np.float32)
         if material == _BRICKS:
             bl, bw = 0.21, 0.105
             row = np.floor(tt / bw).astype(np.int64)
-            shift = (row % 2) * np.float32(bl / 2)
-            col = np.floor((ss + shift) / bl).astype(np.int64)
-            h = hash_uniform(self.seed + 41, row, col)
-            palettes = np.asarray(self._brick_palettes, np.float32)
-            which = np.minimum((hash_uniform(self.seed + 43, area) * len(palettes)).astype(np.int64), 3)
+            shift = (row & 1) * np.float32(bl / 2)
+            along = ss + shift
+            col = np.floor(along / bl).astype(np.int64)
+            h = table[row & 255, col & 255] * 3.0
+            pick = np.minimum(h.astype(np.int64), 2)
+            palettes = self._palettes
+            which = self._area_palette[area & 2047]
             detail = min(1.0, bl / (4 * res))
-            pick = np.minimum((h * 3).astype(np.int64), 2)
-            colour = palettes[which, pick] * detail + palettes[which].mean(axis=1) * (1 - detail)
-            joint = np.maximum(_periodic_cover(tt, bw, 0.01, res), _periodic_cover(ss + shift, bl, 0.01, res))
-            tone = 1.0 + 0.9 * tn + 0.07 * gr + 0.2 * detail * (h * 3 - np.floor(h * 3) - 0.5)
+            colour = palettes[which, pick]
+            if detail < 1.0:
+                colour = colour * detail + palettes[which].mean(axis=1) * (1 - detail)
+            joint = np.maximum(_periodic_cover(tt, bw, 0.01, res), _periodic_cover(along, bl, 0.01, res))
+            tone = 1.0 + 0.9 * tn + 0.07 * gr + 0.2 * detail * (h - pick - 0.5)
             mortar = np.array([160, 154, 140], np.float32)
             return colour * (tone * (1.0 - joint))[:, None] + mortar * joint[:, None]
         return np.array([150, 150, 150], np.float32) * (1.0 + 0.05 * gr)[:, None]
@@ -402,7 +414,7 @@ class TileGenerator:
 
         for ci, cj in self._cells(x0, y_top, nx, ny, res):
             cell = self._cell_features(ci, cj)
-            for pts, width in cell.cracks:
+            for pts, width in cell.cracks if res < 0.08 else ():  # hair-line cracks vanish in coarse texels
                 strength = min(1.0, width / res)
                 cv2.polylines(dark, [to_px(pts)], False, strength, max(1, round(width / res)), cv2.LINE_AA, 4)
             for corners in cell.repairs:
