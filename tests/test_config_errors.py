@@ -98,7 +98,10 @@ def test_rename_of_an_unknown_input(plugins):
         ({"clip_limit": "lots"}, "enhance.clip_limit: Input should be a valid number"),
         ({"clip_limit": -1.0}, "enhance.clip_limit: Input should be greater than 0"),
         ({"tiles": 2.5}, "enhance.tiles: Input should be a valid integer"),
-        ({"clip": 2.0}, "enhance.clip: unknown parameter (parameters of this variant: clip_limit, tiles)"),
+        (
+            {"clip": 2.0},
+            "enhance.clip: unknown parameter (parameters of this variant: clip_limit, tiles, max_brightness)",
+        ),
     ],
 )
 def test_bad_parameter_names_group_key_and_expected_type(plugins, params, expected):

@@ -18,11 +18,11 @@ from typing import Any
 
 import pytest
 from adapters.recordings import calibration, make_frames, write_folder
-from sgf_testing import ROOT
 from hydra import compose, initialize_config_dir
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from omegaconf import OmegaConf
+from sgf_testing import ROOT
 from toy_stages import ToyPlugin
 
 from sgf_pipeline import ConfigError, Pipeline, SgfError, load_plugins

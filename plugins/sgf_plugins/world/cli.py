@@ -11,7 +11,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from sgf_pipeline.cli.common import friendly_errors
+from sgf_pipeline.cli.common import console, friendly_errors
 from sgf_pipeline.config import config_dir, format_validation_error
 from sgf_pipeline.errors import ConfigError, DataError
 from sgf_pipeline.folder_format import FolderDatasetWriter
@@ -105,7 +105,7 @@ def _truncated_truth(world: CampusWorld, frames: int) -> Any:
 
 @hydra.main(config_path=str(config_dir()), config_name="sgf_world", version_base="1.3")
 @friendly_errors
-def main(cfg: DictConfig) -> None:
+def app(cfg: DictConfig) -> None:
     """Export the configured campus preset, its map and sample frames."""
     raw = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(raw, dict)
@@ -132,6 +132,9 @@ def main(cfg: DictConfig) -> None:
         lines.append(f"  {out / 'samples'}")
     print("\n".join(lines), flush=True)
 
+
+#: The ``sgf-world`` console script.
+main = console(app)
 
 if __name__ == "__main__":
     main()
