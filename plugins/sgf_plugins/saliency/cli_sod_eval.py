@@ -124,7 +124,15 @@ def run(cfg: Mapping[str, Any], out_dir: Path) -> dict[str, dict[str, Any]]:
         if not data.get("root"):
             raise ConfigError("models need a SOD folder: data.root=<folder with images/ and masks/>")
         sod = SodFolder(data["root"])
-        names = sod.split(str(data.get("split", "test")))[: data.get("max_images")]
+        names = sod.split(str(data.get("split", "test")))
+        min_pixels = int(data.get("min_salient_pixels") or 0)
+        if min_pixels > 0:
+            # SOD benchmarks have a salient object in every image: an image whose mask is empty scores
+            # F = 0 at every threshold, and a marking that barely entered the view is not an object yet.
+            names = [n for n in names if int((sod.mask(n) > 128).sum()) >= min_pixels]
+        limit = data.get("max_images")
+        if limit is not None and len(names) > int(limit):
+            names = names[:: max(1, len(names) // int(limit))][: int(limit)]  # spread over the whole split
         if not names:
             raise DataError(f"{sod.root}: split {data.get('split')!r} is empty")
         save_dir = out_dir / "preds" if cfg.get("save_predictions") else None
