@@ -193,7 +193,11 @@ class SgfDescriptors:
 
 @dataclass(frozen=True)
 class GroupAssignment:
-    """An SGF descriptor assigned to an SGF group (eq. 10)."""
+    """An SGF descriptor assigned to an SGF group (eq. 10).
+
+    ``symmetric`` groups (a round manhole) and ``ambiguous`` ones (a repeated pattern such as the
+    triangles of a give-way row, or look-alike groups too close to tell apart) give no loop factors.
+    """
 
     descriptor: SgfDescriptor
     group_id: int
@@ -203,6 +207,7 @@ class GroupAssignment:
     yaw: float
     matched: SgfDescriptor | None
     symmetric: bool
+    ambiguous: bool = False
 
 
 @dataclass(frozen=True)

@@ -135,7 +135,7 @@ def test_anchored_distance_shrinks_once_the_estimate_has_absorbed_a_loop(world) 
 
 
 def test_the_prediction_covariance_starts_at_the_floors_and_grows_with_distance() -> None:
-    p = IcpLoopParams()
+    p = IcpLoopParams(gate_yaw_bias_deg_per_m=0.0)
     zero = drift_covariance(0.0, p)
     assert np.allclose(np.sqrt(np.diag(zero)), [0.5, 0.5, math.radians(3.0)])
     sigmas = [np.sqrt(np.diag(drift_covariance(d, p))) for d in (10.0, 100.0, 1000.0)]
@@ -143,6 +143,10 @@ def test_the_prediction_covariance_starts_at_the_floors_and_grows_with_distance(
     # after 1 km without an anchor, the heading is known to about 16 degrees, the position to ~160 m
     assert math.degrees(sigmas[2][2]) == pytest.approx(15.9, abs=0.2)
     assert sigmas[2][0] == pytest.approx(161.0, abs=2.0)
+    # a heading bias of 0.07 deg/m adds 70 degrees of heading and 0.5 * bias * d^2 = 611 m after 1 km
+    biased = np.sqrt(np.diag(drift_covariance(1000.0, IcpLoopParams(gate_yaw_bias_deg_per_m=0.07))))
+    assert math.degrees(biased[2]) == pytest.approx(math.hypot(15.9, 70.0), abs=0.3)
+    assert biased[0] == pytest.approx(math.hypot(161.0, 0.5 * math.radians(0.07) * 1000.0**2), abs=3.0)
 
 
 def test_an_sgf_of_an_unseen_frame_is_a_clear_error() -> None:

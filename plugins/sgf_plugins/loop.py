@@ -102,6 +102,9 @@ class IcpLoopParams(StageParams):
     gate_sigma_xy: float = Field(0.05, ge=0.0, description="translation random walk of the drift (m per sqrt(m))")
     gate_sigma_yaw_deg: float = Field(0.5, ge=0.0, description="heading random walk of the drift (deg per sqrt(m))")
     gate_scale_error: float = Field(0.02, ge=0.0, description="odometry scale error (fraction of distance)")
+    gate_yaw_bias_deg_per_m: float = Field(
+        0.07, ge=0.0, description="odometry heading bias (deg per m): heading error grows with d, position with d^2"
+    )
     map_anchor_matches: int = Field(
         2, ge=1, description="consistent map matches (different groups) needed before a run is placed in the map"
     )
@@ -124,8 +127,15 @@ def drift_covariance(distance: float, p: IcpLoopParams) -> np.ndarray:
     """Covariance (x, y, yaw) of a relative pose predicted across ``distance`` metres since the last anchor."""
     d = max(distance, 0.0)
     s_yaw = math.radians(p.gate_sigma_yaw_deg)
-    var_xy = p.gate_floor_xy**2 + (p.gate_scale_error * d) ** 2 + p.gate_sigma_xy**2 * d + s_yaw**2 * d**3 / 3.0
-    var_yaw = math.radians(p.gate_floor_yaw_deg) ** 2 + s_yaw**2 * d
+    bias = math.radians(p.gate_yaw_bias_deg_per_m)
+    var_xy = (
+        p.gate_floor_xy**2
+        + (p.gate_scale_error * d) ** 2
+        + p.gate_sigma_xy**2 * d
+        + s_yaw**2 * d**3 / 3.0
+        + (0.5 * bias * d**2) ** 2
+    )
+    var_yaw = math.radians(p.gate_floor_yaw_deg) ** 2 + s_yaw**2 * d + (bias * d) ** 2
     return np.diag([var_xy, var_xy, var_yaw])
 
 
@@ -177,6 +187,7 @@ class IcpLoopClosing(Stage):
         self.counts = {
             "candidates": 0,
             "symmetric": 0,
+            "ambiguous": 0,
             "separation": 0,
             "too_few_points": 0,
             "icp": 0,
@@ -227,6 +238,9 @@ class IcpLoopClosing(Stage):
         self.counts["candidates"] += 1
         if a.symmetric:
             self.counts["symmetric"] += 1
+            return []
+        if a.ambiguous:
+            self.counts["ambiguous"] += 1
             return []
         j = query.sgf.frame_index
         self._known(j)

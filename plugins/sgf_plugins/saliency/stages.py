@@ -55,6 +55,41 @@ class ClassicalSaliency(Stage):
         return SaliencyMap(prob, bev)
 
 
+class GroundTruthParams(StageParams):
+    """Parameters of the ground-truth saliency (an ablation's upper bound)."""
+
+    object_masks: bool = Field(True, description="close each marking's strokes into one object, as the training masks")
+
+
+class GroundTruthSaliency(Stage):
+    """Perfect saliency from the dataset's marking instances: the upper bound of an ablation (needs ground truth).
+
+    It answers what the rest of the pipeline (detector, descriptor, association, loop, back-end) achieves
+    when saliency is solved; it is never a default. Datasets without marking instances are refused.
+    """
+
+    kind = "saliency"
+    name = "ground_truth"
+    output = "saliency"
+    Params = GroundTruthParams
+
+    def process(self, bev: Bev) -> SaliencyMap:
+        """1 on every marking pixel the camera sees, 0 elsewhere."""
+        if bev.instance_ids is None:
+            from sgf_pipeline.errors import DataError
+
+            raise DataError(
+                "saliency=ground_truth needs marking instances in the BEV (a synthetic campus dataset, or a "
+                "folder dataset with masks); choose a detector such as saliency=selfreformer"
+            )
+        paint = (bev.instance_ids > 0) & bev.valid
+        if self.params.object_masks:  # type: ignore[attr-defined]
+            from sgf_plugins.saliency.synthetic_data import ObjectMaskParams, object_mask
+
+            paint = object_mask(bev.image, paint, bev.valid, ObjectMaskParams())
+        return SaliencyMap(paint.astype(np.float32), bev)
+
+
 class LearnedParams(StageParams):
     """Parameters shared by the learned saliency networks."""
 
@@ -176,7 +211,7 @@ class LdfSaliency(LearnedSaliency):
 
 
 LEARNED_VARIANTS: tuple[type[LearnedSaliency], ...] = (SelfReformerSaliency, U2NetSaliency, U2NetPSaliency, LdfSaliency)
-VARIANTS: tuple[type[Stage], ...] = (*LEARNED_VARIANTS, ClassicalSaliency)
+VARIANTS: tuple[type[Stage], ...] = (*LEARNED_VARIANTS, ClassicalSaliency, GroundTruthSaliency)
 
 
 def default_architecture(model: str) -> dict[str, object]:

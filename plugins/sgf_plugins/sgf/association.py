@@ -53,6 +53,7 @@ class SgfGroup:
     descriptor: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     spread: float = 0.0
     symmetric: bool = False
+    aliased: bool = False
 
     def add(self, member: SgfDescriptor, offset: int, anchor: np.ndarray | None = None) -> None:
         """Append a member turned by ``offset`` columns into the group's orientation."""
@@ -95,6 +96,12 @@ class OnlineGroupsParams(StageParams):
     drift_rate: float = Field(
         0.05, ge=0.0, description="gate growth per metre travelled between the two sightings (odometry drift)"
     )
+    drift_quadratic: float = Field(
+        0.0006,
+        ge=0.0,
+        description="gate growth per squared metre travelled: half the odometry's heading bias (rad/m), "
+        "whose position error grows with the square of the distance",
+    )
     prior_gate_radius: float | None = Field(
         None, gt=0.0, description="gate (m) around members of groups seeded from a saved map; null = no gate"
     )
@@ -103,6 +110,13 @@ class OnlineGroupsParams(StageParams):
         ge=0.0,
         description="groups within this eq. 10 distance of the best are equally good; the nearest on the map wins",
     )
+    repeat_window: float = Field(
+        15.0,
+        ge=0.0,
+        description="a group member seen within this many metres of travel, but away from the query, is another "
+        "copy of a repeated pattern (give-way triangles, zebra bars, dashes): the query may not join it",
+    )
+    repeat_radius: float = Field(0.5, gt=0.0, description="...away means farther than this on the map (m)")
     prior_map: str | None = Field(
         None, description="an SGF map (sgf_map.safetensors) whose groups seed the association: localization on it"
     )
@@ -170,6 +184,7 @@ class OnlineSgfGroups(Stage):
         self._last_position: np.ndarray | None = None
         self._distance = 0.0
         self._next_id = 0
+        self._repeat_seen = False
 
     # -- groups ---------------------------------------------------------------------------
 
@@ -272,20 +287,38 @@ class OnlineSgfGroups(Stage):
         return abs(sa - sb)
 
     def gated(self, query: SgfDescriptor, estimate: PoseEstimate | None) -> list[tuple[SgfGroup, float]]:
-        """The groups the spatial gate lets the query meet, each with its nearest member's map distance (m)."""
+        """The groups the spatial gate lets the query meet, each with its nearest member's map distance (m).
+
+        A group holding a member seen moments ago (within ``repeat_window`` of travel) at another
+        place (beyond ``repeat_radius``) is a neighbouring copy of a repeated pattern: it is left
+        out and marked ``aliased`` (the query's group will be too), so it never gives loop factors.
+        """
         here = self.position_of(query, estimate)
         out = []
+        self._repeat_seen = False
         for group in self._groups:
-            nearest, inside = math.inf, not self.params.spatial_gate
+            nearest, inside, repeated = math.inf, not self.params.spatial_gate, False
             for member, anchor in zip(group.members, group.anchors, strict=True):
                 if anchor is not None:
                     distance = float(np.linalg.norm(anchor - here))
                     radius = math.inf if self.params.prior_gate_radius is None else self.params.prior_gate_radius
                 else:
                     distance = float(np.linalg.norm(self.position_of(member, estimate) - here))
-                    radius = self.params.gate_radius + self.params.drift_rate * self._travelled_between(query, member)
+                    travelled = self._travelled_between(query, member)
+                    radius = (
+                        self.params.gate_radius
+                        + self.params.drift_rate * travelled
+                        + self.params.drift_quadratic * travelled**2
+                    )
+                    repeated = repeated or (
+                        travelled <= self.params.repeat_window and distance > self.params.repeat_radius
+                    )
                 nearest = min(nearest, distance)
                 inside = inside or distance <= radius
+            if repeated and inside:
+                group.aliased = True
+                self._repeat_seen = True
+                continue
             if inside:
                 out.append((group, nearest))
         return out
@@ -318,16 +351,24 @@ class OnlineSgfGroups(Stage):
             ties = np.flatnonzero(per_group <= per_group.min() + p.tie_margin)
             i = int(min(ties, key=lambda t: candidates[t][1]))
             best = _Candidate(candidates[i][0], float(per_group[i]))
+            # Look-alike groups inside the gate (identical standard markings) cannot be told apart:
+            # the query joins the nearest, but the match is ambiguous and gives no loop factor.
+            tied_nearby = len(ties) > 1
+        else:
+            tied_nearby = False
         self._remember_member(query)
         if best is None or best.distance > p.new_group_distance:
-            group = SgfGroup(self._next_id)
+            group = SgfGroup(self._next_id, aliased=self._repeat_seen)
             self._next_id += 1
             group.add(query, 0)
             group.refresh(p.columns, p.symmetry_threshold)
             self._groups.append(group)
             distance = 1.0 if best is None else best.distance
-            return GroupAssignment(query, group.group_id, True, distance, 0, 0.0, None, group.symmetric)
+            return GroupAssignment(
+                query, group.group_id, True, distance, 0, 0.0, None, group.symmetric, ambiguous=group.aliased
+            )
         group = best.group
+        group.aliased = group.aliased or self._repeat_seen
         profiles = shifted_distances(query.matrix, group.matrices, p.columns)
         m = int(np.argmin(profiles.min(axis=1)))
         matched = group.members[m]
@@ -344,6 +385,7 @@ class OnlineSgfGroups(Stage):
             yaw=shift_to_yaw(shift, n_s),
             matched=matched,
             symmetric=group.symmetric,
+            ambiguous=group.aliased or tied_nearby,
         )
 
     def process(self, frame: Frame, descriptors: SgfDescriptors, estimate: Previous[PoseEstimate]) -> GroupAssignments:
@@ -359,6 +401,7 @@ class OnlineSgfGroups(Stage):
         sgf: dict[str, Any] = context.metrics.setdefault("sgf", {})
         sgf["groups"] = len(self._groups)
         sgf["symmetric_groups"] = sum(1 for g in self._groups if g.symmetric)
+        sgf["aliased_groups"] = sum(1 for g in self._groups if g.aliased)
         sgf["purity"] = None
         loops: dict[str, Any] = context.metrics.setdefault("loops", {})
         loops.update(

@@ -110,6 +110,11 @@ class HuWindowParams(StageParams):
     closing: int = Field(
         0, ge=0, description="radius (px) of a morphological closing of the mask that joins fragments; 0 = none"
     )
+    merge_distance: float = Field(
+        0.0,
+        ge=0.0,
+        description="regions closer than this (m) form one SGF: the glyphs of a sign, the triangles of a give-way row",
+    )
     hu_scale: Literal["raw", "log"] = Field(
         "raw",
         description="Hu invariants compared by eq. 8: raw h_j (the paper's formula), or sign(h) log10|h| (OpenCV)",
@@ -130,6 +135,12 @@ class HuWindowParams(StageParams):
         "largest",
         description="which group gives the SGF: the largest (ties: higher mean saliency) or the most salient",
     )
+    view_choice: Literal["most_salient", "salient_near"] = Field(
+        "most_salient",
+        description="the group's view that becomes the SGF: the most salient (paper), or among views within "
+        "near_margin of it the nearest to the camera (the BEV is sharpest and most exact near the robot)",
+    )
+    near_margin: float = Field(0.1, ge=0.0, le=1.0, description="saliency margin of salient_near")
     truth_min_fraction: float = Field(
         0.3, gt=0.0, le=1.0, description="share of a region a ground-truth marking must cover to label it"
     )
@@ -244,7 +255,20 @@ class HuMomentDetector(Stage):
             size = 2 * self.params.closing + 1
             kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
             mask = (cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel) > 0) & valid
-        count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
+        if self.params.merge_distance > 0.0:
+            # Label the mask dilated by half the merge distance: regions with a smaller gap share a label.
+            radius = max(1, round(0.5 * self.params.merge_distance / bev.grid.resolution))
+            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+            grown = cv2.dilate(mask.astype(np.uint8), kernel)
+            count, grown_labels = cv2.connectedComponents(grown, connectivity=8)
+            grown_labels = np.where(mask, grown_labels, 0).astype(np.int32)
+            areas = np.bincount(grown_labels.ravel(), minlength=count)
+            stats = np.zeros((count, 5), dtype=np.int64)
+            stats[:, cv2.CC_STAT_AREA] = areas
+            stats[0, cv2.CC_STAT_AREA] = 0
+            labels = grown_labels
+        else:
+            count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
         keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= self.params.min_area) + 1
         self._stats["regions_too_small"] = self._stats.get("regions_too_small", 0) + (count - 1 - len(keep))
         remap = np.zeros(count, dtype=np.int32)
@@ -343,6 +367,9 @@ class HuMomentDetector(Stage):
         else:
             chosen = max(groups, key=mean_saliency)
         best = max(chosen, key=lambda v: v.region.saliency)
+        if self.params.view_choice == "salient_near":
+            near = [v for v in chosen if v.region.saliency >= best.region.saliency - self.params.near_margin]
+            best = min(near, key=lambda v: float(v.region.pixels[:, 1].mean()) * -1.0)  # lowest rows: nearest
         region = best.region
         return SalientGroundFeature(
             track_id=track.track_id,
