@@ -230,11 +230,20 @@ class OnlineSgfGroups(Stage):
     def begin(self, context: RunContext) -> None:
         """Start the sequence with the seeded groups only (those of ``prior_map`` when it is set)."""
         if self.params.prior_map is not None and not self._prior:
+            from sgf_pipeline.errors import DataError
             from sgf_pipeline.sgf_map import load_map
 
-            self.seed_groups(
-                groups_from_map(load_map(self.params.prior_map, calibration=context.calibration), self.params.columns)
-            )
+            sgf_map = load_map(self.params.prior_map, calibration=context.calibration)
+            groups = groups_from_map(sgf_map, self.params.columns)
+            shape = context.artifacts.get("descriptor_shape")
+            found = {tuple(m.matrix.shape) for g in groups for m in g.members}
+            if shape is not None and found and found != {tuple(shape)}:
+                sizes = " / ".join("x".join(map(str, f)) for f in sorted(found))
+                raise DataError(
+                    f"SGF map {self.params.prior_map} holds descriptors of N_r x N_s = {sizes}, this run makes "
+                    f"{shape[0]}x{shape[1]}: set descriptor.num_rings and descriptor.num_sectors to the map's"
+                )
+            self.seed_groups(groups)
         self._reset()
 
     # -- map positions and the spatial gate ---------------------------------------------------

@@ -70,8 +70,9 @@ class PolarContext(Stage):
         self._dropped = 0
 
     def begin(self, context: RunContext) -> None:
-        """Reset the count of dropped SGFs."""
+        """Reset the count of dropped SGFs; announce the descriptor's shape (N_r, N_s) to later stages."""
         self._dropped = 0
+        context.artifacts["descriptor_shape"] = (self.params.num_rings, self.params.num_sectors)
 
     def process(self, sgfs: SgfDetections) -> SgfDescriptors:
         """The descriptors of this frame's selected SGFs."""
