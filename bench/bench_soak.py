@@ -1,0 +1,149 @@
+"""Soak: the default pipeline over a synthetic route of 10 km or more; memory and time per frame as it goes.
+
+Usage: ``.venv/bin/python bench/bench_soak.py [--laps 4] [hydra overrides...]``
+
+The route is ``campus_large_loop`` (2.8 km) driven ``--laps`` times in a row: a bench-only dataset
+replays the preset's frames lap after lap, chaining the odometry so that it stays continuous
+(the ground truth restarts each lap; the ATE of a soak is not its point). An observer records the
+peak resident memory and the robot's time per frame in windows of 1000 processed frames; the
+script prints both per kilometre, the memory growth per kilometre after the first lap, and the
+ratio of the last window's time per frame to the first's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import resource
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+from hydra import compose, initialize_config_dir
+from pydantic import Field
+
+from sgf_pipeline import Dataset, Pipeline, RunContext, StageParams, hookimpl, load_plugins
+from sgf_pipeline.config import config_dir
+from sgf_pipeline.geometry import invert
+from sgf_pipeline.types import Frame
+
+
+class LapsParams(StageParams):
+    laps: int = Field(4, ge=1)
+    preset: str = "campus_large_loop"
+    seed: int = 0
+
+
+class Laps(Dataset):
+    """The preset's drive repeated ``laps`` times with continuous odometry and time."""
+
+    name = "soak_laps"
+    Params = LapsParams
+
+    def __init__(self, params: LapsParams) -> None:
+        super().__init__(params)
+        from sgf_plugins.world import build_world
+
+        self.world = build_world(params.preset, seed=params.seed)
+
+    def __len__(self) -> int:
+        return len(self.world) * self.params.laps  # type: ignore[attr-defined]
+
+    def begin(self, context: RunContext) -> None:
+        context.calibration = self.world.calibration
+        context.sequence = f"{self.params.preset} x{self.params.laps}"
+
+    def frames(self) -> Iterator[Frame]:
+        n = len(self.world)
+        period = n / 10.0 + 1.0
+        offset = np.eye(4)
+        for lap in range(self.params.laps):
+            first = None
+            last = None
+            for frame in self.world.frames():
+                if first is None:
+                    first = frame.odometry
+                odometry = offset @ invert(first) @ frame.odometry
+                last = odometry
+                yield Frame(
+                    lap * n + frame.index,
+                    lap * period + frame.timestamp,
+                    lambda f=frame: f.image,  # type: ignore[misc]
+                    odometry,
+                    frame.calibration,
+                    frame.imu_roll_pitch,
+                    None,
+                    None,
+                )
+            assert last is not None
+            offset = last
+
+
+class SoakObserver:
+    """Peak RSS and time per processed frame, in windows of 1000 frames."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[int, float, float, float]] = []
+        self._window_start = time.perf_counter()
+        self._count = 0
+        self._distance = 0.0
+        self._last: np.ndarray | None = None
+
+    @hookimpl
+    def sgf_frame_end(self, run: Any, frame: Frame, seconds: float) -> None:
+        position = frame.odometry[:3, 3]
+        if self._last is not None:
+            self._distance += float(np.linalg.norm(position - self._last))
+        self._last = position
+        self._count += 1
+        if self._count % 1000 == 0:
+            now = time.perf_counter()
+            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+            self.rows.append((self._count, self._distance / 1000.0, rss, (now - self._window_start) / 1000.0))
+            self._window_start = now
+
+
+class SoakPlugin:
+    @hookimpl
+    def sgf_register_stages(self, registry: Any) -> None:
+        registry.add(Laps)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--laps", type=int, default=4)
+    args, overrides = ap.parse_known_args()
+    observer = SoakObserver()
+    plugins = load_plugins(extra=[("soak", SoakPlugin()), ("soak_observer", observer)])
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=[*overrides, "run.progress=false", "run.plots=false"])
+    from omegaconf import OmegaConf
+
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    assert isinstance(plain, dict)
+    plain["dataset"] = {"name": "soak_laps", "laps": args.laps}
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average {os.getloadavg()}")
+    t0 = time.perf_counter()
+    metrics = Pipeline.from_config(plain, plugins=plugins).run()
+    wall = time.perf_counter() - t0
+    print(f"{'frames':>7} {'km':>6} {'peak RSS MiB':>13} {'ms/frame (window)':>18}")
+    for count, km, rss, per in observer.rows:
+        print(f"{count:7d} {km:6.2f} {rss:13.0f} {1000 * per:18.1f}")
+    rows = observer.rows
+    if len(rows) >= 3:
+        first_lap = [r for r in rows if r[1] >= rows[-1][1] / args.laps] or rows
+        a, b = first_lap[0], rows[-1]
+        growth = (b[2] - a[2]) / max(b[1] - a[1], 1e-9)
+        print(f"memory growth after the first lap: {growth:.1f} MiB/km")
+        print(f"time per frame, last window / first window: {rows[-1][3] / rows[0][3]:.2f}")
+    timing = metrics["timing"]
+    print(
+        f"route {rows[-1][1] if rows else 0:.1f} km, {timing['frames']} frames, {wall:.0f} s wall, "
+        f"robot {timing['fps']:.1f} frames/s, peak RSS {metrics['peak_rss_mb']:.0f} MiB"
+    )
+
+
+if __name__ == "__main__":
+    main()
