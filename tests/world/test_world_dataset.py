@@ -41,7 +41,14 @@ def test_each_config_lists_every_parameter_with_its_default(name):
 def test_the_default_run_streams_the_campus_with_its_truth(tmp_path: Path):
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         cfg = compose(
-            "config", overrides=["dataset.scale=0.05", "run.max_frames=6", "run.progress=false", "run.plots=false"]
+            "config",
+            overrides=[
+                "dataset.scale=0.05",
+                "run.max_frames=6",
+                "run.keyframe_distance=0",
+                "run.progress=false",
+                "run.plots=false",
+            ],
         )
     assert cfg.dataset.name == "campus_delivery"
     pipeline = Pipeline.from_config(cfg, run_dir=tmp_path / "run")
