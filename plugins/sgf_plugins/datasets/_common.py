@@ -15,6 +15,7 @@ from pydantic import Field
 
 from sgf_pipeline import DataError, Dataset, RunContext, StageParams
 from sgf_pipeline.calibration import Calibration, camera_to_base_from_mounting
+from sgf_pipeline.types import Frame
 from sgf_pipeline.undistortion import Undistorter
 
 log = logging.getLogger("sgf_pipeline.datasets")
@@ -188,12 +189,42 @@ class RecordedDataset(Dataset):
     """Base of the adapters of recorded data: skip accounting and undistortion."""
 
     params: Any
+    calibration: Calibration
 
     def __init__(self, params: StageParams) -> None:
         super().__init__(params)
         self.skips = SkipLog(bool(getattr(params, "strict", True)), self.name)
         self.yielded = 0
         self.undistorter: Undistorter | None = None
+
+    def recording_dir(self, what: str) -> Path:
+        """The ``dataset.path`` folder, checked; ``what`` says what it should hold."""
+        if not self.params.path:
+            raise DataError(f"dataset={self.name} needs the {what}: dataset.path=<folder>")
+        root = Path(self.params.path).expanduser()
+        if not root.is_dir():
+            raise DataError(f"dataset.path: {describe_dir(root)}")
+        return root
+
+    def make_frame(
+        self, index: int, t: float, image: np.ndarray | Callable[[], np.ndarray], odometry: np.ndarray
+    ) -> Frame:
+        """A frame with the IMU attitude and ground truth associated at time ``t`` (counted as yielded)."""
+        p = self.params
+        attitude = getattr(self, "attitude", None)
+        truth = getattr(self, "ground_truth", None)
+        roll_pitch = None if attitude is None else attitude.at(t, p.max_time_diff, True)
+        gt = None if truth is None else truth.at(t, p.max_time_diff, p.interpolate)
+        self.yielded += 1
+        return Frame(
+            index=index,
+            timestamp=t,
+            image=image,
+            odometry=odometry,
+            calibration=self.calibration,
+            imu_roll_pitch=None if roll_pitch is None else (float(roll_pitch[0]), float(roll_pitch[1])),
+            ground_truth=gt,
+        )
 
     def prepare_calibration(self, calibration: Calibration) -> Calibration:
         """The calibration the frames carry: undistorted pinhole when ``undistort`` is on."""

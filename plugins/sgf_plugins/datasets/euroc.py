@@ -96,11 +96,7 @@ class EurocDataset(RecordedDataset):
 
     def __init__(self, params: EurocParams) -> None:
         super().__init__(params)
-        if not params.path:
-            raise DataError("dataset=euroc needs the recording folder: dataset.path=<folder holding mav0/>")
-        root = Path(params.path).expanduser()
-        if not root.is_dir():
-            raise DataError(f"dataset.path: {describe_dir(root)}")
+        root = self.recording_dir("recording folder (the one holding mav0/)")
         self.mav = root / "mav0" if (root / "mav0").is_dir() else root
         self.root = root
         cam_dir = self.mav / params.camera
@@ -270,18 +266,7 @@ class EurocDataset(RecordedDataset):
             image = self.image_source(partial(read_image_file, path), f"frame {i} ({path.name})")
             if image is None:
                 continue
-            roll_pitch = None if self.attitude is None else self.attitude.at(t, p.max_time_diff, True)
-            gt = None if self.ground_truth is None else self.ground_truth.at(t, p.max_time_diff, p.interpolate)
-            self.yielded += 1
-            yield Frame(
-                index=i,
-                timestamp=t,
-                image=image,
-                odometry=odometry,
-                calibration=self.calibration,
-                imu_roll_pitch=None if roll_pitch is None else (float(roll_pitch[0]), float(roll_pitch[1])),
-                ground_truth=gt,
-            )
+            yield self.make_frame(i, t, image, odometry)
 
     def finalize(self, context: RunContext) -> None:
         """Skips and frames outside the odometry's span into metrics.json."""

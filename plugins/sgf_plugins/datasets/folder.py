@@ -46,11 +46,7 @@ class FolderDataset(RecordedDataset):
 
     def __init__(self, params: FolderParams) -> None:
         super().__init__(params)
-        if not params.path:
-            raise DataError("dataset=folder needs the sequence folder: dataset.path=<folder>")
-        root = Path(params.path).expanduser()
-        if not root.is_dir():
-            raise DataError(f"dataset.path: {describe_dir(root)}")
+        root = self.recording_dir("sequence folder")
         self.root = root
         self.meta = self._read_meta()
         self.calibration = self.prepare_calibration(self._need_calibration())

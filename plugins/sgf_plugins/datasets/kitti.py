@@ -68,11 +68,7 @@ class KittiDataset(RecordedDataset):
 
     def __init__(self, params: KittiParams) -> None:
         super().__init__(params)
-        if not params.path:
-            raise DataError("dataset=kitti needs the sequence folder: dataset.path=<.../sequences/00>")
-        root = Path(params.path).expanduser()
-        if not root.is_dir():
-            raise DataError(f"dataset.path: {describe_dir(root)}")
+        root = self.recording_dir("sequence folder (.../sequences/00)")
         self.root = root
         image_dir = root / params.camera
         self.images = sorted(p for p in image_dir.glob("*.png")) if image_dir.is_dir() else []

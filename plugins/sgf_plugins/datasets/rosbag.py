@@ -527,18 +527,7 @@ class RosbagDataset(RecordedDataset):
                 image = self.image_source(self._image_loader(msg, msgtype, what), what)
                 if image is None:
                     continue
-                roll_pitch = None if self.attitude is None else self.attitude.at(t, p.max_time_diff, True)
-                gt = None if self.ground_truth is None else self.ground_truth.at(t, p.max_time_diff, p.interpolate)
-                self.yielded += 1
-                yield Frame(
-                    index=index,
-                    timestamp=t,
-                    image=image,
-                    odometry=odometry,
-                    calibration=self.calibration,
-                    imu_roll_pitch=None if roll_pitch is None else (float(roll_pitch[0]), float(roll_pitch[1])),
-                    ground_truth=gt,
-                )
+                yield self.make_frame(index, t, image, odometry)
         finally:
             reader.close()
 
