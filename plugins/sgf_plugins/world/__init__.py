@@ -10,7 +10,7 @@ pose (``marking_layout``), drives the preset's route (``frames()``) and holds it
 
 from __future__ import annotations
 
-import importlib
+from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
@@ -62,6 +62,33 @@ def __getattr__(name: str) -> Any:
     """Import a public name of the package from its module on first use."""
     if name not in _WHERE:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{_WHERE[name]}"), name)
+    value = getattr(_module(_WHERE[name]), name)
     globals()[name] = value
     return value
+
+
+def _module(name: str) -> ModuleType:
+    """The submodule ``name``, imported on demand (a fixed set: nothing named by data is imported)."""
+    if name == "designs":
+        from sgf_plugins.world import designs
+
+        return designs
+    if name == "params":
+        from sgf_plugins.world import params
+
+        return params
+    if name == "presets":
+        from sgf_plugins.world import presets
+
+        return presets
+    if name == "render":
+        from sgf_plugins.world import render
+
+        return render
+    if name == "terrain":
+        from sgf_plugins.world import terrain
+
+        return terrain
+    from sgf_plugins.world import world
+
+    return world
