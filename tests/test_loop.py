@@ -185,3 +185,15 @@ def test_extra_yaw_seeds_recover_from_a_wrong_column_shift(extra: int, expected:
         stage.process(frame=f, assignments=None, estimate=None)
     loops = stage.process(frame=frames[-1], assignments=GroupAssignments((assignment,)), estimate=None).items
     assert len(loops) == expected
+
+
+def test_ambiguous_matches_never_give_loop_factors() -> None:
+    frames = _straight_run(20, 0.0)
+    marking = Marking(1, "arrow", (2.5, 0.0, 0.0))
+    a, b = _view(frames[0], marking), _view(frames[-1], marking)
+    stage = IcpLoopClosing(IcpLoopParams())
+    found = [c for f in frames[:-1] for c in stage.process(frame=f, assignments=None, estimate=None).items]
+    ambiguous = GroupAssignment(b, 0, False, 0.1, 0, 0.0, a, False, ambiguous=True)  # type: ignore[arg-type]
+    found += stage.process(frame=frames[-1], assignments=GroupAssignments((ambiguous,)), estimate=None).items
+    assert found == []
+    assert stage.counts["ambiguous"] == 1 and stage.counts["icp"] == 0

@@ -290,3 +290,46 @@ def test_metrics_purity_and_loop_pairs():
     none = RunContext(None)
     s.finalize(none)
     assert none.metrics["sgf"]["purity"] is None and none.metrics["loops"]["pairs_found"] is None
+
+
+def test_a_repeated_pattern_is_aliased_and_never_joins_its_neighbour():
+    """Two identical arrows 1 m apart (a painted row): the second is another copy, not a revisit of the first."""
+    near = ARROW.placed(6.0, 0.0, 0.3, instance_id=8)
+    p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(near, 3.0, 0.0)
+    s = stage()
+    (r1,) = feed(s, 1, p1, desc(ARROW, p1, 1))
+    (r2,) = feed(s, 2, p2, desc(near, p2, 2))
+    assert r2.new_group and r2.group_id != r1.group_id and r2.ambiguous
+    assert all(g.aliased for g in s.groups)
+    context = RunContext(None)
+    s.finalize(context)
+    assert context.metrics["sgf"]["aliased_groups"] == 2
+    # without the repeat test the neighbouring copy joins the first arrow's group (a false loop)
+    naive = stage(repeat_window=0.0)
+    (q1,) = feed(naive, 1, p1, desc(ARROW, p1, 1))
+    (q2,) = feed(naive, 2, p2, desc(near, p2, 2))
+    assert not q2.new_group and q2.group_id == q1.group_id and not q2.ambiguous
+
+
+def _two_arrows_then_back(**params):
+    """Arrows at x = 5 and x = 25 m (identical design), then 400 m of travel and back to the first."""
+    far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
+    s = stage(**params)
+    p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(far, 3.0, 0.0)
+    (r1,) = feed(s, 1, p1, desc(ARROW, p1, 1))
+    (r2,) = feed(s, 2, p2, desc(far, p2, 2))
+    assert r2.new_group
+    feed(s, 3, pose_from_xy_yaw(220.0, 0.0, 0.0))
+    p4 = seen_from(ARROW, 3.0, math.pi)
+    (r4,) = feed(s, 4, p4, desc(ARROW, p4, 4))
+    return r1, r4
+
+
+def test_look_alike_groups_inside_the_gate_tie_and_the_match_is_ambiguous():
+    # after 430 m the gate (1.5 + 0.05 d + 0.0006 d^2 = 134 m) holds both arrows: eq. 10 cannot tell them apart
+    r1, r4 = _two_arrows_then_back()
+    assert not r4.new_group and r4.group_id == r1.group_id  # the nearest on the map wins the tie...
+    assert r4.ambiguous  # ...but gives no loop factor
+    # a tighter gate (1.5 + 0.02 d = 10.1 m) holds only the first arrow (the second is 17 m away): unambiguous
+    r1, r4 = _two_arrows_then_back(drift_rate=0.02, drift_quadratic=0.0)
+    assert not r4.new_group and r4.group_id == r1.group_id and not r4.ambiguous

@@ -196,3 +196,37 @@ def test_closing_joins_fragments_of_one_marking():
     assert len(HuMomentDetector(HuWindowParams()).regions(bev, SaliencyMap(prob, bev))[1]) == 2
     closed = HuMomentDetector(HuWindowParams(closing=2)).regions(bev, SaliencyMap(prob, bev))[1]
     assert len(closed) == 1 and 40 * 37 + 100 < len(closed[0].pixels) <= 40 * 40
+
+
+def test_merge_distance_joins_the_glyphs_of_one_sign_into_one_sgf():
+    grid, valid = DEFAULT_GRID, fov_valid_mask(DEFAULT_GRID)
+    prob = np.zeros((256, 256), np.float32)
+    prob[100:140, 100:115] = 1.0
+    prob[100:140, 122:137] = 1.0  # a second glyph 7 px = 0.14 m to the side
+    prob[200:240, 100:115] = 1.0  # another marking 60 px = 1.2 m nearer
+    bev = Bev(np.zeros((256, 256), np.uint8), valid, grid, 0, 0.0)
+    apart = HuMomentDetector(HuWindowParams()).regions(bev, SaliencyMap(prob, bev))[1]
+    assert sorted(len(r.pixels) for r in apart) == [600, 600, 600]
+    merged = HuMomentDetector(HuWindowParams(merge_distance=0.2)).regions(bev, SaliencyMap(prob, bev))[1]
+    # the two glyphs form one region of their own pixels only (the gap stays out); the far marking stays apart
+    assert sorted(len(r.pixels) for r in merged) == [600, 1200]
+    joined = max(merged, key=lambda r: len(r.pixels))
+    assert set(np.unique(joined.pixels[:, 0])) == set(range(100, 115)) | set(range(122, 137))
+    too_close = HuMomentDetector(HuWindowParams(merge_distance=0.1)).regions(bev, SaliencyMap(prob, bev))[1]
+    assert len(too_close) == 3  # 0.14 m apart is more than 0.1 m
+
+
+@pytest.mark.parametrize(
+    ("view_choice", "margin", "pick"), [("most_salient", 0.1, 0), ("salient_near", 0.1, 1), ("salient_near", 0.01, 0)]
+)
+def test_salient_near_takes_the_nearest_of_the_nearly_most_salient_views(diamond_passes, view_choice, margin, pick):
+    shapes, poses, truth = diamond_passes
+    first = next(p for p in truth.passes if p.instance_id == 7)
+    length = first.end_frame - first.start_frame
+    peak, later = first.start_frame + length // 3, first.start_frame + length // 2  # later = nearer (driving at it)
+    gain = np.full(40, 0.7)
+    gain[peak], gain[later] = 1.0, 0.95
+    stream = SaliencyStream(shapes, poses[:40], gain=list(gain), supersample=2)
+    params = HuWindowParams(view_choice=view_choice, near_margin=margin)
+    _, out, _ = run(stream, params)
+    assert [sgf.frame_index for _, sgf in out] == [(peak, later)[pick]]

@@ -243,3 +243,22 @@ def test_saliency_runs_in_a_pipeline(tmp_path: Path) -> None:
     cfg["saliency"] = {"name": "ldf", "weights": str(tmp_path / "missing.safetensors")}
     with pytest.raises(ConfigError, match=r"saliency=ldf cannot start: weights file .*missing.safetensors not found"):
         Pipeline.from_config(cfg, plugins=plugins)
+
+
+def test_ground_truth_saliency_is_the_visible_paint_and_needs_instances() -> None:
+    from sgf_plugins.saliency.stages import GroundTruthParams, GroundTruthSaliency
+
+    grid = BevGrid(resolution=0.02, x_min=0.5, x_max=1.78, y_min=-0.64, y_max=0.64)
+    image = np.full((64, 64), 60, np.uint8)
+    ids = np.zeros((64, 64), np.int32)
+    ids[10:30, 10:20] = 3
+    ids[40:50, 40:60] = 5
+    image[ids > 0] = 220
+    valid = np.ones((64, 64), bool)
+    valid[:, 50:] = False  # the camera sees only part of marking 5
+    stage = GroundTruthSaliency(GroundTruthParams(object_masks=False))
+    prob = stage.process(Bev(image, valid, grid, 0, 0.0, instance_ids=ids)).probability
+    assert prob.dtype == np.float32
+    assert np.array_equal(prob > 0.5, (ids > 0) & valid) and set(np.unique(prob)) == {0.0, 1.0}
+    with pytest.raises(DataError, match="saliency=ground_truth needs marking instances"):
+        stage.process(Bev(image, valid, grid, 0, 0.0))

@@ -369,7 +369,7 @@ class HuMomentDetector(Stage):
         best = max(chosen, key=lambda v: v.region.saliency)
         if self.params.view_choice == "salient_near":
             near = [v for v in chosen if v.region.saliency >= best.region.saliency - self.params.near_margin]
-            best = min(near, key=lambda v: float(v.region.pixels[:, 1].mean()) * -1.0)  # lowest rows: nearest
+            best = max(near, key=lambda v: float(v.region.pixels[:, 1].mean()))  # rows grow towards the robot
         region = best.region
         return SalientGroundFeature(
             track_id=track.track_id,
