@@ -326,10 +326,20 @@ def _two_arrows_then_back(**params):
 
 
 def test_look_alike_groups_inside_the_gate_tie_and_the_match_is_ambiguous():
-    # after 430 m the gate (1.5 + 0.05 d + 0.0006 d^2 = 134 m) holds both arrows: eq. 10 cannot tell them apart
+    # after 430 m the gate (1.5 + 0.05 d + 0.0002 d^2 = 60 m) holds both arrows: eq. 10 cannot tell them apart
     r1, r4 = _two_arrows_then_back()
     assert not r4.new_group and r4.group_id == r1.group_id  # the nearest on the map wins the tie...
     assert r4.ambiguous  # ...but gives no loop factor
     # a tighter gate (1.5 + 0.02 d = 10.1 m) holds only the first arrow (the second is 17 m away): unambiguous
     r1, r4 = _two_arrows_then_back(drift_rate=0.02, drift_quadratic=0.0)
     assert not r4.new_group and r4.group_id == r1.group_id and not r4.ambiguous
+
+
+def test_different_markings_side_by_side_are_not_copies_of_a_pattern():
+    """An arrow and an L 1 m apart, seen one after the other: two groups, neither aliased."""
+    ell = ELL.placed(6.0, 0.0, 1.1, instance_id=4)
+    p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(ell, 3.0, 0.0)
+    s = stage(new_group_distance=0.1)
+    feed(s, 1, p1, desc(ARROW, p1, 1))
+    (r2,) = feed(s, 2, p2, desc(ell, p2, 2))
+    assert r2.new_group and not r2.ambiguous and not any(g.aliased for g in s.groups)

@@ -97,10 +97,10 @@ class OnlineGroupsParams(StageParams):
         0.05, ge=0.0, description="gate growth per metre travelled between the two sightings (odometry drift)"
     )
     drift_quadratic: float = Field(
-        0.0006,
+        0.0002,
         ge=0.0,
-        description="gate growth per squared metre travelled: half the odometry's heading bias (rad/m), "
-        "whose position error grows with the square of the distance",
+        description="gate growth per squared metre travelled, for the odometry's heading bias (position error ~ d^2); "
+        "a straight drive's bound is half the bias in rad/m, routes that turn back stay well under it",
     )
     prior_gate_radius: float | None = Field(
         None, gt=0.0, description="gate (m) around members of groups seeded from a saved map; null = no gate"
@@ -128,11 +128,12 @@ class OnlineGroupsParams(StageParams):
 
 
 @dataclass(frozen=True)
-class _Candidate:
-    """A gated group and the best distance of the query to its descriptor."""
+class GatedGroup:
+    """A group inside the query's spatial gate: its nearest member's map distance, and whether it repeats."""
 
     group: SgfGroup
-    distance: float
+    nearest: float
+    repeated: bool
 
 
 class OnlineSgfGroups(Stage):
@@ -184,7 +185,6 @@ class OnlineSgfGroups(Stage):
         self._last_position: np.ndarray | None = None
         self._distance = 0.0
         self._next_id = 0
-        self._repeat_seen = False
 
     # -- groups ---------------------------------------------------------------------------
 
@@ -295,16 +295,15 @@ class OnlineSgfGroups(Stage):
             return float(np.linalg.norm(np.asarray(a.sgf.odometry)[:3, 3] - np.asarray(b.sgf.odometry)[:3, 3]))
         return abs(sa - sb)
 
-    def gated(self, query: SgfDescriptor, estimate: PoseEstimate | None) -> list[tuple[SgfGroup, float]]:
-        """The groups the spatial gate lets the query meet, each with its nearest member's map distance (m).
+    def gated(self, query: SgfDescriptor, estimate: PoseEstimate | None) -> list[GatedGroup]:
+        """The groups the spatial gate lets the query meet, with their nearest member's map distance (m).
 
-        A group holding a member seen moments ago (within ``repeat_window`` of travel) at another
-        place (beyond ``repeat_radius``) is a neighbouring copy of a repeated pattern: it is left
-        out and marked ``aliased`` (the query's group will be too), so it never gives loop factors.
+        ``repeated`` marks a group holding a member seen moments ago (within ``repeat_window`` of
+        travel) at another place (beyond ``repeat_radius``): if it also looks like the query, the
+        two are neighbouring copies of a repeated pattern (see :meth:`assign`).
         """
         here = self.position_of(query, estimate)
         out = []
-        self._repeat_seen = False
         for group in self._groups:
             nearest, inside, repeated = math.inf, not self.params.spatial_gate, False
             for member, anchor in zip(group.members, group.anchors, strict=True):
@@ -324,12 +323,8 @@ class OnlineSgfGroups(Stage):
                     )
                 nearest = min(nearest, distance)
                 inside = inside or distance <= radius
-            if repeated and inside:
-                group.aliased = True
-                self._repeat_seen = True
-                continue
             if inside:
-                out.append((group, nearest))
+                out.append(GatedGroup(group, nearest, repeated))
         return out
 
     # -- eq. 10 ------------------------------------------------------------------------------
@@ -348,36 +343,44 @@ class OnlineSgfGroups(Stage):
         p = self.params
         n_s = query.matrix.shape[1]
         candidates = self.gated(query, estimate)
-        best: _Candidate | None = None
+        best: tuple[SgfGroup, float] | None = None
+        tied_nearby = copy_nearby = False
         if candidates:
-            stack = np.stack([g.descriptor for g, _ in candidates])
+            stack = np.stack([c.group.descriptor for c in candidates])
             if stack.shape[1:] != query.matrix.shape:
                 raise ValueError(
                     f"descriptor shape {query.matrix.shape} differs from the groups' {stack.shape[1:]}; "
                     "all SGF descriptors of a run (and of a seeded map) need the same N_r and N_s"
                 )
             per_group = shifted_distances(query.matrix, stack, p.columns).min(axis=1)
-            ties = np.flatnonzero(per_group <= per_group.min() + p.tie_margin)
-            i = int(min(ties, key=lambda t: candidates[t][1]))
-            best = _Candidate(candidates[i][0], float(per_group[i]))
-            # Look-alike groups inside the gate (identical standard markings) cannot be told apart:
-            # the query joins the nearest, but the match is ambiguous and gives no loop factor.
-            tied_nearby = len(ties) > 1
-        else:
-            tied_nearby = False
+            # A look-alike group just seen elsewhere is a neighbouring copy of a repeated pattern
+            # (give-way triangles, dashes): the query may not join it, and neither gives loop factors.
+            copies = [i for i, c in enumerate(candidates) if c.repeated and per_group[i] <= p.new_group_distance]
+            for i in copies:
+                candidates[i].group.aliased = True
+            copy_nearby = bool(copies)
+            keep = [i for i in range(len(candidates)) if i not in copies]
+            if keep:
+                kept = per_group[keep]
+                ties = [keep[t] for t in np.flatnonzero(kept <= kept.min() + p.tie_margin)]
+                i = min(ties, key=lambda t: candidates[t].nearest)
+                best = (candidates[i].group, float(per_group[i]))
+                # Look-alike groups inside the gate (identical standard markings) cannot be told apart:
+                # the query joins the nearest, but the match is ambiguous and gives no loop factor.
+                tied_nearby = len(ties) > 1
         self._remember_member(query)
-        if best is None or best.distance > p.new_group_distance:
-            group = SgfGroup(self._next_id, aliased=self._repeat_seen)
+        if best is None or best[1] > p.new_group_distance:
+            group = SgfGroup(self._next_id, aliased=copy_nearby)
             self._next_id += 1
             group.add(query, 0)
             group.refresh(p.columns, p.symmetry_threshold)
             self._groups.append(group)
-            distance = 1.0 if best is None else best.distance
+            distance = 1.0 if best is None else best[1]
             return GroupAssignment(
                 query, group.group_id, True, distance, 0, 0.0, None, group.symmetric, ambiguous=group.aliased
             )
-        group = best.group
-        group.aliased = group.aliased or self._repeat_seen
+        group, best_distance = best
+        group.aliased = group.aliased or copy_nearby
         profiles = shifted_distances(query.matrix, group.matrices, p.columns)
         m = int(np.argmin(profiles.min(axis=1)))
         matched = group.members[m]
@@ -389,7 +392,7 @@ class OnlineSgfGroups(Stage):
             descriptor=query,
             group_id=group.group_id,
             new_group=False,
-            distance=best.distance,
+            distance=best_distance,
             shift=shift,
             yaw=shift_to_yaw(shift, n_s),
             matched=matched,
