@@ -117,6 +117,9 @@ class OnlineGroupsParams(StageParams):
         "copy of a repeated pattern (give-way triangles, zebra bars, dashes): the query may not join it",
     )
     repeat_radius: float = Field(0.5, gt=0.0, description="...away means farther than this on the map (m)")
+    copy_distance: float = Field(
+        0.2, ge=0.0, description="...and a copy looks like the query: eq. 10 distance at most this (0 = no copies)"
+    )
     prior_map: str | None = Field(
         None, description="an SGF map (sgf_map.safetensors) whose groups seed the association: localization on it"
     )
@@ -355,7 +358,7 @@ class OnlineSgfGroups(Stage):
             per_group = shifted_distances(query.matrix, stack, p.columns).min(axis=1)
             # A look-alike group just seen elsewhere is a neighbouring copy of a repeated pattern
             # (give-way triangles, dashes): the query may not join it, and neither gives loop factors.
-            copies = [i for i, c in enumerate(candidates) if c.repeated and per_group[i] <= p.new_group_distance]
+            copies = [i for i, c in enumerate(candidates) if c.repeated and per_group[i] <= p.copy_distance]
             for i in copies:
                 candidates[i].group.aliased = True
             copy_nearby = bool(copies)
