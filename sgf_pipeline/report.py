@@ -6,6 +6,7 @@ import csv
 import io
 import json
 import math
+import os
 from collections import defaultdict
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -412,6 +413,14 @@ def plot_timing(path: Path, runs: list[RunRecord]) -> None:
     plt.close(fig)
 
 
+def _link(target: Path, out: Path) -> str:
+    """A link from ``out``/report.md to ``target``: relative (the folder can move), else absolute."""
+    try:
+        return os.path.relpath(target.resolve(), out.resolve()).replace(os.sep, "/")
+    except ValueError:  # another drive (Windows)
+        return str(target.resolve())
+
+
 def write_report(root: str | Path, out_dir: str | Path | None = None) -> dict[str, Any]:
     """Read every run below ``root`` and write report.md, runs.csv, tables.json and figures."""
     runs = find_runs(root)
@@ -429,7 +438,7 @@ def write_report(root: str | Path, out_dir: str | Path | None = None) -> dict[st
             ("ipm_comparison.png", "MC-IPM vs IPM"),
         ):
             if (run.path / name).exists():
-                figures[f"{title}: {run.path.name}"] = str((run.path / name).resolve())
+                figures[f"{title}: {run.path.name}"] = _link(run.path / name, out)
     atomic_write_text(out / "report.md", render_markdown(runs, tables, figures))
     atomic_write_text(out / "runs.csv", runs_csv(runs))
     atomic_write_json(out / "tables.json", tables)

@@ -110,3 +110,13 @@ def test_single_run_needs_no_sweep(tmp_path: Path):
     )
     tables = build_tables(find_runs(tmp_path))
     assert tables["swept"] == [] and tables["rows"][0]["variant"] == "default"
+
+
+def test_figures_are_linked_relative_to_the_report(tmp_path: Path):
+    runs = tmp_path / "sweep"
+    counts = {"detected": 1, "total": 1, "found": 1, "pairs": 1, "closed": 1}
+    fake_run(runs, "0_run", "campus_delivery", 0, "mc", (5.0, 1.0), counts)
+    (runs / "0_run" / "trajectory.png").write_bytes(b"\x89PNG")
+    write_report(runs, tmp_path / "elsewhere")
+    report = (tmp_path / "elsewhere" / "report.md").read_text()
+    assert "![Trajectories: 0_run](../sweep/0_run/trajectory.png)" in report
