@@ -290,6 +290,10 @@ def test_a_second_run_into_a_directory_in_use_is_refused(plugins, tmp_path: Path
 # -- signals and concurrent processes -----------------------------------------------------------------
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _wait_for_start(run_dir: Path, proc: subprocess.Popen[str]) -> None:
     deadline = time.time() + 60
     while not (run_dir / "run.log").exists() or "pipeline:" not in (run_dir / "run.log").read_text():
@@ -312,6 +316,8 @@ def test_sigint_and_sigterm_leave_a_record_and_exit_130_and_143(toy_plugin_site:
                 stdout=subprocess.PIPE,
                 stderr=subprocess.PIPE,
                 text=True,
+                # a test session started in the background inherits an ignored SIGINT; the run must not
+                preexec_fn=_default_sigint,
             ),
         )
     for run_dir, proc in procs.values():
