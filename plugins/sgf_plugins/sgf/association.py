@@ -358,15 +358,14 @@ class OnlineSgfGroups(Stage):
             per_group = shifted_distances(query.matrix, stack, p.columns).min(axis=1)
             # A look-alike group just seen elsewhere is a neighbouring copy of a repeated pattern
             # (give-way triangles, dashes): the query may not join it, and neither gives loop factors.
-            copies = [i for i, c in enumerate(candidates) if c.repeated and per_group[i] <= p.copy_distance]
-            for i in copies:
+            copy = np.array([c.repeated for c in candidates]) & (per_group <= p.copy_distance)
+            for i in np.flatnonzero(copy):
                 candidates[i].group.aliased = True
-            copy_nearby = bool(copies)
-            keep = [i for i in range(len(candidates)) if i not in copies]
-            if keep:
-                kept = per_group[keep]
-                ties = [keep[t] for t in np.flatnonzero(kept <= kept.min() + p.tie_margin)]
-                i = min(ties, key=lambda t: candidates[t].nearest)
+            copy_nearby = bool(copy.any())
+            if not copy.all():
+                best_kept = per_group[~copy].min()
+                ties = np.flatnonzero(~copy & (per_group <= best_kept + p.tie_margin))
+                i = int(min(ties, key=lambda t: candidates[t].nearest))
                 best = (candidates[i].group, float(per_group[i]))
                 # Look-alike groups inside the gate (identical standard markings) cannot be told apart:
                 # the query joins the nearest, but the match is ambiguous and gives no loop factor.
