@@ -101,7 +101,9 @@ class SoakObserver:
         if self._count % 1000 == 0:
             now = time.perf_counter()
             rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-            self.rows.append((self._count, self._distance / 1000.0, rss, (now - self._window_start) / 1000.0))
+            row = (self._count, self._distance / 1000.0, rss, (now - self._window_start) / 1000.0)
+            self.rows.append(row)
+            print(f"{row[0]:7d} {row[1]:6.2f} {row[2]:13.0f} {1000 * row[3]:18.1f}", flush=True)
             self._window_start = now
 
 
@@ -125,12 +127,10 @@ def main() -> None:
     assert isinstance(plain, dict)
     plain["dataset"] = {"name": "soak_laps", "laps": args.laps}
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average {os.getloadavg()}")
+    print(f"{'frames':>7} {'km':>6} {'peak RSS MiB':>13} {'ms/frame (window)':>18}", flush=True)
     t0 = time.perf_counter()
     metrics = Pipeline.from_config(plain, plugins=plugins).run()
     wall = time.perf_counter() - t0
-    print(f"{'frames':>7} {'km':>6} {'peak RSS MiB':>13} {'ms/frame (window)':>18}")
-    for count, km, rss, per in observer.rows:
-        print(f"{count:7d} {km:6.2f} {rss:13.0f} {1000 * per:18.1f}")
     rows = observer.rows
     if len(rows) >= 3:
         first_lap = [r for r in rows if r[1] >= rows[-1][1] / args.laps] or rows

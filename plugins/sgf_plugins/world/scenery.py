@@ -84,6 +84,8 @@ class PlacedAgent:
 
 def clip_near(points: np.ndarray, z_near: float = 0.05) -> np.ndarray:
     """Clip a convex polygon (N, 3) in camera coordinates against the plane ``z = z_near``."""
+    if (points[:, 2] >= z_near).all():
+        return points
     out: list[np.ndarray] = []
     n = len(points)
     for i in range(n):
@@ -299,12 +301,34 @@ class Scenery:
                 bases = tr[near, :3] @ rot.T + trans
                 pad = K[0, 0] * tr[near, 4] / np.maximum(crowns[:, 2], 0.3)
                 show = self._in_view(crowns, K, w, h, pad) | self._in_view(bases, K, w, h, pad)
-                for i in near[show]:
-                    item = self._tree_item(
-                        layout.trees[i], float(self.tree_z[i]), centre, to_cam, project, image, depth, K, light
+                show &= crowns[:, 2] >= 0.3
+                idx = near[show]
+                uv_base, uv_crown = project(bases[show]), project(crowns[show])
+                r_px = K[0, 0] * tr[idx, 4] / crowns[show, 2]
+                off = (
+                    (uv_crown[:, 0] + r_px < 0)
+                    | (uv_crown[:, 0] - r_px > w)
+                    | (uv_crown[:, 1] - r_px > h)
+                    | ((uv_base[:, 1] < 0) & (uv_crown[:, 1] + r_px < 0))
+                )
+                dist = np.hypot(tr[idx, 0] - centre[0], tr[idx, 1] - centre[1])
+                crown_depth = crowns[show, 2]
+                for j in np.flatnonzero(~off):
+                    i = int(idx[j])
+                    draw = self._tree_item(
+                        layout.trees[i],
+                        tr[i, :3],
+                        uv_crown[j],
+                        float(r_px[j]),
+                        float(crown_depth[j]),
+                        centre,
+                        to_cam,
+                        project,
+                        image,
+                        depth,
+                        light,
                     )
-                    if item is not None:
-                        items.append(item)
+                    items.append((float(dist[j]), draw))
         if len(self._lamps):
             lp = self._lamps
             near = np.flatnonzero((lp[:, 0] - centre[0]) ** 2 + (lp[:, 1] - centre[1]) ** 2 < 60.0**2)
@@ -410,7 +434,7 @@ class Scenery:
             return
         # the texture level whose texels are about a pixel at the wall's nearest point
         px_per_m = K[0, 0] / max(float(pc[:, 2].min()), 0.5)
-        lod = int(np.clip(math.floor(math.log2(max(1e-6, 10.0 / px_per_m))), 0, 4))
+        lod = min(4, max(0, math.floor(math.log2(max(1e-6, 10.0 / px_per_m)))))
         tex = self.facade_texture(index, side, length, light.night, lod)
         texel = length / tex.shape[1], b.height / tex.shape[0]
         # texture pixel (x, y) -> world: a + x*texel*e_u + (height - y*texel)*e_z
@@ -432,33 +456,26 @@ class Scenery:
         alpha *= depth[r0:r1, c0:c1] > max(nearest, 0.5)  # a rise of the ground can hide a wall's foot
         # night walls are stored dark with their lit windows: they glow on their own
         roi = image[r0:r1, c0:c1]
-        _blend_into(roi, warped.astype(np.float32) * level, alpha)
+        _blend_into(roi, warped, alpha, level)
 
     # -- trees and lamps ---------------------------------------------------------------------
 
     def _tree_item(
         self,
         tree: Tree,
-        z0: float,
+        base: np.ndarray,
+        crown_px: np.ndarray,
+        r_px: float,
+        crown_depth: float,
         centre: np.ndarray,
         to_cam: Callable[[np.ndarray], np.ndarray],
         project: Callable[[np.ndarray], np.ndarray],
         image: np.ndarray,
         depth: np.ndarray,
-        K: np.ndarray,
         light: Lighting,
-    ) -> tuple[float, Callable[[], None]] | None:
-        base = np.array([tree.position[0], tree.position[1], z0])
+    ) -> Callable[[], None]:
+        """The drawing of a tree that shows (culled and projected in ``_cull_and_queue``)."""
         crown = base + np.array([0.0, 0.0, tree.canopy_height])
-        pts = to_cam(np.stack([base, crown]))
-        if pts[1, 2] < 0.3:
-            return None
-        h, w = image.shape[:2]
-        uv = project(pts)
-        r_px = K[0, 0] * tree.canopy_radius / pts[1, 2]
-        if uv[1, 0] + r_px < 0 or uv[1, 0] - r_px > w or uv[1, 1] - r_px > h or (uv[0, 1] < 0 and uv[1, 1] + r_px < 0):
-            return None
-        dist = float(np.linalg.norm(base[:2] - centre[:2]))
 
         def draw() -> None:
             level = light.at(crown) if light.night else (light.ambient + 0.6 * light.sun_strength) * light.gain
@@ -475,14 +492,14 @@ class Scenery:
                 col = tuple(float(v) for v in np.array([78, 64, 52], np.float32) * level)
                 cv2.fillPoly(image, [np.round(tuv * 16).astype(np.int32)], col, cv2.LINE_AA, 4)
             if r_px >= 12.0:
-                self._sprite(image, depth, self._canopies[tree.variant], uv[1], r_px, level, float(pts[1, 2]))
+                self._sprite(image, depth, self._canopies[tree.variant], crown_px, r_px, level, crown_depth)
             elif r_px >= 1.0:  # a far crown: a blob of its mean colour (its leaves are below a pixel)
                 col = tuple(float(v) for v in self._canopy_colours[tree.variant] * level)
-                centre_px = (round(uv[1, 0] * 16), round(uv[1, 1] * 16))
+                centre_px = (round(crown_px[0] * 16), round(crown_px[1] * 16))
                 axes = (round(r_px * 16), round(r_px * 0.92 * 16))
                 cv2.ellipse(image, centre_px, axes, 0.0, 0, 360, col, -1, cv2.LINE_AA, 4)
 
-        return dist, draw
+        return draw
 
     def _lamp_item(
         self,
@@ -563,7 +580,7 @@ class Scenery:
         part = scaled[rr0 - r0 : rr1 - r0, cc0 - c0 : cc1 - c0]
         alpha = part[..., 3]
         roi = image[rr0:rr1, cc0:cc1]
-        _blend_into(roi, part[..., :3] * level, alpha)
+        _blend_into(roi, part[..., :3], alpha, level)
 
     # -- people and vehicles -------------------------------------------------------------------
 
@@ -747,9 +764,12 @@ def _pyramid(sprite: np.ndarray) -> list[np.ndarray]:
     return levels
 
 
-def _blend_into(roi: np.ndarray, colour: np.ndarray, alpha: np.ndarray) -> None:
-    """Alpha-blend ``colour`` (float RGB or one RGB triple) into a uint8 image region in place."""
-    a = alpha[..., None]
-    out = roi.astype(np.float32) * (1.0 - a) + np.asarray(colour, np.float32) * a
-    np.clip(out, 0.0, 255.0, out=out)
-    roi[:] = out.astype(np.uint8)
+def _blend_into(roi: np.ndarray, colour: np.ndarray, alpha: np.ndarray, level: float = 1.0) -> None:
+    """Alpha-blend ``colour`` x ``level`` (an RGB image or one RGB triple) into a uint8 image region in place."""
+    if np.ndim(colour) == 1:
+        src = np.empty_like(roi)
+        src[:] = np.clip(np.asarray(colour, np.float32) * level, 0.0, 255.0).astype(np.uint8)
+    else:
+        src = cv2.convertScaleAbs(colour, alpha=level)  # saturates at 255 (colours are never negative)
+    a = np.ascontiguousarray(alpha, np.float32)
+    roi[:] = cv2.blendLinear(src, np.ascontiguousarray(roi), a, 1.0 - a)
