@@ -84,8 +84,11 @@ class PlacedAgent:
 
 def clip_near(points: np.ndarray, z_near: float = 0.05) -> np.ndarray:
     """Clip a convex polygon (N, 3) in camera coordinates against the plane ``z = z_near``."""
-    if (points[:, 2] >= z_near).all():
+    front = points[:, 2] >= z_near
+    if front.all():
         return points
+    if not front.any():
+        return points[:0]
     out: list[np.ndarray] = []
     n = len(points)
     for i in range(n):
@@ -313,16 +316,23 @@ class Scenery:
                 )
                 dist = np.hypot(tr[idx, 0] - centre[0], tr[idx, 1] - centre[1])
                 crown_depth = crowns[show, 2]
+                # trunks: quads facing the camera, 0.28 m wide at the foot and 0.17 m under the crown
+                foot = tr[idx, :3]
+                top = foot + np.column_stack([np.zeros((len(idx), 2)), tr[idx, 3]])
+                rel = foot[:, :2] - centre[:2]
+                side = np.column_stack([-rel[:, 1], rel[:, 0], np.zeros(len(idx))])
+                side *= 0.14 / np.maximum(np.linalg.norm(side, axis=1, keepdims=True), 1e-9)
+                trunks = np.stack([foot + side, foot - side, top - 0.6 * side, top + 0.6 * side], axis=1)
+                trunks = trunks @ rot.T + trans
                 for j in np.flatnonzero(~off):
                     i = int(idx[j])
                     draw = self._tree_item(
                         layout.trees[i],
                         tr[i, :3],
+                        trunks[j],
                         uv_crown[j],
                         float(r_px[j]),
                         float(crown_depth[j]),
-                        centre,
-                        to_cam,
                         project,
                         image,
                         depth,
@@ -464,11 +474,10 @@ class Scenery:
         self,
         tree: Tree,
         base: np.ndarray,
+        trunk: np.ndarray,
         crown_px: np.ndarray,
         r_px: float,
         crown_depth: float,
-        centre: np.ndarray,
-        to_cam: Callable[[np.ndarray], np.ndarray],
         project: Callable[[np.ndarray], np.ndarray],
         image: np.ndarray,
         depth: np.ndarray,
@@ -479,25 +488,18 @@ class Scenery:
 
         def draw() -> None:
             level = light.at(crown) if light.night else (light.ambient + 0.6 * light.sun_strength) * light.gain
-            # trunk: a quad facing the camera
-            half = 0.14
-            side = np.array([-(base - centre)[1], (base - centre)[0], 0.0])
-            side /= max(float(np.linalg.norm(side)), 1e-9)
-            quad = np.stack(
-                [base + half * side, base - half * side, crown - half * side * 0.6, crown + half * side * 0.6]
-            )
-            tc = clip_near(to_cam(quad))
+            tc = clip_near(trunk)
             if len(tc) >= 3:
                 tuv = project(tc)
-                col = tuple(float(v) for v in np.array([78, 64, 52], np.float32) * level)
+                col = (78.0 * level, 64.0 * level, 52.0 * level)
                 cv2.fillPoly(image, [np.round(tuv * 16).astype(np.int32)], col, cv2.LINE_AA, 4)
             if r_px >= 12.0:
                 self._sprite(image, depth, self._canopies[tree.variant], crown_px, r_px, level, crown_depth)
             elif r_px >= 1.0:  # a far crown: a blob of its mean colour (its leaves are below a pixel)
-                col = tuple(float(v) for v in self._canopy_colours[tree.variant] * level)
+                blob = tuple(float(v) for v in self._canopy_colours[tree.variant] * level)
                 centre_px = (round(crown_px[0] * 16), round(crown_px[1] * 16))
                 axes = (round(r_px * 16), round(r_px * 0.92 * 16))
-                cv2.ellipse(image, centre_px, axes, 0.0, 0, 360, col, -1, cv2.LINE_AA, 4)
+                cv2.ellipse(image, centre_px, axes, 0.0, 0, 360, blob, -1, cv2.LINE_AA, 4)
 
         return draw
 
