@@ -412,7 +412,7 @@ class Renderer:
         lv0 = LEVELS[0]
         ground = ground_all[:top]
         # uint8 arithmetic (weights in 1/255): an order of magnitude faster than float blending
-        acc = np.zeros((top, self.width, 4), np.uint8)
+        acc = rgba[:top]  # zeros: accumulated in place
         total = np.zeros((top, self.width), np.float32)
         for k, mosaic in enumerate(self.mosaics):
             weight = weights_f[k][:top] * ground
@@ -434,7 +434,7 @@ class Renderer:
             ident = _remap(mosaic.ids, map_k, cv2.INTER_NEAREST)
             w8 = cv2.convertScaleAbs(wk, alpha=255.0)
             w4 = cv2.merge([w8, w8, w8, w8])  # (GRAY2RGBA would set the sunlit channel to 255)
-            acc[r0:r1] = cv2.add(acc[r0:r1], cv2.multiply(sample, w4, scale=1.0 / 255.0))
+            cv2.add(acc[r0:r1], cv2.multiply(sample, w4, scale=1.0 / 255.0), dst=acc[r0:r1])
             total[r0:r1] += wk
             # ids from the heaviest level (never blended)
             np.copyto(ids[r0:r1], ident, where=wk > 0.5)
@@ -442,7 +442,6 @@ class Renderer:
         short = (total > 0.0) & (total < 0.99)
         if short.any():
             acc[short] = np.clip(acc[short] / total[short][:, None], 0, 255).astype(np.uint8)
-        rgba[:top] = acc
 
     def _add_detail(
         self, light: np.ndarray, maps: np.ndarray, depth_f: np.ndarray, depth: np.ndarray, hit: np.ndarray, top: int
@@ -466,7 +465,8 @@ class Renderer:
         # rare negative ones stay correct through the wrapping border
         coords -= period * (coords * (1 / period)).astype(np.int32).astype(np.float32)
         grain = _remap(self.detail, coords, cv2.INTER_LINEAR, cv2.BORDER_WRAP)
-        fade = np.clip((DETAIL_DEPTH - depth_f[r0:]) * np.float32(0.5), 0.0, 1.0)
+        fade = cv2.addWeighted(depth_f[r0:], -0.5, depth_f[r0:], 0.0, 0.5 * DETAIL_DEPTH)
+        np.clip(fade, 0.0, 1.0, out=fade)
         grain *= fade
         grain += 1.0
         light[r0:] *= grain

@@ -29,6 +29,20 @@ class Terrain:
         rough: Sequence[RoughPatch] = (),
     ) -> None:
         self.hills = list(hills)
+        # the hills' parameters as columns (one row per hill): all hills in one pass of numpy
+        columns = [
+            [
+                h.centre[0],
+                h.centre[1],
+                math.cos(h.yaw),
+                math.sin(h.yaw),
+                h.amplitude,
+                0.5 / h.sigma_along**2,
+                0.5 / h.sigma_across**2,
+            ]
+            for h in self.hills
+        ]
+        self._hill_columns = np.asarray(columns, np.float64).reshape(-1, 7)[:, :, None]
         self.bumps = list(bumps)
         self.rough = list(rough)
         self._bump_index = SpatialIndex(16.0)
@@ -112,14 +126,19 @@ class Terrain:
         return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
     def _smooth(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        h = np.zeros_like(x)
-        gx = np.zeros_like(x)
-        gy = np.zeros_like(x)
-        for hill in self.hills:
-            hv, hx, hy = _hill(hill, x, y)
-            h += hv
-            gx += hx
-            gy += hy
+        """The hills' height and gradient at points (1-D), all hills at once (rows) then summed."""
+        cx, cy, c, s, amplitude, ia, ic = (self._hill_columns[:, k] for k in range(7))
+        dx, dy = x - cx, y - cy
+        u = c * dx + s * dy  # along the hill's axis
+        v = c * dy - s * dx  # across it
+        e = amplitude * np.exp(-(u * u * ia + v * v * ic))
+        du = u * e
+        du *= -2.0 * ia
+        dv = v * e
+        dv *= -2.0 * ic
+        h: np.ndarray = e.sum(axis=0)
+        gx: np.ndarray = (c * du - s * dv).sum(axis=0)
+        gy: np.ndarray = (s * du + c * dv).sum(axis=0)
         return h, gx, gy
 
     # -- the robot on its wheels ---------------------------------------------------------------
@@ -167,17 +186,6 @@ class Terrain:
             return 0.0
         _, gx, gy = self._smooth(points[:, 0], points[:, 1])
         return float(np.hypot(gx, gy).max())
-
-
-def _hill(hill: Hill, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    c, s = math.cos(hill.yaw), math.sin(hill.yaw)
-    dx, dy = x - hill.centre[0], y - hill.centre[1]
-    u = c * dx + s * dy
-    v = -s * dx + c * dy
-    e = hill.amplitude * np.exp(-0.5 * ((u / hill.sigma_along) ** 2 + (v / hill.sigma_across) ** 2))
-    du = -u / hill.sigma_along**2 * e
-    dv = -v / hill.sigma_across**2 * e
-    return e, c * du - s * dv, s * du + c * dv
 
 
 def _add_bump(
