@@ -416,28 +416,32 @@ class Renderer:
         total = np.zeros((top, self.width), np.float32)
         for k, mosaic in enumerate(self.mosaics):
             weight = weights_f[k][:top] * ground
-            rows = np.flatnonzero(weight.max(axis=1) > 0)
+            used = weight > 0
+            rows = np.flatnonzero(used.any(axis=1))
             if rows.size == 0:
                 continue
-            r0, r1 = int(rows[0]), int(rows[-1]) + 1
+            cols = np.flatnonzero(used[rows[0] : rows[-1] + 1].any(axis=0))
+            # the box of the pixels this level weighs in
+            box = np.s_[int(rows[0]) : int(rows[-1]) + 1, int(cols[0]) : int(cols[-1]) + 1]
             lv = mosaic.level
             # texel coordinates of level k from those of level 0 (both world-aligned)
             ratio = lv0.res / lv.res
             sx, sy = mosaic.shift
             offset = np.array([(shift[0] + 0.5) * ratio - 0.5 - sx, (shift[1] + 0.5) * ratio - 0.5 - sy], np.float32)
-            map_k = maps[r0:r1] * np.float32(ratio) + offset
+            map_k = maps[box] * np.float32(ratio) + offset
             # pixels with weight lie in the window (their tiles are loaded); clipping keeps the
             # others on remap's fast in-range path
             np.clip(map_k, 0.0, np.float32(mosaic.size - 1), out=map_k)
-            wk = weight[r0:r1]
+            wk = weight[box]
             sample = _remap(mosaic.rgba, map_k, cv2.INTER_LINEAR)
-            ident = _remap(mosaic.ids, map_k, cv2.INTER_NEAREST)
             w8 = cv2.convertScaleAbs(wk, alpha=255.0)
             w4 = cv2.merge([w8, w8, w8, w8])  # (GRAY2RGBA would set the sunlit channel to 255)
-            cv2.add(acc[r0:r1], cv2.multiply(sample, w4, scale=1.0 / 255.0), dst=acc[r0:r1])
-            total[r0:r1] += wk
+            cv2.add(acc[box], cv2.multiply(sample, w4, scale=1.0 / 255.0), dst=acc[box])
+            total[box] += wk
             # ids from the heaviest level (never blended)
-            np.copyto(ids[r0:r1], ident, where=wk > 0.5)
+            heavy = wk > 0.5
+            if heavy.any():
+                np.copyto(ids[box], _remap(mosaic.ids, map_k, cv2.INTER_NEAREST), where=heavy)
         # the weights sum to one except where a level's window ran out: renormalise those pixels
         short = (total > 0.0) & (total < 0.99)
         if short.any():
