@@ -215,7 +215,6 @@ class Renderer:
         self._smooth_hits = np.zeros((4, self.nv, self.nu))
         self.detail = _detail_texture(rng)
         self.stopwatch = Stopwatch()
-        self._horizon_cache: tuple[tuple[bool, float], np.ndarray] | None = None
 
     # -- public --------------------------------------------------------------------------------
 
@@ -300,13 +299,20 @@ class Renderer:
         albedo = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB)
         image = cv2.multiply(albedo, cv2.cvtColor(light8, cv2.COLOR_GRAY2RGB), scale=1.0 / LIGHT_SCALE)
         watch.lap("shading")
-        sky_rows = np.flatnonzero((haze_f > 0.01).any(axis=1) | ~ground[:band].all(axis=1))
-        if sky_rows.size:
-            r1 = int(sky_rows[-1]) + 1
-            sky = cv2.convertScaleAbs(self._sky(dirs, r1, night), alpha=gain)
-            hz = haze_f[:r1]
-            hazed = cv2.blendLinear(image[:r1], self._horizon_image(night, gain)[:r1], 1.0 - hz, hz)
-            cv2.copyTo(sky, (~ground[:r1]).view(np.uint8), hazed)
+        # haze reaches further down the image than the sky: each over its own rows
+        sky_rows = np.flatnonzero(~ground[:band].all(axis=1))
+        haze_rows = np.flatnonzero((haze_f > 0.01).any(axis=1))
+        r_sky = int(sky_rows[-1]) + 1 if sky_rows.size else 0
+        r1 = max(r_sky, int(haze_rows[-1]) + 1 if haze_rows.size else 0)
+        if r1:
+            # image (1 - haze) + horizon haze in uint8 arithmetic (haze in 1/255): far cheaper than blendLinear
+            haze3 = cv2.cvtColor(cv2.convertScaleAbs(haze_f[:r1], alpha=255.0), cv2.COLOR_GRAY2RGB)
+            clear = cv2.multiply(image[:r1], cv2.bitwise_not(haze3), scale=1.0 / 255.0)
+            horizon = np.clip(self._horizon_colour(night) * gain, 0.0, 255.0)
+            red, green, blue = (float(v) for v in horizon)
+            hazed = cv2.add(clear, cv2.multiply(haze3, (red, green, blue, 0.0), scale=1.0 / 255.0))  # type: ignore[call-overload]
+            if r_sky:
+                cv2.copyTo(self._sky(dirs, r_sky, night, gain), (~ground[:r_sky]).view(np.uint8), hazed[:r_sky])
             image[:r1] = hazed
         watch.lap("sky and haze")
         # 4. things above the ground
@@ -733,16 +739,8 @@ class Renderer:
     def _horizon_colour(self, night: bool) -> np.ndarray:
         return np.array([13, 14, 21], np.float32) if night else np.array([196, 206, 214], np.float32)
 
-    def _horizon_image(self, night: bool, gain: float) -> np.ndarray:
-        """A frame filled with the exposed horizon colour (cached: exposures repeat)."""
-        key = (night, round(gain, 4))
-        if self._horizon_cache is None or self._horizon_cache[0] != key:
-            colour = np.clip(self._horizon_colour(night) * gain, 0, 255).astype(np.uint8)
-            self._horizon_cache = (key, np.ascontiguousarray(np.broadcast_to(colour, (self.height, self.width, 3))))
-        return self._horizon_cache[1]
-
-    def _sky(self, dirs: np.ndarray, rows: int, night: bool) -> np.ndarray:
-        """Sky colour of the top ``rows`` rows: a gradient with clouds (day) or a dark glow (night)."""
+    def _sky(self, dirs: np.ndarray, rows: int, night: bool, gain: float) -> np.ndarray:
+        """Sky of the top ``rows`` rows (uint8, exposed by ``gain``): a gradient with clouds, or a dark glow."""
         nb = min(self.nv, math.ceil((rows + OFFSET) / STEP) + 2)
         d = dirs[:nb]
         d = d / np.linalg.norm(d, axis=-1, keepdims=True)
@@ -758,8 +756,13 @@ class Renderer:
             clouds = cv2.remap(self._clouds(), cu, cv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
             c = np.clip((clouds - 0.1) * 2.2, 0.0, 0.85)[..., None]
             colour = colour * (1 - c) + np.array([238, 240, 242], np.float32) * c
-        big = cv2.resize(colour.astype(np.float32), (self.nu * STEP, nb * STEP), interpolation=cv2.INTER_LINEAR)
-        return big[STEP : STEP + rows, STEP : STEP + self.width]
+        planes = []
+        for k in range(3):  # one channel at a time: several times faster than interleaved
+            plane = np.ascontiguousarray(colour[..., k], np.float32)
+            big = cv2.resize(plane, (self.nu * STEP, nb * STEP), interpolation=cv2.INTER_LINEAR)
+            planes.append(cv2.convertScaleAbs(big[STEP : STEP + rows, STEP : STEP + self.width], alpha=gain))
+        sky: np.ndarray = cv2.merge(planes)
+        return sky
 
     _cloud_cache: np.ndarray | None = None
 

@@ -168,11 +168,14 @@ class TileGenerator:
         any_lawn = bool((sdf > -0.1).any())
 
         def up(*channels: np.ndarray) -> list[np.ndarray]:
-            stack: np.ndarray = np.dstack(channels).astype(np.float32)
-            if step > 1:
-                stack = cv2.resize(stack, (gnx * step, gny * step), interpolation=cv2.INTER_LINEAR)
-            stack = stack[:ny, :nx]
-            return [np.ascontiguousarray(stack[..., k]) for k in range(stack.shape[2])]
+            # one channel at a time: several times faster than resizing them interleaved
+            out = []
+            for channel in channels:
+                plane: np.ndarray = np.ascontiguousarray(channel, np.float32)
+                if step > 1:
+                    plane = cv2.resize(plane, (gnx * step, gny * step), interpolation=cv2.INTER_LINEAR)
+                out.append(np.ascontiguousarray(plane[:ny, :nx]))
+            return out
 
         sdf_f, factor, shade_f = up(sdf, stains, shade)
         # 2. full-resolution detail: lawn grain, paving patterns, curbs
@@ -190,10 +193,12 @@ class TileGenerator:
             tone_c = 0.1 * large + 0.05 * lattice_noise(seed + 11, x0, y_top, gnx, gny, g, 0.16)
             s_f, t_f, tone = up(s, t, tone_c)
             if step > 1:
-                cats = cv2.resize(
-                    np.dstack([mat, area]).astype(np.int32), (gnx * step, gny * step), interpolation=cv2.INTER_NEAREST
-                )[:ny, :nx]
-                mat, area = cats[..., 0], cats[..., 1]
+                mat, area = (
+                    cv2.resize(
+                        np.ascontiguousarray(c, np.int32), (gnx * step, gny * step), interpolation=cv2.INTER_NEAREST
+                    )[:ny, :nx]
+                    for c in (mat, area)
+                )
             for material in np.unique(mat[paved]) if paved.any() else ():
                 sel = paved & (mat == material)
                 rgb[sel] = self._paving(int(material), s_f[sel], t_f[sel], area[sel], tone[sel], grain[sel], res)
