@@ -519,7 +519,7 @@ class Renderer:
             ta, da = td[active], dd[active]
             xa = centre[0] + ta * da[:, 0]
             ya = centre[1] + ta * da[:, 1]
-            hgt, gxa, gya = self.terrain.height_and_gradient(xa, ya, detail=False)
+            hgt, gxa, gya = self.terrain.hill_heights(xa, ya, single=True)
             f = centre[2] + ta * da[:, 2] - hgt
             fp = da[:, 2] - gxa * da[:, 0] - gya * da[:, 1]
             step = f / np.minimum(fp, -1e-6)
