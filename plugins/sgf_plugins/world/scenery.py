@@ -82,6 +82,10 @@ class PlacedAgent:
     z: float
 
 
+#: Memory budget of the scaled and lit tree sprites kept between frames.
+SPRITE_CACHE_BYTES = 48 * 2**20
+
+
 def clip_near(points: np.ndarray, z_near: float = 0.05) -> np.ndarray:
     """Clip a convex polygon (N, 3) in camera coordinates against the plane ``z = z_near``."""
     front = points[:, 2] >= z_near
@@ -121,7 +125,10 @@ class Scenery:
         )
         self._facades: OrderedDict[tuple[int, int, bool, int], np.ndarray] = OrderedDict()
         self._canopies = [_pyramid(self._canopy_sprite(k)) for k in range(4)]
-        self._scaled_sprites: OrderedDict[tuple[int, int], np.ndarray] = OrderedDict()
+        self._sprite_bytes = 0
+        self._scaled_sprites: OrderedDict[tuple[int, int, float], tuple[np.ndarray, np.ndarray, np.ndarray]] = (
+            OrderedDict()
+        )
         self._canopy_colours = [
             (p[0][..., :3] * p[0][..., 3:]).sum(axis=(0, 1)) / max(float(p[0][..., 3].sum()), 1e-6)
             for p in self._canopies
@@ -572,17 +579,23 @@ class Scenery:
         rr0, rr1 = max(0, r0), min(h, r0 + size)
         if cc1 <= cc0 or rr1 <= rr0:
             return
-        key = (id(pyramid), size)
+        # scaled and lit sprites are cached (by day every tree has the same light level)
+        key = (id(pyramid), size, round(level, 3))
         scaled = self._scaled_sprites.get(key)
-        if scaled is None:
-            scaled = cv2.resize(sprite, (size, size), interpolation=cv2.INTER_LINEAR)
+        if scaled is not None:
+            self._scaled_sprites.move_to_end(key)
+        else:
+            rgba = cv2.resize(sprite, (size, size), interpolation=cv2.INTER_LINEAR)
+            alpha = np.ascontiguousarray(rgba[..., 3])
+            scaled = (cv2.convertScaleAbs(rgba[..., :3], alpha=level), alpha, 1.0 - alpha)
             self._scaled_sprites[key] = scaled
-            while len(self._scaled_sprites) > 256:
-                self._scaled_sprites.popitem(last=False)
-        part = scaled[rr0 - r0 : rr1 - r0, cc0 - c0 : cc1 - c0]
-        alpha = part[..., 3]
+            self._sprite_bytes += sum(a.nbytes for a in scaled)
+            while self._sprite_bytes > SPRITE_CACHE_BYTES and len(self._scaled_sprites) > 1:
+                _, dropped = self._scaled_sprites.popitem(last=False)
+                self._sprite_bytes -= sum(a.nbytes for a in dropped)
+        rgb, alpha, rest = (a[rr0 - r0 : rr1 - r0, cc0 - c0 : cc1 - c0] for a in scaled)
         roi = image[rr0:rr1, cc0:cc1]
-        _blend_into(roi, part[..., :3], alpha, level)
+        roi[:] = cv2.blendLinear(rgb, np.ascontiguousarray(roi), alpha, rest)
 
     # -- people and vehicles -------------------------------------------------------------------
 
