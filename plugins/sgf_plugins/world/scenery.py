@@ -126,6 +126,14 @@ class Scenery:
         self._facades: OrderedDict[tuple[int, int, bool, int], np.ndarray] = OrderedDict()
         self._canopies = [_pyramid(self._canopy_sprite(k)) for k in range(4)]
         self._sprite_bytes = 0
+        # each pyramid level as contiguous planes: uint8 colour, float32 alpha (fast to resize)
+        self._sprite_planes = {
+            id(p): [
+                (np.clip(level[..., :3], 0, 255).astype(np.uint8), np.ascontiguousarray(level[..., 3], np.float32))
+                for level in p
+            ]
+            for p in self._canopies
+        }
         self._scaled_sprites: OrderedDict[tuple[int, int, float], tuple[np.ndarray, np.ndarray, np.ndarray]] = (
             OrderedDict()
         )
@@ -571,8 +579,9 @@ class Scenery:
         z: float,
     ) -> None:
         h, w = image.shape[:2]
-        size = max(2, round(2 * r_px))
-        sprite = next((p for p in reversed(pyramid) if p.shape[0] >= size), pyramid[0])
+        # sizes on a scale of 24 steps per octave (3 %): a tree keeps its cached sprite for a few frames
+        size = max(2, round(2.0 ** (round(math.log2(max(2.0 * r_px, 1.0)) * 24.0) / 24.0)))
+        level_index = next((i for i in range(len(pyramid) - 1, -1, -1) if pyramid[i].shape[0] >= size), 0)
         c0 = round(centre[0] - size / 2)
         r0 = round(centre[1] - size / 2)
         cc0, cc1 = max(0, c0), min(w, c0 + size)
@@ -585,9 +594,10 @@ class Scenery:
         if scaled is not None:
             self._scaled_sprites.move_to_end(key)
         else:
-            rgba = cv2.resize(sprite, (size, size), interpolation=cv2.INTER_LINEAR)
-            alpha = np.ascontiguousarray(rgba[..., 3])
-            scaled = (cv2.convertScaleAbs(rgba[..., :3], alpha=level), alpha, 1.0 - alpha)
+            rgb8, alpha8 = self._sprite_planes[id(pyramid)][level_index]
+            rgb = cv2.resize(rgb8, (size, size), interpolation=cv2.INTER_LINEAR)
+            alpha = cv2.resize(alpha8, (size, size), interpolation=cv2.INTER_LINEAR)
+            scaled = (cv2.convertScaleAbs(rgb, alpha=level), alpha, 1.0 - alpha)
             self._scaled_sprites[key] = scaled
             self._sprite_bytes += sum(a.nbytes for a in scaled)
             while self._sprite_bytes > SPRITE_CACHE_BYTES and len(self._scaled_sprites) > 1:
@@ -679,17 +689,17 @@ class Scenery:
         depth = 0.5 * (a[:, 2] + b[:, 2])
         ua, ub = project(a), project(b)
         lit = light.at(base + 1.0 * up)
-        for i in np.argsort(-depth):
-            thick = max(1, round(K[0, 0] * widths[i] / max(float(depth[i]), 0.05)))
-            if not keep[i] or thick > 4000:
-                continue
-            p0 = (round(ua[i, 0] * 16), round(ua[i, 1] * 16))
-            p1 = (round(ub[i, 0] * 16), round(ub[i, 1] * 16))
-            if max(abs(v) for v in (*p0, *p1)) > 2_000_000:
-                continue
-            col = tuple(float(v) for v in colours[i] * lit)
-            cv2.line(image, p0, p1, col, thick, cv2.LINE_AA, 4)
-            cv2.line(occlusion, p0, p1, 255, thick, cv2.LINE_8, 4)
+        # everything per limb as plain numbers first (one numpy pass), then the far limbs drawn first
+        thick = np.maximum(1, np.round(K[0, 0] * np.asarray(widths) / np.maximum(depth, 0.05))).astype(np.int64)
+        ends16 = np.round(np.concatenate([ua, ub], axis=1) * 16)
+        draw = keep & (thick <= 4000) & (np.abs(ends16).max(axis=1) <= 2_000_000)
+        lit_colours = (np.asarray(colours, np.float64) * lit).tolist()
+        ends_px = ends16.astype(np.int64).tolist()
+        thick_px = thick.tolist()
+        for i in np.argsort(-depth)[draw[np.argsort(-depth)]].tolist():
+            x0, y0, x1, y1 = ends_px[i]
+            cv2.line(image, (x0, y0), (x1, y1), lit_colours[i], thick_px[i], cv2.LINE_AA, 4)
+            cv2.line(occlusion, (x0, y0), (x1, y1), 255, thick_px[i], cv2.LINE_8, 4)
 
     def _draw_vehicle(
         self,
