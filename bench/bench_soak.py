@@ -4,10 +4,11 @@ Usage: ``.venv/bin/python bench/bench_soak.py [--laps 4] [hydra overrides...]``
 
 The route is ``campus_large_loop`` (2.8 km) driven ``--laps`` times in a row: a bench-only dataset
 replays the preset's frames lap after lap, chaining the odometry so that it stays continuous
-(the ground truth restarts each lap; the ATE of a soak is not its point). An observer records the
-peak resident memory and the robot's time per frame in windows of 1000 processed frames; the
-script prints both per kilometre, the memory growth per kilometre after the first lap, and the
-ratio of the last window's time per frame to the first's.
+(the ground truth restarts each lap; the ATE of a soak is not its point). An observer records,
+per window of 1000 processed frames, the distance driven, the peak and current resident memory,
+and the wall and CPU time per frame; the script then prints per lap the median time per frame and
+the memory, the memory growth per kilometre after the first lap (when the caches are warm), and
+the ratio of the CPU time per frame over the last quarter of the route to the first quarter's.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import argparse
 import os
 import platform
 import resource
+import statistics
 import time
 from collections.abc import Iterator
 from typing import Any
@@ -81,12 +83,19 @@ class Laps(Dataset):
             offset = last
 
 
+def rss_mb() -> float:
+    """Current resident memory (MiB)."""
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
 class SoakObserver:
-    """Peak RSS and time per processed frame, in windows of 1000 frames."""
+    """Per window of 1000 processed frames: distance, peak and current RSS, wall and CPU time per frame."""
 
     def __init__(self) -> None:
-        self.rows: list[tuple[int, float, float, float]] = []
-        self._window_start = time.perf_counter()
+        self.rows: list[tuple[int, float, float, float, float, float]] = []
+        self._wall = time.perf_counter()
+        self._cpu = time.process_time()
         self._count = 0
         self._distance = 0.0
         self._last: np.ndarray | None = None
@@ -99,12 +108,15 @@ class SoakObserver:
         self._last = position
         self._count += 1
         if self._count % 1000 == 0:
-            now = time.perf_counter()
-            rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-            row = (self._count, self._distance / 1000.0, rss, (now - self._window_start) / 1000.0)
+            wall, cpu = time.perf_counter(), time.process_time()
+            peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+            row = (self._count, self._distance / 1000.0, peak, rss_mb(), wall - self._wall, cpu - self._cpu)
             self.rows.append(row)
-            print(f"{row[0]:7d} {row[1]:6.2f} {row[2]:13.0f} {1000 * row[3]:18.1f}", flush=True)
-            self._window_start = now
+            print(
+                f"{row[0]:7d} {row[1]:6.2f} {row[2]:9.0f} {row[3]:9.0f} {row[4]:9.1f} {row[5]:9.1f}",
+                flush=True,
+            )
+            self._wall, self._cpu = wall, cpu
 
 
 class SoakPlugin:
@@ -127,17 +139,31 @@ def main() -> None:
     assert isinstance(plain, dict)
     plain["dataset"] = {"name": "soak_laps", "laps": args.laps}
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average {os.getloadavg()}")
-    print(f"{'frames':>7} {'km':>6} {'peak RSS MiB':>13} {'ms/frame (window)':>18}", flush=True)
+    print(
+        f"{'frames':>7} {'km':>6} {'peak MiB':>9} {'RSS MiB':>9} {'wall ms':>9} {'CPU ms':>9}  (per frame)",
+        flush=True,
+    )
     t0 = time.perf_counter()
     metrics = Pipeline.from_config(plain, plugins=plugins).run()
     wall = time.perf_counter() - t0
     rows = observer.rows
-    if len(rows) >= 3:
-        first_lap = [r for r in rows if r[1] >= rows[-1][1] / args.laps] or rows
-        a, b = first_lap[0], rows[-1]
-        growth = (b[2] - a[2]) / max(b[1] - a[1], 1e-9)
-        print(f"memory growth after the first lap: {growth:.1f} MiB/km")
-        print(f"time per frame, last window / first window: {rows[-1][3] / rows[0][3]:.2f}")
+    if len(rows) >= 4:
+        lap_km = rows[-1][1] / args.laps
+        print("per lap: median wall / CPU ms per frame, RSS at the lap's end")
+        for lap in range(args.laps):
+            sel = [r for r in rows if lap * lap_km < r[1] <= (lap + 1) * lap_km + 1e-9]
+            if sel:
+                print(
+                    f"  lap {lap + 1}: {statistics.median(r[4] for r in sel):.1f} / "
+                    f"{statistics.median(r[5] for r in sel):.1f} ms, RSS {sel[-1][3]:.0f} MiB (peak {sel[-1][2]:.0f})"
+                )
+        after = [r for r in rows if r[1] >= lap_km]
+        if len(after) >= 2:
+            a, b = after[0], after[-1]
+            print(f"memory growth after the first lap: {(b[3] - a[3]) / max(b[1] - a[1], 1e-9):.1f} MiB/km (RSS)")
+        first = statistics.median(r[5] for r in rows[: max(1, len(rows) // 4)])
+        last = statistics.median(r[5] for r in rows[-max(1, len(rows) // 4) :])
+        print(f"CPU time per frame, last quarter / first quarter of the route: {last / first:.2f}")
     timing = metrics["timing"]
     print(
         f"route {rows[-1][1] if rows else 0:.1f} km, {timing['frames']} frames, {wall:.0f} s wall, "
