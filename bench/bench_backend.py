@@ -179,6 +179,32 @@ def bench_lm(n: int, seed: int, every: float) -> dict[str, float]:
     return result
 
 
+def rss_mb() -> float:
+    """Current resident memory (MiB)."""
+    with open("/proc/self/statm") as fh:
+        return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def bench_memory(n: int, seed: int) -> dict[str, float]:
+    """Resident memory per keyframe of backend=isam2 (default config), loop-free, between n/4 and n keyframes.
+
+    The soak (``bench_soak.py``) sees memory grow with the route; this isolates the pose graph's
+    share: every processed frame is a node, kept for loops to any earlier place.
+    """
+    rng = np.random.default_rng(seed)
+    gt = route(n, 0.3)
+    odo = odometry(gt, rng)
+    backend = Isam2Backend(Isam2Params(save_map=False))
+    backend.begin(RunContext(run_dir=None))
+    marks = {}
+    for frame in frames(gt, odo):
+        backend.process(frame=frame, loops=None)
+        if frame.index + 1 in (n // 4, n):
+            marks[frame.index + 1] = rss_mb()
+    per_node = (marks[n] - marks[n // 4]) * 2**20 / (n - n // 4)
+    return {"poses": n, "rss_start_mb": marks[n // 4], "rss_end_mb": marks[n], "bytes_per_keyframe": per_node}
+
+
 def cpu_model() -> str:
     """The CPU's model name (Linux), or the platform's machine type."""
     try:
@@ -195,6 +221,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--memory", action="store_true", help="only the memory per keyframe")
     args = parser.parse_args()
     isam_n, lm_n = (3000, 5000) if args.quick else (10_000, 9_000)
     from importlib.metadata import version
@@ -202,6 +229,14 @@ def main() -> None:
     print(
         f"machine: {cpu_model()}, {os.cpu_count()} CPUs, python {platform.python_version()}, gtsam {version('gtsam')}"
     )
+    memory = bench_memory(5000 if args.quick else 20_000, args.seed)
+    print(
+        f"memory (backend=isam2, Pose2, no loops): RSS {memory['rss_start_mb']:.0f} MiB after "
+        f"{memory['poses'] // 4} keyframes, {memory['rss_end_mb']:.0f} MiB after {memory['poses']}: "
+        f"{memory['bytes_per_keyframe']:.0f} bytes per keyframe"
+    )
+    if args.memory:
+        return
     isam = bench_isam2(isam_n, args.seed)
     print(
         "iSAM2 (backend=isam2, Pose2):",
