@@ -159,7 +159,22 @@ def swept_keys(runs: Iterable[RunRecord]) -> list[str]:
         values = {json.dumps(f.get(key), sort_keys=True, default=str) for f in flats}
         if len(values) > 1:
             out.append(key)
-    return out
+    # a swept variant (``ipm.name``) brings its own parameters: those name no variant unless they
+    # also differ between runs of the same variant
+    chosen = {k.removesuffix(".name") for k in out if k.endswith(".name") and k != "dataset.name"}
+    kept = []
+    for key in out:
+        stage = key.split(".", 1)[0]
+        if stage in chosen and key != f"{stage}.name":
+            within: dict[str, set[str]] = defaultdict(set)
+            for f in flats:
+                within[json.dumps(f.get(f"{stage}.name"), default=str)].add(
+                    json.dumps(f.get(key), sort_keys=True, default=str)
+                )
+            if all(len(v) == 1 for v in within.values()):
+                continue
+        kept.append(key)
+    return kept
 
 
 def _mean_std(values: list[float]) -> tuple[float, float] | None:

@@ -15,7 +15,16 @@ from sgf_pipeline.errors import DataError
 from sgf_pipeline.report import build_tables, find_runs, write_report
 
 
-def fake_run(root: Path, name: str, sequence: str, seed: int, ipm: str, ate: tuple[float, float], counts: dict) -> None:
+def fake_run(
+    root: Path,
+    name: str,
+    sequence: str,
+    seed: int,
+    ipm: str,
+    ate: tuple[float, float],
+    counts: dict,
+    ipm_params: dict | None = None,
+) -> None:
     run = root / name
     run.mkdir(parents=True)
     metrics = {
@@ -38,7 +47,7 @@ def fake_run(root: Path, name: str, sequence: str, seed: int, ipm: str, ate: tup
     config = {
         "pipeline": ["dataset", "ipm"],
         "dataset": {"name": sequence, "seed": seed},
-        "ipm": {"name": ipm},
+        "ipm": {"name": ipm, **(ipm_params or {})},
         "run": {"progress": False},
     }
     (run / "config.yaml").write_text(yaml.safe_dump(config))
@@ -67,6 +76,27 @@ def test_tables_aggregate_over_seeds_and_split_by_swept_keys(tmp_path: Path):
     assert len(rows_csv) == 4 and rows_csv[0]["ipm.name"] in {"mc", "plain"}
     assert (tmp_path / "timing.png").stat().st_size > 1000
     assert json.loads((tmp_path / "tables.json").read_text())["swept"] == ["ipm.name"]
+
+
+def test_a_variant_is_named_by_its_name_not_by_the_parameters_it_brings(tmp_path: Path):
+    counts = {"detected": 9, "total": 10, "found": 3, "pairs": 4, "closed": 2}
+    mc = {"queue_size": 50, "pitch_threshold": 0.025}
+    fake_run(tmp_path / "a", "mc", "campus_delivery", 0, "mc", (10.0, 1.0), counts, mc)
+    fake_run(tmp_path / "a", "plain", "campus_delivery", 0, "plain", (10.0, 2.0), counts)
+    tables = build_tables(find_runs(tmp_path / "a"))
+    assert tables["swept"] == ["ipm.name"]
+    assert sorted(r["variant"] for r in tables["rows"]) == ["ipm.name=mc", "ipm.name=plain"]
+    # a parameter swept within one variant still names it
+    fake_run(tmp_path / "b", "mc50", "campus_delivery", 0, "mc", (10.0, 1.0), counts, mc)
+    fake_run(tmp_path / "b", "mc30", "campus_delivery", 0, "mc", (10.0, 1.5), counts, {**mc, "queue_size": 30})
+    fake_run(tmp_path / "b", "plain", "campus_delivery", 0, "plain", (10.0, 2.0), counts)
+    tables = build_tables(find_runs(tmp_path / "b"))
+    assert tables["swept"] == ["ipm.name", "ipm.queue_size"]
+    assert sorted(r["variant"] for r in tables["rows"]) == [
+        "ipm.name=mc, ipm.queue_size=30",
+        "ipm.name=mc, ipm.queue_size=50",
+        "ipm.name=plain, ipm.queue_size=None",
+    ]
 
 
 def test_report_cli_takes_a_positional_directory(tmp_path: Path):
