@@ -756,12 +756,8 @@ class Renderer:
             clouds = cv2.remap(self._clouds(), cu, cv, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
             c = np.clip((clouds - 0.1) * 2.2, 0.0, 0.85)[..., None]
             colour = colour * (1 - c) + np.array([238, 240, 242], np.float32) * c
-        planes = []
-        for k in range(3):  # one channel at a time: several times faster than interleaved
-            plane = np.ascontiguousarray(colour[..., k], np.float32)
-            big = cv2.resize(plane, (self.nu * STEP, nb * STEP), interpolation=cv2.INTER_LINEAR)
-            planes.append(cv2.convertScaleAbs(big[STEP : STEP + rows, STEP : STEP + self.width], alpha=gain))
-        sky: np.ndarray = cv2.merge(planes)
+        planes = self._upsample_planes([colour[..., k] for k in range(3)], rows)
+        sky: np.ndarray = cv2.merge([cv2.convertScaleAbs(plane, alpha=gain) for plane in planes])
         return sky
 
     _cloud_cache: np.ndarray | None = None

@@ -126,14 +126,14 @@ class Scenery:
         self._facades: OrderedDict[tuple[int, int, bool, int], np.ndarray] = OrderedDict()
         self._canopies = [_pyramid(self._canopy_sprite(k)) for k in range(4)]
         self._sprite_bytes = 0
-        # each pyramid level as contiguous planes: uint8 colour, float32 alpha (fast to resize)
-        self._sprite_planes = {
-            id(p): [
+        # per canopy variant, each pyramid level as contiguous planes: uint8 colour, float32 alpha
+        self._sprite_planes = [
+            [
                 (np.clip(level[..., :3], 0, 255).astype(np.uint8), np.ascontiguousarray(level[..., 3], np.float32))
                 for level in p
             ]
             for p in self._canopies
-        }
+        ]
         self._scaled_sprites: OrderedDict[tuple[int, int, float], tuple[np.ndarray, np.ndarray, np.ndarray]] = (
             OrderedDict()
         )
@@ -330,7 +330,6 @@ class Scenery:
                     | ((uv_base[:, 1] < 0) & (uv_crown[:, 1] + r_px < 0))
                 )
                 dist = np.hypot(tr[idx, 0] - centre[0], tr[idx, 1] - centre[1])
-                crown_depth = crowns[show, 2]
                 # trunks: quads facing the camera, 0.28 m wide at the foot and 0.17 m under the crown
                 foot = tr[idx, :3]
                 top = foot + np.column_stack([np.zeros((len(idx), 2)), tr[idx, 3]])
@@ -347,10 +346,8 @@ class Scenery:
                         trunks[j],
                         uv_crown[j],
                         float(r_px[j]),
-                        float(crown_depth[j]),
                         project,
                         image,
-                        depth,
                         light,
                     )
                     items.append((float(dist[j]), draw))
@@ -492,10 +489,8 @@ class Scenery:
         trunk: np.ndarray,
         crown_px: np.ndarray,
         r_px: float,
-        crown_depth: float,
         project: Callable[[np.ndarray], np.ndarray],
         image: np.ndarray,
-        depth: np.ndarray,
         light: Lighting,
     ) -> Callable[[], None]:
         """The drawing of a tree that shows (culled and projected in ``_cull_and_queue``)."""
@@ -509,7 +504,7 @@ class Scenery:
                 col = (78.0 * level, 64.0 * level, 52.0 * level)
                 cv2.fillPoly(image, [np.round(tuv * 16).astype(np.int32)], col, cv2.LINE_AA, 4)
             if r_px >= 12.0:
-                self._sprite(image, depth, self._canopies[tree.variant], crown_px, r_px, level, crown_depth)
+                self._sprite(image, tree.variant, crown_px, r_px, level)
             elif r_px >= 1.0:  # a far crown: a blob of its mean colour (its leaves are below a pixel)
                 blob = tuple(float(v) for v in self._canopy_colours[tree.variant] * level)
                 centre_px = (round(crown_px[0] * 16), round(crown_px[1] * 16))
@@ -568,20 +563,14 @@ class Scenery:
         roi = image[r0:r1, c0:c1]
         _blend_into(roi, colour, mask)
 
-    def _sprite(
-        self,
-        image: np.ndarray,
-        depth: np.ndarray,
-        pyramid: list[np.ndarray],
-        centre: np.ndarray,
-        r_px: float,
-        level: float,
-        z: float,
-    ) -> None:
+    def _sprite(self, image: np.ndarray, variant: int, centre: np.ndarray, r_px: float, level: float) -> None:
+        """Blend a tree crown of canopy ``variant``, radius ``r_px`` around ``centre`` (px), lit by ``level``."""
         h, w = image.shape[:2]
         # sizes on a scale of 24 steps per octave (3 %): a tree keeps its cached sprite for a few frames
         size = max(2, round(2.0 ** (round(math.log2(max(2.0 * r_px, 1.0)) * 24.0) / 24.0)))
-        level_index = next((i for i in range(len(pyramid) - 1, -1, -1) if pyramid[i].shape[0] >= size), 0)
+        planes = self._sprite_planes[variant]
+        # the smallest pyramid level at least as large as the sprite (the largest if none is)
+        level_index = next((i for i in range(len(planes) - 1, -1, -1) if planes[i][1].shape[0] >= size), 0)
         c0 = round(centre[0] - size / 2)
         r0 = round(centre[1] - size / 2)
         cc0, cc1 = max(0, c0), min(w, c0 + size)
@@ -589,12 +578,12 @@ class Scenery:
         if cc1 <= cc0 or rr1 <= rr0:
             return
         # scaled and lit sprites are cached (by day every tree has the same light level)
-        key = (id(pyramid), size, round(level, 3))
+        key = (variant, size, round(level, 3))
         scaled = self._scaled_sprites.get(key)
         if scaled is not None:
             self._scaled_sprites.move_to_end(key)
         else:
-            rgb8, alpha8 = self._sprite_planes[id(pyramid)][level_index]
+            rgb8, alpha8 = planes[level_index]
             rgb = cv2.resize(rgb8, (size, size), interpolation=cv2.INTER_LINEAR)
             alpha = cv2.resize(alpha8, (size, size), interpolation=cv2.INTER_LINEAR)
             scaled = (cv2.convertScaleAbs(rgb, alpha=level), alpha, 1.0 - alpha)
@@ -696,7 +685,8 @@ class Scenery:
         lit_colours = (np.asarray(colours, np.float64) * lit).tolist()
         ends_px = ends16.astype(np.int64).tolist()
         thick_px = thick.tolist()
-        for i in np.argsort(-depth)[draw[np.argsort(-depth)]].tolist():
+        order = np.argsort(-depth)
+        for i in order[draw[order]].tolist():
             x0, y0, x1, y1 = ends_px[i]
             cv2.line(image, (x0, y0), (x1, y1), lit_colours[i], thick_px[i], cv2.LINE_AA, 4)
             cv2.line(occlusion, (x0, y0), (x1, y1), 255, thick_px[i], cv2.LINE_8, 4)
