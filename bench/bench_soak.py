@@ -99,6 +99,12 @@ class SoakObserver:
         self._count = 0
         self._distance = 0.0
         self._last: np.ndarray | None = None
+        self._stage: dict[str, float] = {}
+        self.stages: list[dict[str, float]] = []
+
+    @hookimpl
+    def sgf_after_stage(self, run: Any, stage: Any, frame: Frame, output: Any, seconds: float) -> None:
+        self._stage[stage.kind] = self._stage.get(stage.kind, 0.0) + seconds
 
     @hookimpl
     def sgf_frame_end(self, run: Any, frame: Frame, seconds: float) -> None:
@@ -112,6 +118,8 @@ class SoakObserver:
             peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
             row = (self._count, self._distance / 1000.0, peak, rss_mb(), wall - self._wall, cpu - self._cpu)
             self.rows.append(row)
+            self.stages.append({k: v for k, v in self._stage.items()})
+            self._stage = {}
             print(
                 f"{row[0]:7d} {row[1]:6.2f} {row[2]:9.0f} {row[3]:9.0f} {row[4]:9.1f} {row[5]:9.1f}",
                 flush=True,
@@ -157,6 +165,14 @@ def main() -> None:
                     f"  lap {lap + 1}: {statistics.median(r[4] for r in sel):.1f} / "
                     f"{statistics.median(r[5] for r in sel):.1f} ms, RSS {sel[-1][3]:.0f} MiB (peak {sel[-1][2]:.0f})"
                 )
+        print("per lap: median ms per frame in each stage (wall)")
+        kinds = list(observer.stages[0])
+        print("  lap " + " ".join(f"{k[:11]:>11}" for k in kinds))
+        for lap in range(args.laps):
+            idx = [i for i, r in enumerate(rows) if lap * lap_km < r[1] <= (lap + 1) * lap_km + 1e-9]
+            if idx:
+                cells = [statistics.median(observer.stages[i].get(k, 0.0) for i in idx) for k in kinds]
+                print(f"  {lap + 1:3d} " + " ".join(f"{c:11.2f}" for c in cells))
         after = [r for r in rows if r[1] >= lap_km]
         if len(after) >= 2:
             a, b = after[0], after[-1]
@@ -165,6 +181,11 @@ def main() -> None:
         last = statistics.median(r[5] for r in rows[-max(1, len(rows) // 4) :])
         print(f"CPU time per frame, last quarter / first quarter of the route: {last / first:.2f}")
     timing = metrics["timing"]
+    sgf, loops, backend = metrics.get("sgf", {}), metrics.get("loops", {}), metrics.get("backend", {})
+    print(
+        f"SGF groups {sgf.get('groups')}, loop candidates {loops.get('candidates')}, accepted loops "
+        f"{loops.get('accepted')}, loop factors {backend.get('loop_factors')}, graph nodes {backend.get('nodes')}"
+    )
     print(
         f"route {rows[-1][1] if rows else 0:.1f} km, {timing['frames']} frames, {wall:.0f} s wall, "
         f"robot {timing['fps']:.1f} frames/s, peak RSS {metrics['peak_rss_mb']:.0f} MiB"

@@ -7,7 +7,7 @@ z up, with its origin on the ground under the robot; the camera frame is the opt
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
@@ -257,6 +257,24 @@ class PoseEstimate:
     def latest(self) -> np.ndarray:
         """The estimated pose of the newest frame."""
         return self.poses[self.frame_index]
+
+    def stack(self, frames: Sequence[int] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The poses of ``frames`` as (K, 4, 4), NaN where the estimate has none, and the (K,) mask of found ones.
+
+        Uses the mapping's own ``take(frames)`` (same result) when it has one, so that a back-end's
+        table answers thousands of frames without a Python lookup each.
+        """
+        take = getattr(self.poses, "take", None)
+        if take is not None:
+            poses, found = take(frames)
+            return np.asarray(poses, dtype=np.float64), np.asarray(found, dtype=bool)
+        out = np.full((len(frames), 4, 4), np.nan)
+        found = np.zeros(len(frames), dtype=bool)
+        for k, f in enumerate(frames):
+            pose = self.poses.get(int(f))
+            if pose is not None:
+                out[k], found[k] = pose, True
+        return out, found
 
 
 @dataclass(frozen=True)

@@ -343,3 +343,80 @@ def test_different_markings_side_by_side_are_not_copies_of_a_pattern():
     feed(s, 1, p1, desc(ARROW, p1, 1))
     (r2,) = feed(s, 2, p2, desc(ell, p2, 2))
     assert r2.new_group and not r2.ambiguous and not any(g.aliased for g in s.groups)
+
+
+def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[tuple[int, float, bool]]:
+    """The spatial gate member by member, as its docstring states it (to check the vectorised one)."""
+    p = s.params
+    here = s.position_of(query, estimate)
+    since = s._travelled[query.sgf.frame_index]
+    out = []
+    for group in s.groups:
+        nearest, inside, repeated = math.inf, not p.spatial_gate, False
+        for member, anchor in zip(group.members, group.anchors, strict=True):
+            if anchor is not None:
+                distance = float(np.linalg.norm(anchor - here))
+                radius = math.inf if p.prior_gate_radius is None else p.prior_gate_radius
+            else:
+                distance = float(np.linalg.norm(s.position_of(member, estimate) - here))
+                travelled = abs(since - s._travelled[member.sgf.frame_index])
+                radius = p.gate_radius + p.drift_rate * travelled + p.drift_quadratic * travelled**2
+                repeated |= travelled <= p.repeat_window and distance > p.repeat_radius
+            nearest = min(nearest, distance)
+            inside |= distance <= radius
+        if inside:
+            out.append((group.group_id, nearest, repeated))
+    return out
+
+
+def test_the_vectorised_gate_is_the_member_by_member_gate():
+    from dataclasses import replace
+
+    from sgf_plugins.pose_graph import PoseStore
+    from sgf_plugins.sgf.synthetic import toy_calibration
+
+    from sgf_pipeline.types import Frame
+
+    rng = np.random.default_rng(3)
+    template = desc(ARROW, seen_from(ARROW, 3.0, 0.0), 0)
+    seeded = SgfGroup(500)
+    seeded.add(template, 0, np.array([30.0, 0.0]))
+    s = OnlineSgfGroups(
+        OnlineGroupsParams(gate_radius=2.0, drift_rate=0.01, drift_quadratic=0.0, prior_gate_radius=8.0)
+    )
+    s.seed_groups([seeded])
+    s.begin(RunContext(None))
+    store, dictionary = PoseStore(lifted=False), {}
+    seen = {"repeated": 0, "left_out": 0, "seeded": 0}
+    x = 0.0
+    for frame in range(1, 121):  # a drive up and down a 60 m street with an SGF on every other frame
+        x += 1.0 if frame <= 60 else -1.0
+        odometry = pose_from_xy_yaw(x, 0.3 * math.sin(frame / 7.0), 0.0 if frame <= 60 else math.pi)
+        truth = pose_from_xy_yaw(x + rng.normal(0, 0.5), rng.normal(0, 0.5), rng.normal(0, 0.05))
+        items = []
+        if frame % 2 == 0:
+            sgf = replace(template.sgf, frame_index=frame, odometry=odometry)
+            items.append(replace(template, sgf=sgf, centroid=template.centroid + rng.normal(0, 0.3, 2)))
+        estimates = [None, PoseEstimate(frame - 1, store.snapshot()), PoseEstimate(frame - 1, dict(dictionary))]
+        if frame > 1:
+            f = Frame(frame, 0.1 * frame, np.zeros((2, 2), np.uint8), odometry, toy_calibration())
+            s._record(f)
+            for estimate in estimates:
+                for query in items:
+                    got = [(g.group.group_id, g.nearest, g.repeated) for g in s.gated(query, estimate)]
+                    want = _reference_gate(s, query, estimate)
+                    assert [g[0] for g in got] == [w[0] for w in want]
+                    np.testing.assert_allclose([g[1] for g in got], [w[1] for w in want], rtol=1e-12)
+                    assert [g[2] for g in got] == [w[2] for w in want]
+                    seen["repeated"] += sum(g[2] for g in got)
+                    seen["left_out"] += len(s.groups) - len(got)
+                    seen["seeded"] += any(g[0] == 500 for g in got)
+            for query in items:
+                s.assign(query, estimates[frame % 3])
+        else:
+            s._record(Frame(frame, 0.1 * frame, np.zeros((2, 2), np.uint8), odometry, toy_calibration()))
+        if frame % 5 != 0:  # the estimate lacks some frames: they are placed by corrected odometry
+            store.append(frame, truth)
+            dictionary[frame] = truth
+    assert len(s.groups) > 5 and max(len(g.members) for g in s.groups) > 2
+    assert min(seen.values()) > 0  # the comparison met repeats, groups left out and the seeded map group

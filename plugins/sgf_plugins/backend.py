@@ -105,7 +105,12 @@ class Isam2Params(GraphParams):
         "qr", description="QR: robust on long loop-free drives, where Cholesky finds the system indeterminate"
     )
     relinearize_threshold: float = Field(0.1, gt=0.0, description="relinearize a variable whose delta exceeds this")
-    relinearize_skip: int = Field(1, ge=1, description="check relinearization every this many updates")
+    relinearize_skip: int = Field(
+        1, ge=1, description="check relinearization every this many updates (with the partial check keep 1)"
+    )
+    partial_relinearization_check: bool = Field(
+        True, description="check only the variables an update touched for relinearization, not all of them"
+    )
     loop_updates: int = Field(
         0, ge=0, description="extra iSAM2 updates on a frame that adds loops (each re-linearizes widely: costly)"
     )
@@ -329,6 +334,7 @@ class Isam2Backend(_GraphBackend):
         settings = gtsam.ISAM2Params()
         settings.setRelinearizeThreshold(params.relinearize_threshold)
         settings.relinearizeSkip = params.relinearize_skip
+        settings.enablePartialRelinearizationCheck = params.partial_relinearization_check
         settings.setFactorization(params.factorization.upper())
         return gtsam.ISAM2(settings)
 

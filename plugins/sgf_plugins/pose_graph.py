@@ -9,7 +9,7 @@ GTSAM is imported inside functions so that listing plugins stays fast.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -56,6 +56,16 @@ class PoseTable(Mapping[int, np.ndarray]):
 
     def __len__(self) -> int:
         return self._size
+
+    def take(self, frames: Sequence[int] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The poses of ``frames`` (NaN where absent) and the mask of found ones (see ``PoseEstimate.stack``)."""
+        get = self._rows.get
+        rows = np.fromiter((get(int(f), -1) for f in frames), dtype=np.int64, count=len(frames))
+        found = (rows >= 0) & (rows < self._size)
+        out = np.full((len(rows), 4, 4), np.nan)
+        poses = self._buffer[rows[found]]
+        out[found] = np.einsum("nij,njk->nik", poses, self._lift[rows[found]]) if self._lift is not None else poses
+        return out, found
 
     def array(self) -> np.ndarray:
         """All poses as an (N, 4, 4) array, in frame order."""

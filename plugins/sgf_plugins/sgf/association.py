@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -139,6 +140,45 @@ class GatedGroup:
     repeated: bool
 
 
+class _MemberIndex:
+    """Every group member in flat arrays (group, frame, centroid, odometry, travelled, anchor) for the spatial gate.
+
+    The gate then costs a few numpy passes over all members instead of Python work per member;
+    map positions are computed once per pose estimate (one per frame) and extended as members join.
+    """
+
+    def __init__(self) -> None:
+        self.size = 0
+        self.group = np.zeros(64, dtype=np.int64)
+        self.frame = np.zeros(64, dtype=np.int64)
+        self.centroid = np.zeros((64, 2))
+        self.odometry = np.zeros((64, 4, 4))
+        self.travelled = np.zeros(64)
+        self.anchor = np.zeros((64, 2))
+        self.positions = np.zeros((0, 2))
+        self.estimate: object = _NO_ESTIMATE
+
+    def add(self, group: int, member: SgfDescriptor, travelled: float | None, anchor: np.ndarray | None) -> None:
+        """Append one member of the group at position ``group`` in the group list."""
+        if self.size == len(self.group):
+            for name in ("group", "frame", "centroid", "odometry", "travelled", "anchor"):
+                old = getattr(self, name)
+                grown = np.zeros((2 * len(old), *old.shape[1:]), dtype=old.dtype)
+                grown[: self.size] = old[: self.size]
+                setattr(self, name, grown)
+        k = self.size
+        self.group[k] = group
+        self.frame[k] = member.sgf.frame_index
+        self.centroid[k] = np.asarray(member.centroid, dtype=np.float64)[:2]
+        self.odometry[k] = np.asarray(member.sgf.odometry, dtype=np.float64)
+        self.travelled[k] = math.nan if travelled is None else travelled
+        self.anchor[k] = math.nan if anchor is None else anchor
+        self.size += 1
+
+
+_NO_ESTIMATE = object()
+
+
 class OnlineSgfGroups(Stage):
     """Assign each SGF descriptor to the nearest SGF group by the column-shifted cosine distance (eq. 10).
 
@@ -184,10 +224,12 @@ class OnlineSgfGroups(Stage):
         self._groups: list[SgfGroup] = []
         self._odometry: dict[int, np.ndarray] = {}
         self._travelled: dict[int, float] = {}
-        self._member_travelled: dict[int, float] = {}
+        self._history: deque[int] = deque()
         self._last_position: np.ndarray | None = None
         self._distance = 0.0
         self._next_id = 0
+        self._index = _MemberIndex()
+        self._slot: dict[int, int] = {}
 
     # -- groups ---------------------------------------------------------------------------
 
@@ -226,9 +268,14 @@ class OnlineSgfGroups(Stage):
         self._next_id = max((g.group_id for g in self._prior), default=-1) + 1
         self._odometry = {}
         self._travelled = {}
-        self._member_travelled = {}
+        self._history = deque()
         self._last_position = None
         self._distance = 0.0
+        self._index = _MemberIndex()
+        self._slot = {g.group_id: k for k, g in enumerate(self._groups)}
+        for k, group in enumerate(self._groups):
+            for member, anchor in zip(group.members, group.anchors, strict=True):
+                self._index.add(k, member, None, anchor)
 
     def begin(self, context: RunContext) -> None:
         """Start the sequence with the seeded groups only (those of ``prior_map`` when it is set)."""
@@ -260,16 +307,11 @@ class OnlineSgfGroups(Stage):
         self._last_position = position
         self._odometry[frame.index] = odometry
         self._travelled[frame.index] = self._distance
-        while len(self._travelled) > HISTORY_FRAMES:  # bounded memory over hours; members keep theirs
-            oldest = next(iter(self._travelled))
-            del self._travelled[oldest]
+        self._history.append(frame.index)
+        while len(self._history) > HISTORY_FRAMES:  # bounded memory over hours; members keep theirs
+            oldest = self._history.popleft()
+            self._travelled.pop(oldest, None)
             self._odometry.pop(oldest, None)
-
-    def _remember_member(self, descriptor: SgfDescriptor) -> None:
-        """Keep a new group member's travelled distance beyond the frame history."""
-        frame = descriptor.sgf.frame_index
-        if frame in self._travelled:
-            self._member_travelled[frame] = self._travelled[frame]
 
     def pose_of(self, frame_index: int, odometry: np.ndarray, estimate: PoseEstimate | None) -> np.ndarray:
         """The map pose of a frame: the estimate's, else its odometry corrected like the estimate's newest frame."""
@@ -291,12 +333,32 @@ class OnlineSgfGroups(Stage):
         c = descriptor.centroid
         return pose[:2, :2] @ np.asarray(c[:2], dtype=np.float64) + pose[:2, 3]
 
-    def _travelled_between(self, a: SgfDescriptor, b: SgfDescriptor) -> float:
-        sa = self._travelled.get(a.sgf.frame_index, self._member_travelled.get(a.sgf.frame_index))
-        sb = self._travelled.get(b.sgf.frame_index, self._member_travelled.get(b.sgf.frame_index))
-        if sa is None or sb is None:
-            return float(np.linalg.norm(np.asarray(a.sgf.odometry)[:3, 3] - np.asarray(b.sgf.odometry)[:3, 3]))
-        return abs(sa - sb)
+    def _member_positions(self, estimate: PoseEstimate | None) -> np.ndarray:
+        """Map positions (x, y) of every member, cached for one estimate (members that joined since are added)."""
+        index = self._index
+        done = len(index.positions) if index.estimate is estimate else 0
+        if done < index.size:
+            fresh = slice(done, index.size)
+            odometry = index.odometry[fresh]
+            if estimate is None:
+                poses = odometry
+            else:
+                poses, found = estimate.stack(index.frame[fresh])
+                if not found.all():
+                    ref = estimate.frame_index
+                    ref_odometry = self._odometry.get(ref)
+                    if ref_odometry is None or ref not in estimate.poses:
+                        poses[~found] = odometry[~found]
+                    else:
+                        correction = np.asarray(estimate.poses[ref]) @ invert(ref_odometry)
+                        poses[~found] = correction @ odometry[~found]
+            positions = np.einsum("nij,nj->ni", poses[:, :2, :2], index.centroid[fresh]) + poses[:, :2, 3]
+            anchor = index.anchor[fresh]
+            anchored = ~np.isnan(anchor[:, 0])
+            positions[anchored] = anchor[anchored]
+            index.positions = np.concatenate([index.positions[:done], positions])
+            index.estimate = estimate
+        return index.positions
 
     def gated(self, query: SgfDescriptor, estimate: PoseEstimate | None) -> list[GatedGroup]:
         """The groups the spatial gate lets the query meet, with their nearest member's map distance (m).
@@ -305,30 +367,34 @@ class OnlineSgfGroups(Stage):
         travel) at another place (beyond ``repeat_radius``): if it also looks like the query, the
         two are neighbouring copies of a repeated pattern (see :meth:`assign`).
         """
+        p, index = self.params, self._index
+        n = index.size
+        if n == 0:
+            return []
         here = self.position_of(query, estimate)
-        out = []
-        for group in self._groups:
-            nearest, inside, repeated = math.inf, not self.params.spatial_gate, False
-            for member, anchor in zip(group.members, group.anchors, strict=True):
-                if anchor is not None:
-                    distance = float(np.linalg.norm(anchor - here))
-                    radius = math.inf if self.params.prior_gate_radius is None else self.params.prior_gate_radius
-                else:
-                    distance = float(np.linalg.norm(self.position_of(member, estimate) - here))
-                    travelled = self._travelled_between(query, member)
-                    radius = (
-                        self.params.gate_radius
-                        + self.params.drift_rate * travelled
-                        + self.params.drift_quadratic * travelled**2
-                    )
-                    repeated = repeated or (
-                        travelled <= self.params.repeat_window and distance > self.params.repeat_radius
-                    )
-                nearest = min(nearest, distance)
-                inside = inside or distance <= radius
-            if inside:
-                out.append(GatedGroup(group, nearest, repeated))
-        return out
+        distance = np.hypot(*(self._member_positions(estimate) - here).T)
+        anchored = ~np.isnan(index.anchor[:n, 0])
+        # Distance travelled between the two sightings; straight-line odometry distance where unknown.
+        since = self._travelled.get(query.sgf.frame_index)
+        travelled = np.abs(index.travelled[:n] - since) if since is not None else np.full(n, np.nan)
+        unknown = np.isnan(travelled)
+        if unknown.any():
+            odometry = np.asarray(query.sgf.odometry, dtype=np.float64)[:3, 3]
+            travelled[unknown] = np.linalg.norm(index.odometry[:n][unknown, :3, 3] - odometry, axis=1)
+        radius = p.gate_radius + p.drift_rate * travelled + p.drift_quadratic * travelled**2
+        radius[anchored] = math.inf if p.prior_gate_radius is None else p.prior_gate_radius
+        repeated = ~anchored & (travelled <= p.repeat_window) & (distance > p.repeat_radius)
+        groups = index.group[:n]
+        count = len(self._groups)
+        nearest = np.full(count, math.inf)
+        np.minimum.at(nearest, groups, distance)
+        inside = np.bincount(groups, weights=distance <= radius, minlength=count) > 0
+        if not p.spatial_gate:
+            inside[:] = True
+        repeats = np.bincount(groups, weights=repeated, minlength=count) > 0
+        return [
+            GatedGroup(group, float(nearest[k]), bool(repeats[k])) for k, group in enumerate(self._groups) if inside[k]
+        ]
 
     # -- eq. 10 ------------------------------------------------------------------------------
 
@@ -370,12 +436,13 @@ class OnlineSgfGroups(Stage):
                 # Look-alike groups inside the gate (identical standard markings) cannot be told apart:
                 # the query joins the nearest, but the match is ambiguous and gives no loop factor.
                 tied_nearby = len(ties) > 1
-        self._remember_member(query)
         if best is None or best[1] > p.new_group_distance:
             group = SgfGroup(self._next_id, aliased=copy_nearby)
             self._next_id += 1
             group.add(query, 0)
+            self._index.add(len(self._groups), query, self._travelled.get(query.sgf.frame_index), None)
             group.refresh(p.columns, p.symmetry_threshold)
+            self._slot[group.group_id] = len(self._groups)
             self._groups.append(group)
             distance = 1.0 if best is None else best[1]
             return GroupAssignment(
@@ -389,6 +456,7 @@ class OnlineSgfGroups(Stage):
         prior = None if group.anchors[m] is not None else self._prior_shift(query, matched, estimate)
         shift = best_shift(profiles[m], prior, p.yaw_tolerance)
         group.add(query, shift + group.offsets[m])
+        self._index.add(self._slot[group.group_id], query, self._travelled.get(query.sgf.frame_index), None)
         group.refresh(p.columns, p.symmetry_threshold)
         return GroupAssignment(
             descriptor=query,
