@@ -318,3 +318,56 @@ def test_a_pose_table_takes_many_frames_at_once_like_a_mapping() -> None:
     np.testing.assert_allclose(fast[0], table[4])
     assert table[4][2, 3] != 0.0  # the lift is applied
     assert np.isnan(fast[~found]).all() and np.isnan(slow[~found]).all()
+
+
+@pytest.mark.parametrize("backend_class", [GtsamLmBackend, Isam2Backend])
+@pytest.mark.parametrize("pose", ["pose2", "pose3"])
+def test_pose_nodes_every_few_metres_give_the_node_per_frame_trajectory(world, backend_class, pose) -> None:  # type: ignore[no-untyped-def]
+    """Frames between nodes ride on their node by odometry; loops reach frames between nodes (delay=2:
+    the loop's newest frame is no longer the newest) through their nodes, covariance moved by the adjoint."""
+    params = LmParams if backend_class is GtsamLmBackend else Isam2Params
+    loops = true_loops(world, delay=2)
+    dense, _ = feed(world, backend_class(params(save_map=False, pose=pose, node_distance=0.0)), loops)
+    sparse, estimates = feed(world, backend_class(params(save_map=False, pose=pose, node_distance=2.5)), loops)
+    nodes = sparse.metrics["backend"]["pose_nodes"]
+    assert nodes < 0.45 * len(world.frames) and dense.metrics["backend"]["pose_nodes"] == len(world.frames)
+    a, b = dense.trajectories["sgf"].poses, sparse.trajectories["sgf"].poses
+    assert len(b) == len(world.frames)
+    assert np.abs(a[:, :2, 3] - b[:, :2, 3]).max() < 0.15
+    assert ate(b, world.gt) == pytest.approx(ate(a, world.gt), rel=0.05)
+    assert sparse.metrics["backend"]["loop_factors"] == len(world.truth.revisits)
+    # online: every processed frame has an estimate, frames between nodes included
+    assert [len(e.poses) for e in estimates] == list(range(1, len(world.frames) + 1))
+
+
+def test_a_loop_to_a_frame_between_nodes_moves_by_the_adjoint() -> None:
+    """One loop whose newest end lies between two nodes: the sparse graph lands where the dense one does.
+
+    The nodes' odometry factors sum the steps' variances (about 5 cm apart from the dense graph here);
+    a loop covariance left in the frame's axes instead of the node's puts it 35 cm off.
+    """
+    rng = np.random.default_rng(4)
+    gt, odometry = [np.eye(4)], [np.eye(4)]
+    for _ in range(1, 80):  # a 0.5 m-step drive that turns back on itself
+        step = pose_from_xy_yaw(0.5, 0.0, math.radians(2.5))
+        gt.append(gt[-1] @ step)
+        noisy = pose_from_xy_yaw(0.5 * 1.02, rng.normal(0, 0.01), math.radians(2.5) + 0.01)
+        odometry.append(odometry[-1] @ noisy)
+    frames = [Frame(k, 0.1 * k, None, odometry[k], CALIBRATION, None, None, None) for k in range(80)]
+    cov = np.diag([0.02**2, 0.05**2, math.radians(2.0) ** 2])  # anisotropic: a wrong frame would show
+    loop = LoopConstraint(3, 74, invert(gt[3]) @ gt[74], cov, 0, False, 0.01, 1.0, (1, 1))
+    results = []
+    for node_distance in (0.0, 2.2):
+        backend = GtsamLmBackend(LmParams(save_map=False, node_distance=node_distance, loop_kernel="none"))
+        backend.begin(RunContext(run_dir=None, calibration=CALIBRATION))
+        for frame in frames:
+            backend.process(frame, LoopConstraints((loop,)) if frame.index == 78 else None)
+        assert backend.graph.is_node(74) == (node_distance == 0.0)
+        results.append(backend.poses()[1])
+    dense, sparse = results
+    assert np.abs(dense[:, :2, 3] - sparse[:, :2, 3]).max() < 0.12
+
+    def loop_error(poses: np.ndarray) -> float:
+        return float(np.linalg.norm((invert(invert(poses[3]) @ poses[74]) @ loop.relative)[:2, 3]))
+
+    assert loop_error(np.stack(odometry)) > 0.5 and loop_error(dense) < 0.05

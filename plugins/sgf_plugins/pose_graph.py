@@ -1,6 +1,9 @@
-"""The pose graph of eq. 11 in GTSAM: processed frames as nodes, odometry and SGF loop factors.
+"""The pose graph of eq. 11 in GTSAM: pose nodes of processed frames, odometry and SGF loop factors.
 
-Nodes are the processed frames (``x<frame index>``) and, when localizing on a prior SGF map,
+Nodes are processed frames (``x<frame index>``): every one, or with ``node_distance`` one every so
+many metres plus the newest frame of each loop; a frame between nodes keeps its odometry offset
+from its node, and loops that reach it are moved onto that node (the loop's relative pose composed
+with the offset, its covariance carried by the offset's adjoint). When localizing on a prior SGF map,
 the map's frames that SGFs were matched to (``m<map frame index>``, held by priors at their
 map poses). Poses are ``Pose2`` or ``Pose3`` (roll and pitch from the IMU as attitude factors).
 GTSAM is imported inside functions so that listing plugins stays fast.
@@ -127,7 +130,7 @@ class PoseStore:
 
 def _grown(buffer: np.ndarray, size: int) -> np.ndarray:
     """A buffer of twice the capacity holding the first ``size`` rows of ``buffer``."""
-    grown = np.zeros((2 * len(buffer), *buffer.shape[1:]))
+    grown = np.zeros((2 * len(buffer), *buffer.shape[1:]), dtype=buffer.dtype)
     grown[:size] = buffer[:size]
     return grown
 
@@ -195,7 +198,13 @@ class PoseGraph:
     (``anchor``) and drops that prior, since the map's poses then fix the gauge.
     """
 
-    def __init__(self, pose: PoseKind, noise: NoiseSettings, map_poses: Mapping[int, np.ndarray] | None = None) -> None:
+    def __init__(
+        self,
+        pose: PoseKind,
+        noise: NoiseSettings,
+        map_poses: Mapping[int, np.ndarray] | None = None,
+        node_distance: float = 0.0,
+    ) -> None:
         import gtsam
 
         self.pose3 = pose == "pose3"
@@ -213,6 +222,15 @@ class PoseGraph:
         self.anchored = not self.map_poses
         self._prior: Any = None
         self._last_odometry: np.ndarray | None = None
+        # Nodes: every frame, or with ``node_distance`` the frames this far apart (and those loops reach).
+        self.node_distance = node_distance
+        self.nodes: list[int] = []  # node frames, in order (GTSAM keys sort the same way)
+        self._node_of_row = np.zeros(64, dtype=np.int64)  # per processed frame: its node's place in ``nodes``
+        self._offset = np.zeros((64, 4, 4))  # per processed frame: its pose in its node's frame (odometry)
+        self._node_odometry: np.ndarray | None = None
+        self._pending_distance = 0.0
+        self._pending_steps = 0
+        self._pending_imu: tuple[float, float] | None = None
 
     # -- gtsam conversions ------------------------------------------------------------------
 
@@ -259,20 +277,25 @@ class PoseGraph:
 
     # -- building ---------------------------------------------------------------------------
 
-    def odometry_noise(self, relative: np.ndarray) -> Any:
-        """Odometry noise of a step: sigma^2 = floor^2 + (sigma over one metre)^2 * distance (a random walk)."""
+    def odometry_noise(self, relative: np.ndarray, distance: float | None = None, steps: int = 1) -> Any:
+        """Odometry noise: sigma^2 = steps * floor^2 + (sigma over one metre)^2 * distance (a random walk).
+
+        ``distance`` is the path length over the ``steps`` frames the factor spans (default: one step,
+        the length of ``relative``).
+        """
         n = self.noise
-        d = float(np.linalg.norm(relative[:3, 3]))
-        xy = math.sqrt(n.odometry_floor_xy**2 + n.odometry_sigma_xy**2 * d)
-        yaw = math.sqrt(n.odometry_floor_yaw**2 + n.odometry_sigma_yaw**2 * d)
-        z = math.sqrt(n.odometry_floor_xy**2 + n.odometry_sigma_z**2 * d)
-        rp = math.sqrt(n.odometry_floor_yaw**2 + n.odometry_sigma_roll_pitch**2 * d)
+        d = float(np.linalg.norm(relative[:3, 3])) if distance is None else distance
+        xy = math.sqrt(steps * n.odometry_floor_xy**2 + n.odometry_sigma_xy**2 * d)
+        yaw = math.sqrt(steps * n.odometry_floor_yaw**2 + n.odometry_sigma_yaw**2 * d)
+        z = math.sqrt(steps * n.odometry_floor_xy**2 + n.odometry_sigma_z**2 * d)
+        rp = math.sqrt(steps * n.odometry_floor_yaw**2 + n.odometry_sigma_roll_pitch**2 * d)
         return self._diagonal(xy, yaw, z, rp)
 
     def add_frame(self, frame: Frame) -> None:
-        """Add a processed frame's node, its odometry factor (eq. 11, first sum) and IMU attitude."""
-        import gtsam
+        """Add a processed frame: a node (odometry factor of eq. 11, IMU attitude), or a pose riding on the last one.
 
+        A frame gets a node once ``node_distance`` of travel has passed since the last node.
+        """
         index = frame.index
         if index in self.store.rows:
             raise ValueError(f"frame {index} was added to the pose graph twice")
@@ -284,8 +307,39 @@ class PoseGraph:
             # Pose2 corrects x, y, yaw; the odometry's height, roll and pitch ride along unchanged.
             lift = invert(planar(odometry)) @ odometry
             odometry = planar(odometry)
+        if self._last_odometry is not None:
+            self._pending_distance += float(np.linalg.norm((invert(self._last_odometry) @ odometry)[:3, 3]))
+            self._pending_steps += 1
+        self._last_odometry = odometry
+        self._pending_imu = frame.imu_roll_pitch
+        row = self.store.size
+        if row == len(self._node_of_row):
+            self._node_of_row = _grown(self._node_of_row, row)
+            self._offset = _grown(self._offset, row)
+        self.timestamps.append(float(frame.timestamp))
+        if not self.nodes or self._pending_distance >= self.node_distance:
+            self.store.append(index, np.eye(4), lift)
+            self._make_node(index)
+        else:
+            assert self._node_odometry is not None
+            offset = invert(self._node_odometry) @ odometry
+            self._node_of_row[row] = len(self.nodes) - 1
+            self._offset[row] = offset
+            self.store.append(index, self.store.buffer[self.store.rows[self.nodes[-1]]] @ offset, lift)
+
+    def is_node(self, frame_index: int) -> bool:
+        """Whether the frame has its own node (else its pose rides on its node's by odometry)."""
+        row = self.store.rows.get(frame_index)
+        return row is not None and self.nodes[self._node_of_row[row]] == frame_index
+
+    def _make_node(self, index: int) -> None:
+        """Give the newest frame (already in the store) its node, odometry factor and IMU attitude."""
+        import gtsam
+
+        odometry = self._last_odometry
+        assert odometry is not None and self.store.frames[-1] == index
         key = X(index)
-        if self._last_odometry is None:
+        if not self.nodes:
             initial = odometry
             # Fixes the gauge in the odometry frame (when localizing, anchoring drops it for the map's).
             # Roll and pitch are no gauge freedom: gravity (the IMU) observes them, so they stay loose.
@@ -294,22 +348,47 @@ class PoseGraph:
             self._prior = self._prior_factor(key, initial, model)
             self._add(self._prior)
         else:
-            relative = invert(self._last_odometry) @ odometry
-            previous = self.store.buffer[self.store.size - 1]
-            initial = previous @ relative
-            self._add(self._between_factor(X(self.store.frames[-1]), key, relative, self.odometry_noise(relative)))
-        if self.pose3 and frame.imu_roll_pitch is not None:
-            roll, pitch = frame.imu_roll_pitch
+            assert self._node_odometry is not None
+            relative = invert(self._node_odometry) @ odometry
+            initial = self.store.buffer[self.store.rows[self.nodes[-1]]] @ relative
+            model = self.odometry_noise(relative, self._pending_distance, self._pending_steps)
+            self._add(self._between_factor(X(self.nodes[-1]), key, relative, model))
+        if self.pose3 and self._pending_imu is not None:
+            roll, pitch = self._pending_imu
             up = rotation_rpy(float(roll), float(pitch), 0.0).T @ np.array([0.0, 0.0, 1.0])
             model = gtsam.noiseModel.Isotropic.Sigma(2, self.noise.imu_sigma_roll_pitch)
             self._add(gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.array([0.0, 0.0, 1.0])), model, gtsam.Unit3(up)))
         self._insert(key, initial)
-        self.store.append(index, self._matrix(self._gtsam_pose(initial)), lift)
-        self.timestamps.append(float(frame.timestamp))
-        self._last_odometry = odometry
+        row = self.store.size - 1
+        self.nodes.append(index)
+        self._node_of_row[row] = len(self.nodes) - 1
+        self._offset[row] = np.eye(4)
+        self.store.set_latest(self._matrix(self._gtsam_pose(initial)))
+        self._node_odometry = odometry
+        self._pending_distance = 0.0
+        self._pending_steps = 0
 
-    def loop_noise(self, covariance: np.ndarray) -> Any:
-        """The loop factor's noise: the constraint's covariance under the robust kernel."""
+    def _on_node(
+        self, frame_index: int, relative: np.ndarray, side: Literal["from", "to"]
+    ) -> tuple[int, np.ndarray, np.ndarray | None]:
+        """A loop's end frame: its node's frame, the relative pose moved onto that node, and the covariance's adjoint.
+
+        The adjoint is None when the covariance stays as it is; the newest frame becomes a node.
+        """
+        row = self.store.rows[frame_index]
+        if self.nodes[self._node_of_row[row]] != frame_index and frame_index == self.store.frames[-1]:
+            self._make_node(frame_index)
+        node = self.nodes[self._node_of_row[row]]
+        if node == frame_index:
+            return node, relative, None
+        offset = self._offset[row]
+        if side == "from":  # T_node^-1 T_to = offset @ relative: the error (in the 'to' frame) is the same
+            return node, offset @ relative, None
+        # T_from^-1 T_node = relative @ offset^-1, its error is the 'to' error moved by offset's adjoint
+        return node, relative @ invert(offset), np.asarray(self._gtsam_pose(offset).AdjointMap())
+
+    def loop_noise(self, covariance: np.ndarray, adjoint: np.ndarray | None = None) -> Any:
+        """The loop factor's noise: the constraint's covariance (moved by ``adjoint``) under the robust kernel."""
         import gtsam
 
         cov = np.asarray(covariance, dtype=np.float64)
@@ -324,9 +403,12 @@ class PoseGraph:
             full[np.ix_(idx, idx)] = cov
             full[0, 0] = full[1, 1] = self.noise.loop_sigma_roll_pitch**2
             full[5, 5] = self.noise.loop_sigma_z**2
-            gaussian = gtsam.noiseModel.Gaussian.Covariance(full)
         else:
-            gaussian = gtsam.noiseModel.Gaussian.Covariance(cov)
+            full = cov
+        if adjoint is not None:
+            full = adjoint @ full @ adjoint.T
+            full = 0.5 * (full + full.T)
+        gaussian = gtsam.noiseModel.Gaussian.Covariance(full)
         kernel = self.noise.loop_kernel
         if kernel == "none":
             return gaussian
@@ -347,7 +429,7 @@ class PoseGraph:
             raise ValueError("a loop constraint's relative pose must be a finite 4x4 matrix")
         if not self.pose3:
             relative = planar(relative)
-        noise = self.loop_noise(loop.covariance)
+        node_to, relative, adjoint = self._on_node(loop.frame_to, relative, "to")
         anchored = False
         if loop.from_map:
             if loop.frame_from not in self.map_poses:
@@ -359,15 +441,17 @@ class PoseGraph:
             if loop.frame_from not in self.map_nodes:
                 self._add_map_node(loop.frame_from)
             if not self.anchored:
-                self.anchor(self.map_poses[loop.frame_from] @ relative, loop.frame_to)
+                self.anchor(self.map_poses[loop.frame_from] @ relative, node_to)
                 anchored = True
             self.map_factors += 1
         else:
             if loop.frame_from not in self.store.rows:
                 raise ValueError(f"loop constraint from frame {loop.frame_from}, which is not a processed frame")
-            key_from = X(loop.frame_from)
+            node_from, relative, _ = self._on_node(loop.frame_from, relative, "from")
+            key_from = X(node_from)
             self.loop_factors += 1
-        self._add(self._between_factor(key_from, X(loop.frame_to), relative, noise))
+        noise = self.loop_noise(loop.covariance, adjoint)
+        self._add(self._between_factor(key_from, X(node_to), relative, noise))
         return anchored
 
     def _add_map_node(self, map_frame: int) -> None:
@@ -395,8 +479,8 @@ class PoseGraph:
         for m in self.map_nodes:
             pose = self.map_poses[m] if self.pose3 else planar(self.map_poses[m])
             values.insert(M(m), self._gtsam_pose(pose))
-        for frame, pose in zip(self.store.frames, poses, strict=True):
-            values.insert(X(frame), self._gtsam_pose(pose))
+        for frame in self.nodes:
+            values.insert(X(frame), self._gtsam_pose(poses[self.store.rows[frame]]))
         self.values = values
         self.factors = [f for f in self.factors if f is not self._prior]
         self.anchored = True
@@ -433,7 +517,7 @@ class PoseGraph:
     # -- estimates --------------------------------------------------------------------------
 
     def session_poses(self, values: Any) -> np.ndarray:
-        """The (N, 4, 4) poses of the processed frames in ``values`` (map nodes left out)."""
+        """The (N, 4, 4) poses of the processed frames, from their nodes' poses in ``values`` (map nodes left out)."""
         import gtsam
 
         if self.pose3:
@@ -443,11 +527,14 @@ class PoseGraph:
             out[:, :3, 3] = rows[:, 9:12]
         else:
             out = planar_from_xyt(np.asarray(gtsam.utilities.extractPose2(values)))
-        # Keys 'm...' sort before 'x...', and frame indices increase with insertion.
-        out = out[len(out) - self.store.size :]
-        if len(out) != self.store.size:
-            raise RuntimeError(f"the solver returned {len(out)} poses for {self.store.size} frames")
-        return out
+        # Keys 'm...' sort before 'x...', and frame indices (so nodes) increase with insertion.
+        out = out[len(out) - len(self.nodes) :]
+        if len(out) != len(self.nodes):
+            raise RuntimeError(f"the solver returned {len(out)} poses for {len(self.nodes)} nodes")
+        size = self.store.size
+        if len(self.nodes) == size:
+            return out
+        return np.matmul(out[self._node_of_row[:size]], self._offset[:size])
 
     def set_values(self, values: Any) -> None:
         """Adopt a new full estimate (after an optimisation)."""
