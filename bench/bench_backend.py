@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/bench_backend.py            # both benchmarks
     .venv/bin/python bench/bench_backend.py --quick    # smaller sizes (a smoke run)
+    .venv/bin/python bench/bench_backend.py --growth 16000   # update time per window as the graph grows
 
 Budgets (issue #8): iSAM2 median update under 10 ms at 10,000 poses with loop closures; batch
 Levenberg-Marquardt over ~9,000 Pose2 keyframes (2.7 km) with a few dozen loops under 1 s.
@@ -139,6 +140,38 @@ def bench_isam2(n: int, seed: int) -> dict[str, float]:
     }
 
 
+def bench_growth(n: int, seed: int, window: int = 2000) -> dict[str, list[float]]:
+    """Mean CPU ms per keyframe of backend=isam2 per window, keyframes 0.3 m apart (the pipeline's
+    spacing), loops every 10 m after the first lap: with a node per keyframe, and with the defaults.
+
+    Keys: ``"node_distance=<m>"``, each a list of window means; ``"partial_check_off"`` is the
+    node-per-keyframe graph with GTSAM's full relinearization check (the defaults before #10).
+    """
+    rng = np.random.default_rng(seed)
+    gt = route(n, 0.3)
+    odo = odometry(gt, rng)
+    found = loops(gt, 0.3, 10.0, rng)
+    default = Isam2Params().node_distance
+    variants = {
+        "partial_check_off": Isam2Params(save_map=False, node_distance=0.0, partial_relinearization_check=False),
+        "node_distance=0": Isam2Params(save_map=False, node_distance=0.0),
+        f"node_distance={default:g}": Isam2Params(save_map=False),
+    }
+    out: dict[str, list[float]] = {}
+    for name, params in variants.items():
+        backend = Isam2Backend(params)
+        backend.begin(RunContext(run_dir=None))
+        cpu = []
+        for frame in frames(gt, odo):
+            items = found.get(frame.index)
+            c0 = time.process_time()
+            backend.process(frame=frame, loops=LoopConstraints(tuple(items)) if items else None)
+            cpu.append(time.process_time() - c0)
+        ms = np.asarray(cpu) * 1e3
+        out[name] = [float(ms[k : k + window].mean()) for k in range(0, n, window)]
+    return out
+
+
 def bench_lm(n: int, seed: int, every: float) -> dict[str, float]:
     """Batch LM over n Pose2 keyframes 0.3 m apart (2.7 km at n = 9,000) with loops every ``every`` m.
 
@@ -189,7 +222,8 @@ def bench_memory(n: int, seed: int) -> dict[str, float]:
     """Resident memory per keyframe of backend=isam2 (default config), loop-free, between n/4 and n keyframes.
 
     The soak (``bench_soak.py``) sees memory grow with the route; this isolates the pose graph's
-    share: every processed frame is a node, kept for loops to any earlier place.
+    share: keyframes 0.3 m apart, a pose node every ``node_distance`` (1 m), all kept for loops to
+    any earlier place, and every keyframe's pose in the published estimate.
     """
     rng = np.random.default_rng(seed)
     gt = route(n, 0.3)
@@ -222,6 +256,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="small sizes, for a smoke run")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--memory", action="store_true", help="only the memory per keyframe")
+    parser.add_argument("--growth", type=int, metavar="N", help="only the update time per window over N keyframes")
     args = parser.parse_args()
     isam_n, lm_n = (3000, 5000) if args.quick else (10_000, 9_000)
     from importlib.metadata import version
@@ -229,6 +264,15 @@ def main() -> None:
     print(
         f"machine: {cpu_model()}, {os.cpu_count()} CPUs, python {platform.python_version()}, gtsam {version('gtsam')}"
     )
+    if args.growth:
+        growth = bench_growth(args.growth, args.seed)
+        print(
+            f"iSAM2 mean CPU ms per keyframe, windows of 2000 keyframes 0.3 m apart (loops every 10 m after lap 1, "
+            f"a lap = {round(2 * sum(BLOCK) / 0.3)} keyframes):"
+        )
+        for name, means in growth.items():
+            print(f"  {name:>18}: " + " ".join(f"{m:6.2f}" for m in means))
+        return
     memory = bench_memory(5000 if args.quick else 20_000, args.seed)
     print(
         f"memory (backend=isam2, Pose2, no loops): RSS {memory['rss_start_mb']:.0f} MiB after "

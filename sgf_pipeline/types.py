@@ -248,7 +248,11 @@ class LoopConstraints:
 
 @dataclass(frozen=True)
 class PoseEstimate:
-    """The back-end's current estimate of every processed frame's pose (map frame)."""
+    """The back-end's current estimate of every processed frame's pose (map frame).
+
+    A snapshot: a back-end publishes a new one whenever a pose changes and never alters one it has
+    published, so stages may cache what they derive from it by its identity.
+    """
 
     frame_index: int
     poses: Mapping[int, np.ndarray]
