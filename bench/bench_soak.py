@@ -184,7 +184,8 @@ def main() -> None:
     sgf, loops, backend = metrics.get("sgf", {}), metrics.get("loops", {}), metrics.get("backend", {})
     print(
         f"SGF groups {sgf.get('groups')}, loop candidates {loops.get('candidates')}, accepted loops "
-        f"{loops.get('accepted')}, loop factors {backend.get('loop_factors')}, graph nodes {backend.get('nodes')}"
+        f"{loops.get('accepted')}, loop factors {backend.get('loop_factors')}, frames {backend.get('nodes')}, "
+        f"pose nodes {backend.get('pose_nodes')}"
     )
     print(
         f"route {rows[-1][1] if rows else 0:.1f} km, {timing['frames']} frames, {wall:.0f} s wall, "
