@@ -308,7 +308,7 @@ class PoseGraph:
             lift = invert(planar(odometry)) @ odometry
             odometry = planar(odometry)
         if self._last_odometry is not None:
-            self._pending_distance += float(np.linalg.norm((invert(self._last_odometry) @ odometry)[:3, 3]))
+            self._pending_distance += float(np.linalg.norm(odometry[:3, 3] - self._last_odometry[:3, 3]))
             self._pending_steps += 1
         self._last_odometry = odometry
         self._pending_imu = frame.imu_roll_pitch
@@ -325,7 +325,9 @@ class PoseGraph:
             offset = invert(self._node_odometry) @ odometry
             self._node_of_row[row] = len(self.nodes) - 1
             self._offset[row] = offset
-            self.store.append(index, self.store.buffer[self.store.rows[self.nodes[-1]]] @ offset, lift)
+            node_pose = self.store.get(self.nodes[-1])
+            assert node_pose is not None
+            self.store.append(index, node_pose @ offset, lift)
 
     def is_node(self, frame_index: int) -> bool:
         """Whether the frame has its own node (else its pose rides on its node's by odometry)."""
@@ -350,7 +352,9 @@ class PoseGraph:
         else:
             assert self._node_odometry is not None
             relative = invert(self._node_odometry) @ odometry
-            initial = self.store.buffer[self.store.rows[self.nodes[-1]]] @ relative
+            node_pose = self.store.get(self.nodes[-1])
+            assert node_pose is not None
+            initial = node_pose @ relative
             model = self.odometry_noise(relative, self._pending_distance, self._pending_steps)
             self._add(self._between_factor(X(self.nodes[-1]), key, relative, model))
         if self.pose3 and self._pending_imu is not None:
