@@ -30,6 +30,7 @@ from sgf_plugins.ipm import (
     bev_to_image_homography,
     visible_mask,
 )
+from sgf_plugins.ipm.accuracy import AHEAD_MC
 
 from sgf_pipeline.calibration import Calibration, Intrinsics, camera_to_base_from_mounting
 from sgf_pipeline.io import atomic_write_text
@@ -60,7 +61,9 @@ def _frames(count: int) -> list[Frame]:
     frames = []
     for k in range(count):
         pitch = 0.06 * math.sin(k / 3.0) if k % 40 < 8 else 0.001 * math.sin(k)  # bumps now and then
-        frames.append(Frame(k, 0.1 * k, image, np.eye(4), CALIBRATION, (0.01 * math.sin(k / 5.0), pitch)))
+        odometry = np.eye(4)
+        odometry[0, 3] = 0.12 * k  # 1.2 m/s at 10 Hz: the line fit of MC-IPM's reference has distances to fit
+        frames.append(Frame(k, 0.1 * k, image, odometry, CALIBRATION, (0.01 * math.sin(k / 5.0), pitch)))
     return frames
 
 
@@ -77,7 +80,9 @@ def run(n: int, repeats: int) -> dict[str, float]:
     p = np.stack([u, v, np.ones_like(u)], axis=-1) @ h.T
     map_x, map_y = (p[..., 0] / p[..., 2]).astype(np.float32), (p[..., 1] / p[..., 2]).astype(np.float32)
     image = frames[0].image
+    ahead = MotionCompensatedIPM(MotionCompensatedIpmParams(**AHEAD_MC))
     queue = PoseQueue()
+    line_queue = PoseQueue(fit="line", lookahead=AHEAD_MC["lookahead"])
     out: dict[str, float] = {}
     out["remap"] = _timed(lambda i: cv2.remap(image, map_x, map_y, cv2.INTER_LINEAR), n, repeats)
     out["warp_perspective"] = _timed(
@@ -89,14 +94,20 @@ def run(n: int, repeats: int) -> dict[str, float]:
     )
 
     def queue_step(i: int) -> None:
-        queue.push(0.0, 0.001 * i)
+        queue.push(0.0, 0.001 * i, 0.12)
         queue.reference()
 
+    def line_step(i: int) -> None:
+        line_queue.push(0.0, 0.001 * i, 0.12)
+        line_queue.reference()
+
     out["queue_and_reference"] = _timed(queue_step, n, repeats)
+    out["queue_line"] = _timed(line_step, n, repeats)
     out["homography"] = _timed(lambda i: bev_to_image_homography(CALIBRATION, grid, 0.01, 0.001 * (i % 7)), n, repeats)
     out["visible_mask"] = _timed(lambda i: visible_mask(h, grid, 640, 480), n, repeats)
     out["plain_frame"] = _timed(lambda i: plain.process(frames[i], images[i]), n, repeats)
     out["mc_frame"] = _timed(lambda i: mc.process(frames[i], images[i]), n, repeats)
+    out["mc_ahead_frame"] = _timed(lambda i: ahead.process(frames[i], images[i]), n, repeats)
     try:
         import torch
 
@@ -142,10 +153,12 @@ def report(t: dict[str, float]) -> str:
         ("remap", "cv2.remap, precomputed maps (reference)"),
         ("warp_perspective", "cv2.warpPerspective (the fast path's warp)"),
         ("queue_and_reference", "pose queue push + reference (N=50)"),
+        ("queue_line", "pose queue push + reference (N=50, line fit: ipm=mc_ahead)"),
         ("homography", "H(psi, theta) (eq. 1-4)"),
         ("visible_mask", "visibility mask (row intervals)"),
         ("plain_frame", "**ipm=plain** process()"),
         ("mc_frame", "**ipm=mc** process(): queue, H, mask, warp"),
+        ("mc_ahead_frame", "**ipm=mc_ahead** process()"),
         ("mc_frame_all_cores", "ipm=mc process(), cv2 on all cores"),
         ("mc_frame_kornia_cpu", "ipm=mc backend=kornia, CPU, 1 torch thread"),
     ):

@@ -93,3 +93,38 @@ def test_settle_follows_a_slope_after_k_poses_but_not_a_bump():
     assert len(bump) == 50
     with pytest.raises(ValueError, match="settle must lie in"):
         PoseQueue(10, 0.025, settle=10)
+
+
+def test_a_line_follows_a_hill_without_lag_and_sees_the_ground_ahead() -> None:
+    """fit=line: pitch over distance; on a grade that changes by 0.01 rad per metre the mean lags 3 m behind."""
+    line, mean = PoseQueue(50, 0.025, fit="line", lookahead=2.0), PoseQueue(50, 0.025)
+    rng = np.random.default_rng(0)
+    for k in range(120):
+        s = 0.12 * k  # metres travelled
+        pitch = -0.01 * s + rng.normal(0.0, 0.0026)  # uphill, ever steeper, with the IMU's noise
+        if k == 100:
+            pitch += 0.06  # a bump's pose: left out of the line
+        for queue in (line, mean):
+            queue.push(0.0, pitch, 0.12 if k else 0.0)
+    s_now = 0.12 * 119
+    here, ahead = line.reference(), mean.reference()
+    assert here.pitch == pytest.approx(-0.01 * s_now, abs=0.002)  # the ground under the robot, no lag
+    assert here.target_pitch == pytest.approx(-0.01 * (s_now + 2.0), abs=0.003)  # and 2 m ahead
+    assert here.inliers == 49  # the bump's pose is not on the line
+    assert ahead.target_pitch == ahead.pitch  # the paper's mean knows no ground ahead
+    assert ahead.pitch == pytest.approx(-0.01 * (s_now - 2.94), abs=0.002)  # half a queue (2.94 m) behind
+
+
+def test_a_line_needs_distance_and_bounds_its_extrapolation() -> None:
+    still = PoseQueue(50, 0.025, fit="line", lookahead=2.0)
+    for k in range(50):
+        still.push(0.0, 0.001 * k)  # the robot stands still while its pitch creeps: no slope over distance
+    assert still.reference().pitch == pytest.approx(np.mean(0.001 * np.arange(50)))
+    assert still.reference().target_pitch == still.reference().pitch
+    steep = PoseQueue(50, 0.025, fit="line", lookahead=10.0)
+    for k in range(50):
+        steep.push(0.0, -0.02 * 0.1 * k, 0.1)  # 0.02 rad per metre: 0.2 rad over 10 m
+    reference = steep.reference()
+    assert reference.target_pitch - reference.pitch == pytest.approx(-0.025)  # bounded by pitch_threshold
+    with pytest.raises(ValueError, match="fit='line'"):
+        PoseQueue(50, 0.025, lookahead=1.0)

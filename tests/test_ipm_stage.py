@@ -51,6 +51,30 @@ def test_configs_list_every_parameter_with_its_default(name: str, params) -> Non
     assert params.model_validate(node) == params()
 
 
+def test_mc_ahead_config_is_mc_with_its_extensions() -> None:
+    from sgf_plugins.ipm.accuracy import AHEAD_MC
+
+    node = yaml.safe_load((ROOT / "conf" / "ipm" / "mc_ahead.yaml").read_text())
+    assert node.pop("name") == "mc"
+    assert node == {**MotionCompensatedIpmParams().model_dump(), **AHEAD_MC}
+    assert AHEAD_MC == {"reference_fit": "line", "lookahead": 2.0, "attitude_noise": 0.005}
+
+
+def test_the_noise_scale_shrinks_small_deviations_and_keeps_bumps(view) -> None:
+    image, _ = view
+    stage = MotionCompensatedIPM(MotionCompensatedIpmParams(attitude_noise=0.005))
+    for k in range(10):
+        stage.compensation(_frame(image, imu=(0.0, 0.0), index=k))
+    small = stage.compensation(_frame(image, imu=(0.0025, -0.0025), index=10))
+    d = 0.0025 * 10 / 11  # the reference averages the new pose in: 1/11 of it
+    assert small == pytest.approx((-(d**3) / (d**2 + 0.005**2), -(d**3) / (d**2 + 0.005**2)))
+    assert abs(small[1]) < 0.2 * d  # d^3 / (d^2 + sigma^2): 17 % of a noise-sized deviation is left
+    bump = stage.compensation(_frame(image, imu=(0.0, 0.05), index=11))
+    assert stage.last_reference is not None
+    d = 0.05 - stage.last_reference.pitch  # the bump's pose is an outlier: left out of the reference
+    assert bump[1] == pytest.approx(d**3 / (d**2 + 0.005**2)) and bump[1] > 0.99 * d  # 99 % of a bump's pitch
+
+
 def test_default_config_runs_mc_ipm() -> None:
     config = yaml.safe_load((ROOT / "conf" / "config.yaml").read_text())
     assert {"ipm": "mc"} in config["defaults"]

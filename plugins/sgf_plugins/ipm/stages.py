@@ -15,7 +15,7 @@ from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.geometry import rpy_from_rotation
 from sgf_pipeline.types import Bev, BevGrid, CameraImage, Frame
 from sgf_plugins.ipm.geometry import RollAxis, bev_to_image_homography, visible_mask
-from sgf_plugins.ipm.reference import PoseQueue, ReferenceAttitude, ReferenceCenter
+from sgf_plugins.ipm.reference import PoseQueue, ReferenceAttitude, ReferenceCenter, ReferenceFit
 
 _INTERPOLATION = {"linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST, "cubic": cv2.INTER_CUBIC}
 _LOGGED_DROPOUTS = 5
@@ -173,6 +173,13 @@ def _odometry_attitude(frame: Frame) -> tuple[float, float]:
     return roll, pitch
 
 
+def _shrink(deviation: float, sigma: float) -> float:
+    """``d^3 / (d^2 + sigma^2)``: a deviation ``d`` with the noise of standard deviation ``sigma`` shrunk out."""
+    if sigma <= 0.0:
+        return deviation
+    return deviation * deviation * deviation / (deviation * deviation + sigma * sigma)
+
+
 def _nearest_visible(calibration: Calibration) -> float:
     """Distance ahead of the camera of the ground seen by the bottom image row (inf when none)."""
     intr = calibration.intrinsics
@@ -201,6 +208,21 @@ class MotionCompensatedIpmParams(IpmParams):
         description="extension: after this many poses settled at a new pitch (a slope), drop the older ones; "
         "null = paper (a slope takes over after N/2 + 1 poses)",
     )
+    reference_fit: ReferenceFit = Field(
+        "mean",
+        description="mean: the inliers' average (paper); line: extension, a line of pitch over distance travelled, "
+        "which follows a hill's changing grade and extrapolates it lookahead metres ahead",
+    )
+    lookahead: float = Field(
+        0.0, ge=0.0, description="extension (reference_fit=line): metres ahead whose ground pitch the BEV plane gets"
+    )
+    attitude_noise: float = Field(
+        0.0,
+        ge=0.0,
+        description="extension: noise scale sigma (rad, about twice the IMU's roll/pitch noise); a deviation d "
+        "from the reference is compensated by d^3 / (d^2 + sigma^2): noise mostly left alone, bumps wholly undone; "
+        "0 = paper",
+    )
     attitude: Literal["auto", "imu", "odometry"] = Field(
         "auto", description="roll/pitch source: imu, odometry pose, or auto (IMU when the frame has it)"
     )
@@ -211,6 +233,12 @@ class MotionCompensatedIpmParams(IpmParams):
     )
     compensate_roll: bool = Field(True, description="apply eq. 1 (roll); false for an ablation")
     compensate_pitch: bool = Field(True, description="apply theta in eq. 2 (pitch); false for an ablation")
+
+    @model_validator(mode="after")
+    def _check_reference(self) -> MotionCompensatedIpmParams:
+        if self.lookahead > 0.0 and self.reference_fit != "line":
+            raise ValueError(f"lookahead ({self.lookahead} m) needs reference_fit=line (a mean has no slope to follow)")
+        return self
 
 
 class MotionCompensatedIPM(InversePerspectiveMapping):
@@ -233,6 +261,10 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
     ``outlier_frames`` (frames whose own pitch lay beyond ``pitch_threshold`` of the reference pitch,
     compensated by their full relative pitch) and ``reference_without_inliers`` (frames whose queue
     had no pose within the threshold of its centre, e.g. on rough ground).
+
+    Extensions, off by default and on in ``ipm=mc_ahead``: ``reference_fit=line`` with
+    ``lookahead`` (the reference follows a hill's grade and the BEV's plane takes the grade ahead,
+    :class:`PoseQueue`), and ``attitude_noise`` (the IMU's noise shrunk out of psi and theta).
     """
 
     name = "mc"
@@ -242,8 +274,15 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
         super().__init__(params)
         self.params: MotionCompensatedIpmParams = params
         self.queue = PoseQueue(
-            params.queue_size, params.pitch_threshold, params.reference_center, params.roll_threshold, params.settle
+            params.queue_size,
+            params.pitch_threshold,
+            params.reference_center,
+            params.roll_threshold,
+            params.settle,
+            params.reference_fit,
+            params.lookahead,
         )
+        self._last_position: np.ndarray | None = None
         self.last_reference: ReferenceAttitude | None = None
         self.counts: dict[str, int] = {}
         self._reset_counts()
@@ -262,6 +301,7 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
         """Empty the pose queue: a new sequence starts with no reference."""
         super().begin(context)
         self.queue.reset()
+        self._last_position = None
         self.last_reference = None
         self._reset_counts()
 
@@ -295,17 +335,33 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
         if not (math.isfinite(roll) and math.isfinite(pitch)):
             self._count("attitude_dropouts", frame, "no finite roll/pitch; warped at the reference attitude")
             return 0.0, 0.0
-        self.queue.push(roll, pitch)
+        self.queue.push(roll, pitch, self._step(frame))
         reference = self.queue.reference()
         self.last_reference = reference
         if reference.inliers == 0:
             self.counts["reference_without_inliers"] += 1
         if abs(pitch - reference.pitch) > self.params.pitch_threshold:
             self.counts["outlier_frames"] += 1
-        psi = -(roll - reference.roll) if self.params.compensate_roll else 0.0
-        theta = pitch - reference.pitch if self.params.compensate_pitch else 0.0
+        noise = self.params.attitude_noise
+        # a deviation d from the reference is motion plus the IMU's noise: shrunk by d^2 / (d^2 + sigma^2),
+        # it is kept whole when large (a bump) and mostly dropped when of the noise's size
+        roll_motion = _shrink(roll - reference.roll, noise)
+        pitch_motion = _shrink(pitch - reference.pitch, noise)
+        psi = -roll_motion if self.params.compensate_roll else 0.0
+        # the ground ahead's pitch against the ground under the robot: exactly 0.0 for the paper's mean
+        ahead = reference.pitch - reference.target_pitch
+        theta = pitch_motion + ahead if self.params.compensate_pitch else 0.0
         self._max_theta = max(self._max_theta, abs(theta))
         return psi, theta
+
+    def _step(self, frame: Frame) -> float:
+        """Metres driven since the previous frame, from the odometry (0 when it is not finite)."""
+        odometry = np.asarray(frame.odometry, dtype=np.float64)
+        if odometry.shape != (4, 4) or not np.all(np.isfinite(odometry[:3, 3])):
+            return 0.0
+        position = odometry[:3, 3].copy()
+        previous, self._last_position = self._last_position, position
+        return 0.0 if previous is None else float(np.linalg.norm(position - previous))
 
     def _count(self, key: str, frame: Frame, what: str) -> None:
         self.counts[key] += 1
