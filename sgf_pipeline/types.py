@@ -8,7 +8,7 @@ z up, with its origin on the ground under the robot; the camera frame is the opt
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -165,6 +165,12 @@ class SalientGroundFeature:
     views: int
     instance_id: int | None = None
 
+    def without_pixels(self) -> SalientGroundFeature:
+        """A copy without the BEV pixels: what a long-lived record keeps (a descriptor's points hold the shape)."""
+        if np.asarray(self.pixels).size == 0:
+            return self
+        return replace(self, pixels=np.zeros((0, 2), dtype=np.int32))
+
 
 @dataclass(frozen=True)
 class SgfDetections:
@@ -182,6 +188,11 @@ class SgfDescriptor:
     centroid: np.ndarray
     matrix: np.ndarray
     ring_key: np.ndarray
+
+    def without_pixels(self) -> SgfDescriptor:
+        """A copy whose SGF has no BEV pixels (an SGF group keeps its members so)."""
+        sgf = self.sgf.without_pixels()
+        return self if sgf is self.sgf else replace(self, sgf=sgf)
 
 
 @dataclass(frozen=True)

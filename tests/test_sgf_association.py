@@ -148,6 +148,42 @@ def test_group_descriptor_is_the_mean_of_aligned_members():
     assert to_aligned < 0.06 and to_plain > to_aligned + 0.03
 
 
+def test_members_are_kept_without_their_bev_pixels():
+    s = stage()
+    pose_a, pose_b = seen_from(ELL, 3.0, 0.0), seen_from(ELL, 3.2, 0.1)
+    a, b = desc(ELL, pose_a, 1), desc(ELL, pose_b, 2)
+    feed(s, 1, pose_a, a)
+    out = feed(s, 2, pose_b, b)
+    (member_a, member_b) = s.groups[0].members
+    # a group keeps each member's points, descriptor and SGF record, not the BEV pixels (8 bytes each)
+    assert member_a.sgf.pixels.shape == (0, 2) and member_b.sgf.pixels.shape == (0, 2)
+    assert member_a.points is a.points and member_a.matrix is a.matrix and member_a.sgf.frame_index == 1
+    assert (member_a.sgf.track_id, member_a.sgf.instance_id) == (a.sgf.track_id, a.sgf.instance_id)
+    # the frame's own assignment still carries the query with its pixels (figures draw them)
+    (item,) = out
+    assert item.descriptor is b and len(item.descriptor.sgf.pixels) > 100 and item.matched is member_a
+
+
+def test_the_loop_stage_keeps_assignments_for_the_map_without_pixels():
+    from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams
+    from sgf_plugins.sgf.synthetic import toy_calibration
+
+    from sgf_pipeline.types import Frame, GroupAssignments
+
+    s, loop = stage(), IcpLoopClosing(IcpLoopParams())
+    context = RunContext(run_dir=None)
+    loop.begin(context)
+    for k, pose in ((1, seen_from(ELL, 3.0, 0.0)), (2, seen_from(ELL, 3.2, 0.1))):
+        items = feed(s, k, pose, desc(ELL, pose, k))
+        frame = Frame(k, 0.1 * k, np.zeros((2, 2), np.uint8), pose, toy_calibration())
+        loop.process(frame, GroupAssignments(tuple(items)), None)
+        assert len(items[0].descriptor.sgf.pixels) > 100  # what the frame's stages saw
+    loop.finalize(context)
+    kept = context.artifacts["group_assignments"]
+    assert [a.descriptor.sgf.frame_index for a in kept] == [1, 2]
+    assert all(a.descriptor.sgf.pixels.shape == (0, 2) and len(a.descriptor.points) > 100 for a in kept)
+
+
 def test_a_symmetric_marking_is_flagged():
     s = stage()
     poses = [seen_from(DISC, 3.0, h) for h in (0.0, 1.3, math.pi - 0.2)]

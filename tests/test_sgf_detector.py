@@ -86,7 +86,12 @@ def test_one_sgf_per_pass_at_the_most_salient_frame(diamond_passes):
     assert context.metrics["sgf"]["total"] == 1
     assert context.metrics["sgf"]["selected"] == 2
     assert context.metrics["sgf"]["open_at_end"] == 0
-    assert context.artifacts["sgf_selected"] == [sgf for _, sgf in out]
+    kept = context.artifacts["sgf_selected"]
+    assert [(s.track_id, s.frame_index, s.instance_id) for s in kept] == [
+        (s.track_id, s.frame_index, s.instance_id) for _, s in out
+    ]
+    assert all(s.pixels.shape == (0, 2) for s in kept)  # the run keeps them without their BEV pixels
+    assert all(len(s.pixels) > 0 for _, s in out)  # the stage's outputs keep theirs
 
 
 def test_selected_views_never_touch_the_border():

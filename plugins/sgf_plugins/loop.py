@@ -34,7 +34,7 @@ from __future__ import annotations
 import heapq
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -207,7 +207,7 @@ class IcpLoopClosing(Stage):
             return LoopConstraints()
         out: list[LoopConstraint] = []
         for a in assignments.items:
-            self.assignments.append(a)
+            self.assignments.append(replace(a, descriptor=a.descriptor.without_pixels()))  # for the map: no pixels
             out.extend(self._close(a, estimate))
         return LoopConstraints(tuple(out))
 

@@ -57,8 +57,8 @@ class SgfGroup:
     aliased: bool = False
 
     def add(self, member: SgfDescriptor, offset: int, anchor: np.ndarray | None = None) -> None:
-        """Append a member turned by ``offset`` columns into the group's orientation."""
-        self.members.append(member)
+        """Append a member turned by ``offset`` columns into the group's orientation (kept without its BEV pixels)."""
+        self.members.append(member.without_pixels())
         self.offsets.append(int(offset) % member.matrix.shape[1])
         self.anchors.append(None if anchor is None else np.asarray(anchor, dtype=np.float64).reshape(2))
 

@@ -435,7 +435,7 @@ class HuMomentDetector(Stage):
             sgf = self.select(track, bev.grid)
             if sgf is not None:
                 out.append(sgf)
-        self._selected.extend(out)
+        self._selected.extend(sgf.without_pixels() for sgf in out)  # kept for the run's metrics: no pixels
         return SgfDetections(tuple(out))
 
     def _moved(self, before: np.ndarray, now: np.ndarray) -> bool:
@@ -448,7 +448,7 @@ class HuMomentDetector(Stage):
         return float(np.linalg.norm(delta[:3, 3])) >= p.min_view_motion or turned >= p.min_view_turn
 
     def finalize(self, context: RunContext) -> None:
-        """Write ``sgf.detected``/``sgf.total`` (null without ground truth) and share the selected SGFs."""
+        """Write ``sgf.detected``/``sgf.total`` (null without ground truth) and share the selected SGFs (no pixels)."""
         context.artifacts["sgf_selected"] = list(self._selected)
         sgf: dict[str, Any] = context.metrics.setdefault("sgf", {})
         sgf.update(
