@@ -90,14 +90,23 @@ def bev_position_error(ground_xy: np.ndarray, pose: np.ndarray, homography: np.n
     ``ground_xy`` (H, W, 2): world ``(x, y)`` of the ground each image pixel sees (NaN for sky);
     ``homography``: BEV pixel -> image pixel, as the IPM stage warps with. NaN when no sample is visible.
     """
-    height, width = ground_xy.shape[:2]
+    return _position_error(_relative_ground(ground_xy, pose), pose, homography, samples)
+
+
+def _relative_ground(ground_xy: np.ndarray, pose: np.ndarray) -> np.ndarray:
+    """``ground_xy`` relative to the robot, in float32 (small numbers: float32 keeps 0.1 mm): one per frame."""
+    return (ground_xy - pose[:2, 3]).astype(np.float32)
+
+
+def _position_error(relative: np.ndarray, pose: np.ndarray, homography: np.ndarray, samples: BevSamples) -> float:
+    """:func:`bev_position_error` on the frame's ground points already made relative to the robot."""
+    height, width = relative.shape[:2]
     q = homography @ samples.pixels
     with np.errstate(divide="ignore", invalid="ignore"):
         u, v = q[0] / q[2], q[1] / q[2]
     seen = (q[2] > 0) & (u >= 0) & (u <= width - 1) & (v >= 0) & (v <= height - 1)
     if not seen.any():
         return math.nan
-    relative = (ground_xy - pose[:2, 3]).astype(np.float32)  # small numbers: float32 keeps 0.1 mm
     seen_xy = cv2.remap(
         relative,
         u[seen].astype(np.float32)[None],
@@ -194,13 +203,13 @@ def evaluate(
         frame = world.frame(k)
         pose = frame.ground_truth
         layers = world.render_layers(pose, world.frame_conditions(k))
-        ground_xy = layers.ground_xy()
+        relative = _relative_ground(layers.ground_xy(), pose)  # once per frame, for every variant
         result.frames.append(k)
         result.kinds.append(ground_kind(world, pose))
         for name, stage in stages.items():
             psi, theta = stage.compensation(frame)
             h = stage.homography(frame.calibration, psi, theta)
-            result.errors[name].append(bev_position_error(ground_xy, pose, h, samples[stage.grid]))
+            result.errors[name].append(_position_error(relative, pose, h, samples[stage.grid]))
     return result
 
 
