@@ -206,8 +206,11 @@ class SgfDescriptors:
 class GroupAssignment:
     """An SGF descriptor assigned to an SGF group (eq. 10).
 
-    ``symmetric`` groups (a round manhole) and ``ambiguous`` ones (a repeated pattern such as the
-    triangles of a give-way row, or look-alike groups too close to tell apart) give no loop factors.
+    ``symmetric`` groups (a round manhole) give no loop factors. ``ambiguous`` marks a match eq. 10
+    cannot vouch for: an ``aliased`` group (a repeated pattern such as the triangles of a give-way
+    row), or look-alike groups inside the spatial gate that tie with the chosen one; then
+    ``alternatives`` holds the closest member of each tied group, for a loop stage that can tell
+    them apart by other evidence (their neighbouring SGFs).
     """
 
     descriptor: SgfDescriptor
@@ -219,6 +222,18 @@ class GroupAssignment:
     matched: SgfDescriptor | None
     symmetric: bool
     ambiguous: bool = False
+    aliased: bool = False
+    alternatives: tuple[LookAlike, ...] = ()
+
+
+@dataclass(frozen=True)
+class LookAlike:
+    """A group tied with the chosen one by eq. 10: its closest member and that member's relative yaw."""
+
+    group_id: int
+    matched: SgfDescriptor
+    shift: int
+    yaw: float
 
 
 @dataclass(frozen=True)

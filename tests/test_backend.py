@@ -142,11 +142,12 @@ def test_the_cauchy_kernel_ignores_a_false_loop(world, kernel: str, moves: bool)
 def test_the_gate_alone_keeps_look_alikes_out_of_the_graph() -> None:
     world = make_world(seed=1, odometry_noise=(0.01, math.radians(0.3), 0.01, math.radians(0.05)))
     no_kernel = LmParams(save_map=False, loop_kernel="none")
+    alone = IcpLoopParams(min_support=0)  # no neighbour consensus: the gate alone
     reference = run_stages(
-        world, IcpLoopClosing(IcpLoopParams()), GtsamLmBackend(no_kernel), OracleAssociation(world, by="instance")
+        world, IcpLoopClosing(alone), GtsamLmBackend(no_kernel), OracleAssociation(world, by="instance")
     )
-    gated = run_stages(world, IcpLoopClosing(IcpLoopParams()), GtsamLmBackend(no_kernel))
-    ungated = run_stages(world, IcpLoopClosing(IcpLoopParams(gate=False)), GtsamLmBackend(no_kernel))
+    gated = run_stages(world, IcpLoopClosing(alone), GtsamLmBackend(no_kernel))
+    ungated = run_stages(world, IcpLoopClosing(IcpLoopParams(gate=False, min_support=0)), GtsamLmBackend(no_kernel))
     ate_of = {
         name: ate(run.context.trajectories["sgf"].poses, world.gt)  # type: ignore[attr-defined]
         for name, run in (("reference", reference), ("gated", gated), ("ungated", ungated))

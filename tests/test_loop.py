@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from sgf_plugins.backend import GtsamLmBackend, LmParams
 from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, drift_covariance
 
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, xy_yaw
-from sgf_pipeline.types import Frame, GroupAssignment, GroupAssignments
+from sgf_pipeline.types import Frame, GroupAssignment, GroupAssignments, LookAlike
 
 
 @pytest.fixture(scope="module")
@@ -21,7 +22,7 @@ def world():  # type: ignore[no-untyped-def]
 
 
 def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> None:  # type: ignore[no-untyped-def]
-    stage = IcpLoopClosing(IcpLoopParams())
+    stage = IcpLoopClosing(IcpLoopParams(min_support=0))  # ICP and the gate only (the consensus is tested below)
     run = run_stages(world, loop=stage, association=OracleAssociation(world, by="instance"))
     asymmetric = [r for r in world.truth.revisits if not world.truth.markings[r.instance_id].symmetric]
     assert len(run.loops) == len(asymmetric) == 8
@@ -46,20 +47,31 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
     assert len(run.context.artifacts["loops"]) == 8
     assert all(entry["true"] is True for entry in run.context.artifacts["loops"])
     assert len(run.context.artifacts["group_assignments"]) == sum(len(v) for v in world.sgfs.values())
+    # by default a loop also needs a neighbouring marking that agrees: the toy world's two lone revisits lose theirs
+    default = run_stages(
+        world, loop=IcpLoopClosing(IcpLoopParams()), association=OracleAssociation(world, by="instance")
+    )
+    metrics = default.context.metrics["loops"]
+    assert (metrics["closed"], metrics["false_closed"], metrics["rejected"]["consensus"]) == (6, 0, 2)
 
 
 def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> None:  # type: ignore[no-untyped-def]
     # Grouped by design, the two arrows (30 m and 40 m apart in the world) share a group.
-    gated = run_stages(world, loop=IcpLoopClosing(IcpLoopParams()))
+    gated = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(min_support=0)))
     assert all(c.instance_ids[0] == c.instance_ids[1] for c in gated.loops)
     assert gated.context.metrics["loops"]["false_closed"] == 0
     assert gated.context.metrics["loops"]["rejected"]["gate"] == 4
-    ungated = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False)))
+    ungated = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False, min_support=0)))
     look_alikes = [c for c in ungated.loops if c.instance_ids[0] != c.instance_ids[1]]
     assert len(look_alikes) == 4
     assert ungated.context.metrics["loops"]["false_closed"] == 4
     # look-alikes take the place of true loops in the arrow group: fewer pairs closed
     assert ungated.context.metrics["loops"]["closed"] < 8
+    # the neighbour consensus alone (the default min_support = 1) also keeps the look-alikes out
+    consensus = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False)))
+    assert consensus.context.metrics["loops"]["false_closed"] == 0
+    assert consensus.context.metrics["loops"]["rejected"]["consensus"] == 4
+    assert consensus.context.metrics["loops"]["closed"] == 5
 
 
 def _straight_run(n: int, yaw_at_end: float) -> list[Frame]:
@@ -80,7 +92,7 @@ def test_the_column_shift_yaw_is_tried_with_both_signs(both_signs: bool, expecte
     first, last = _view(frames[0], marking), _view(frames[-1], marking)
     # the association's shift convention is the opposite of ours: it reports -100 degrees
     assignment = GroupAssignment(last, 0, False, 0.1, -25, math.radians(-100), first, False)  # type: ignore[arg-type]
-    stage = IcpLoopClosing(IcpLoopParams(seed_both_signs=both_signs, min_separation_distance=5.0))
+    stage = IcpLoopClosing(IcpLoopParams(seed_both_signs=both_signs, min_separation_distance=5.0, min_support=0))
     out = [stage.process(frame=f, assignments=None, estimate=None) for f in frames[:-1]]
     out.append(stage.process(frame=frames[-1], assignments=GroupAssignments((assignment,)), estimate=None))
     loops = [c for o in out for c in o.items]
@@ -96,7 +108,7 @@ def test_an_sgf_matched_within_the_same_pass_is_not_a_loop() -> None:
     a, b = _view(frames[1], marking), _view(frames[3], marking)
     assignment = GroupAssignment(b, 0, False, 0.1, 0, 0.0, a, False)  # type: ignore[arg-type]
     for min_distance, expected in ((10.0, 0), (1.0, 1)):
-        stage = IcpLoopClosing(IcpLoopParams(min_separation_distance=min_distance))
+        stage = IcpLoopClosing(IcpLoopParams(min_separation_distance=min_distance, min_support=0))
         found = []
         for f in frames[:4]:
             items = GroupAssignments((assignment,)) if f.index == 3 else None
@@ -180,7 +192,9 @@ def test_extra_yaw_seeds_recover_from_a_wrong_column_shift(extra: int, expected:
     first, last = _view(frames[0], marking), _view(frames[-1], marking)
     wrong = math.radians(100 - 90)  # a shift one quarter turn off
     assignment = GroupAssignment(last, 0, False, 0.3, 2, wrong, first, False)  # type: ignore[arg-type]
-    stage = IcpLoopClosing(IcpLoopParams(extra_yaw_seeds=extra, seed_both_signs=False, min_separation_distance=5.0))
+    stage = IcpLoopClosing(
+        IcpLoopParams(extra_yaw_seeds=extra, seed_both_signs=False, min_separation_distance=5.0, min_support=0)
+    )
     for f in frames[:-1]:
         stage.process(frame=f, assignments=None, estimate=None)
     loops = stage.process(frame=frames[-1], assignments=GroupAssignments((assignment,)), estimate=None).items
@@ -197,3 +211,91 @@ def test_ambiguous_matches_never_give_loop_factors() -> None:
     found += stage.process(frame=frames[-1], assignments=GroupAssignments((ambiguous,)), estimate=None).items
     assert found == []
     assert stage.counts["ambiguous"] == 1 and stage.counts["icp"] == 0
+
+
+def _two_passes(n: int) -> list[Frame]:
+    """Frames 1 m apart along x from 0 to n - 1, then the same line driven again (a second pass)."""
+    poses = [pose_from_xy_yaw(float(k % n), 0.0, 0.0) for k in range(2 * n)]
+    return [Frame(k, 0.5 * k, np.zeros((2, 2), np.uint8), p, CALIBRATION, ground_truth=p) for k, p in enumerate(poses)]
+
+
+def _tied_arrows(n: int = 40, neighbour: bool = True):  # type: ignore[no-untyped-def]
+    """Two passes over identical arrows at x = 10 (B) and x = 30 (A), with an L at x = 22 when ``neighbour``.
+
+    On the second pass the view of A is assigned to B's group (the nearest of two look-alikes that
+    eq. 10 cannot tell apart), with A's group as the alternative. Returns the frames and the
+    assignments per frame, and the first-pass views of A and B.
+    """
+    frames = _two_passes(n)
+    arrow_a, arrow_b = Marking(1, "arrow", (30.0, 0.5, 0.3)), Marking(2, "arrow", (10.0, 0.5, 0.3))
+    ell = Marking(3, "ell", (22.0, -1.0, 0.0))
+    views = {8: arrow_b, 28: arrow_a, **({20: ell} if neighbour else {})}
+    seen = {k: _view(frames[k], m) for k, m in views.items()}
+    by_frame: dict[int, GroupAssignments] = {}
+    for k, m in views.items():
+        by_frame[k] = GroupAssignments((GroupAssignment(seen[k], m.instance_id, True, 1.0, 0, 0.0, None, False),))  # type: ignore[arg-type]
+        if k != 28:  # second-pass views of B and the L open groups of their own here (no loop): neighbours only
+            again = _view(frames[n + k], m)
+            by_frame[n + k] = GroupAssignments(
+                (GroupAssignment(again, 10 + m.instance_id, True, 1.0, 0, 0.0, None, False),)
+            )  # type: ignore[arg-type]
+    query = _view(frames[n + 28], arrow_a)
+    tied = GroupAssignment(
+        query,  # type: ignore[arg-type]
+        2,
+        False,
+        0.01,
+        0,
+        0.0,
+        seen[8],  # type: ignore[arg-type]
+        False,
+        ambiguous=True,
+        alternatives=(LookAlike(1, seen[28], 0, 0.0),),  # type: ignore[arg-type]
+    )
+    by_frame[n + 28] = GroupAssignments((tied,))
+    return frames, by_frame, seen
+
+
+def _run_loop(stage: IcpLoopClosing, frames: list[Frame], by_frame: dict[int, GroupAssignments]) -> list:  # type: ignore[type-arg]
+    return [c for f in frames for c in stage.process(frame=f, assignments=by_frame.get(f.index), estimate=None).items]
+
+
+def test_a_tie_between_look_alikes_is_resolved_by_the_neighbouring_markings() -> None:
+    frames, by_frame, seen = _tied_arrows()
+    # the gate is off: with the odometry exact, it alone would also refuse B; the consensus is under test here
+    stage = IcpLoopClosing(IcpLoopParams(gate=False))
+    loops = _run_loop(stage, frames, by_frame)
+    # the L seen 8 m before the query lands on its first-pass view only if the query is A: A wins
+    assert len(loops) == 1 and stage.ties_resolved == 1
+    (c,) = loops
+    assert (c.frame_from, c.frame_to, c.group_id) == (28, 68, 1) and c.instance_ids == (1, 1)
+    assert np.allclose(xy_yaw(c.relative), (0.0, 0.0, 0.0), atol=0.02)
+    # under the wrong hypothesis (B) the L would sit 20 m from anything seen: no support; under A, the L (and B) agree
+    a_option = replace(by_frame[68].items[0], group_id=1, matched=seen[28], alternatives=())
+    assert stage._support(a_option, c) == 2
+    # tie_support = 0: ties never give loop factors, as before
+    strict = IcpLoopClosing(IcpLoopParams(gate=False, tie_support=0))
+    assert _run_loop(strict, frames, by_frame) == [] and strict.counts["ambiguous"] == 1
+
+
+def test_a_tie_without_neighbours_stays_ambiguous() -> None:
+    frames, by_frame, _ = _tied_arrows(neighbour=False)
+    stage = IcpLoopClosing(IcpLoopParams(gate=False, consensus_window=15.0))
+    # within 15 m before the query nothing else was seen (B is 20 m back): both options have no support
+    assert _run_loop(stage, frames, by_frame) == []
+    assert stage.counts["ambiguous"] == 1 and stage.ties_resolved == 0
+
+
+def test_min_support_refuses_a_lone_match_that_no_neighbour_confirms() -> None:
+    frames, by_frame, seen = _tied_arrows()
+    wrong = replace(by_frame[68].items[0], ambiguous=False, alternatives=())  # A's view matched to B, unambiguous
+    by_frame[68] = GroupAssignments((wrong,))
+    plain = IcpLoopClosing(IcpLoopParams(gate=False, min_support=0))
+    (false_loop,) = _run_loop(plain, frames, by_frame)
+    assert false_loop.instance_ids == (2, 1)  # without the consensus: a false loop
+    confirmed = IcpLoopClosing(IcpLoopParams(gate=False, min_support=1))
+    assert _run_loop(confirmed, frames, by_frame) == [] and confirmed.counts["consensus"] == 1
+    right = replace(wrong, group_id=1, matched=seen[28])
+    by_frame[68] = GroupAssignments((right,))
+    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False, min_support=1)), frames, by_frame)
+    assert loop.instance_ids == (1, 1)

@@ -365,10 +365,29 @@ def test_look_alike_groups_inside_the_gate_tie_and_the_match_is_ambiguous():
     # after 430 m the gate (1.5 + 0.05 d + 0.0002 d^2 = 60 m) holds both arrows: eq. 10 cannot tell them apart
     r1, r4 = _two_arrows_then_back()
     assert not r4.new_group and r4.group_id == r1.group_id  # the nearest on the map wins the tie...
-    assert r4.ambiguous  # ...but gives no loop factor
+    assert r4.ambiguous and not r4.aliased  # ...but eq. 10 cannot vouch for it
+    # the other arrow's group is handed on as the alternative, with its member and the relative yaw (a reverse view)
+    (alt,) = r4.alternatives
+    assert alt.group_id != r1.group_id and alt.matched.sgf.instance_id == 9
+    assert abs(abs(alt.yaw) - math.pi) < math.radians(8.0) and abs(abs(r4.yaw) - math.pi) < math.radians(8.0)
     # a tighter gate (1.5 + 0.02 d = 10.1 m) holds only the first arrow (the second is 17 m away): unambiguous
     r1, r4 = _two_arrows_then_back(drift_rate=0.02, drift_quadratic=0.0)
-    assert not r4.new_group and r4.group_id == r1.group_id and not r4.ambiguous
+    assert not r4.new_group and r4.group_id == r1.group_id and not r4.ambiguous and r4.alternatives == ()
+
+
+def test_a_tie_with_an_aliased_group_has_no_alternatives():
+    """When a tied look-alike is a repeated pattern, no neighbour test can resolve the tie: nothing is handed on."""
+    s = stage()
+    p1 = seen_from(ARROW, 3.0, 0.0)
+    feed(s, 1, p1, desc(ARROW, p1, 1))
+    far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
+    p2 = seen_from(far, 3.0, 0.0)
+    feed(s, 2, p2, desc(far, p2, 2))
+    s.groups[1].aliased = True  # the second arrow's group: copies of a painted row
+    feed(s, 3, pose_from_xy_yaw(220.0, 0.0, 0.0))
+    p4 = seen_from(ARROW, 3.0, math.pi)
+    (r4,) = feed(s, 4, p4, desc(ARROW, p4, 4))
+    assert not r4.new_group and r4.ambiguous and r4.alternatives == ()
 
 
 def test_different_markings_side_by_side_are_not_copies_of_a_pattern():

@@ -22,6 +22,15 @@ optimisation only at the end, a loop down-weighted by the robust kernel) anchors
 the gate stays as loose as the dead-reckoned drift. This makes a look-alike marking elsewhere
 fail the test once the estimate is better than the distance between the look-alikes.
 
+Look-alike markings (the campus repeats standard ones) defeat eq. 10 and, while the drift is
+larger than their spacing, the gate too. The association then reports the match as ambiguous with
+the tied groups as ``alternatives``; each option is put through ICP and the gate, and then
+through the neighbour consensus (:meth:`IcpLoopClosing._support`): the SGFs seen in the last
+``consensus_window`` metres, carried by the locally accurate odometry and the option's ICP pose
+into the earlier pass, must land on look-alike SGFs of that pass. The one option with at least
+``tie_support`` agreeing markings wins; none or several, and the match gives no factor.
+``min_support`` asks the same of every loop. Aliased groups (a repeated pattern) stay refused.
+
 On a prior SGF map (``matched`` is a :class:`~sgf_pipeline.sgf_map.MapDescriptor`), a match is
 an inter-session constraint (``from_map``). Before the run is anchored in the map frame there is
 no prediction: the first ``map_anchor_matches`` matches of different map groups must agree with
@@ -54,6 +63,7 @@ from sgf_pipeline.types import (
     SequenceTruth,
 )
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2_params
+from sgf_plugins.sgf.polar import shifted_distances
 
 _MAP = -1  # the prior map as one node of the anchoring graph
 
@@ -105,6 +115,28 @@ class IcpLoopParams(StageParams):
     gate_yaw_bias_deg_per_m: float = Field(
         0.07, ge=0.0, description="odometry heading bias (deg per m): heading error grows with d, position with d^2"
     )
+    consensus_window: float = Field(
+        60.0, gt=0.0, description="m of travel: SGFs seen this far around each sighting are its neighbours"
+    )
+    consensus_radius: float = Field(
+        0.75, gt=0.0, description="a neighbour agrees when the match puts it this close (m) to an earlier SGF..."
+    )
+    consensus_drift: float = Field(
+        0.02, ge=0.0, description="...plus this much per metre travelled from either sighting (local odometry drift)"
+    )
+    consensus_exclude: float = Field(
+        2.0, ge=0.0, description="neighbours this close (m) to the matched SGF are the same marking, not evidence"
+    )
+    consensus_distance: float = Field(
+        0.15, gt=0.0, le=1.0, description="...and look like it: eq. 10 distance at most this"
+    )
+    tie_support: int = Field(
+        1,
+        ge=0,
+        description="look-alike groups tied by eq. 10: the one match with at least this many agreeing neighbours "
+        "wins (0 = tied matches never give loop factors)",
+    )
+    min_support: int = Field(1, ge=0, description="agreeing neighbours every loop needs (0 = ICP and the gate only)")
     map_anchor_matches: int = Field(
         2, ge=1, description="consistent map matches (different groups) needed before a run is placed in the map"
     )
@@ -192,8 +224,13 @@ class IcpLoopClosing(Stage):
             "too_few_points": 0,
             "icp": 0,
             "gate": 0,
+            "consensus": 0,
             "map_unconfirmed": 0,
         }
+        self.ties_resolved = 0
+        self._sgf_xy: list[np.ndarray] = []
+        self._sgf_distance: list[float] = []
+        self._sgf_matrix: list[np.ndarray] = []
         self._last: int | None = None
 
     # -- per frame --------------------------------------------------------------------------
@@ -208,6 +245,8 @@ class IcpLoopClosing(Stage):
         out: list[LoopConstraint] = []
         for a in assignments.items:
             self.assignments.append(replace(a, descriptor=a.descriptor.without_pixels()))  # for the map: no pixels
+            if a.descriptor.sgf.frame_index in self.distance:
+                self._remember(a)
             out.extend(self._close(a, estimate))
         return LoopConstraints(tuple(out))
 
@@ -231,17 +270,55 @@ class IcpLoopClosing(Stage):
             )
 
     def _close(self, a: GroupAssignment, estimate: PoseEstimate | None) -> list[LoopConstraint]:
-        """ICP, acceptance tests and gate for one assignment; the constraints to emit now."""
-        matched, query = a.matched, a.descriptor
-        if a.new_group or matched is None:
+        """ICP, acceptance tests, gate and neighbour consensus for one assignment; the constraints to emit now."""
+        if a.new_group or a.matched is None:
             return []
         self.counts["candidates"] += 1
         if a.symmetric:
             self.counts["symmetric"] += 1
             return []
         if a.ambiguous:
+            return self._resolve_tie(a, estimate)
+        candidate = self._evaluate(a, estimate)
+        if isinstance(candidate, str):
+            self.counts[candidate] += 1
+            return []
+        unmapped = candidate.map_pose is None
+        if self.p.min_support > 0 and unmapped and self._support(a, candidate.constraint) < self.p.min_support:
+            self.counts["consensus"] += 1
+            return []
+        return self._accept(candidate, estimate)
+
+    def _resolve_tie(self, a: GroupAssignment, estimate: PoseEstimate | None) -> list[LoopConstraint]:
+        """A match among look-alike groups: the one option whose neighbouring SGFs agree, else nothing."""
+        options = [a] + [
+            replace(a, group_id=alt.group_id, matched=alt.matched, shift=alt.shift, yaw=alt.yaw, alternatives=())
+            for alt in a.alternatives
+        ]
+        if (
+            a.aliased
+            or not a.alternatives
+            or self.p.tie_support == 0
+            or any(isinstance(o.matched, MapDescriptor) for o in options)
+        ):
             self.counts["ambiguous"] += 1
             return []
+        need = max(self.p.tie_support, self.p.min_support)
+        supported = []
+        for option in options:
+            candidate = self._evaluate(option, estimate)
+            if not isinstance(candidate, str) and self._support(option, candidate.constraint) >= need:
+                supported.append(candidate)
+        if len(supported) != 1:
+            self.counts["ambiguous"] += 1
+            return []
+        self.ties_resolved += 1
+        return self._accept(supported[0], estimate)
+
+    def _evaluate(self, a: GroupAssignment, estimate: PoseEstimate | None) -> _Candidate | str:
+        """Separation, ICP and the gate for one match: the candidate, or the name of the test it failed."""
+        matched, query = a.matched, a.descriptor
+        assert matched is not None
         j = query.sgf.frame_index
         self._known(j)
         from_map = isinstance(matched, MapDescriptor)
@@ -255,15 +332,12 @@ class IcpLoopClosing(Stage):
                 or self.time[j] - self.time[i] < p.min_separation_time
                 or self.distance[j] - self.distance[i] < p.min_separation_distance
             ):
-                self.counts["separation"] += 1
-                return []
+                return "separation"
         if min(len(query.points), len(matched.points)) < self.p.min_points:
-            self.counts["too_few_points"] += 1
-            return []
+            return "too_few_points"
         results = self._align(a)
         if not results:
-            self.counts["icp"] += 1
-            return []
+            return "icp"
         map_pose = np.asarray(matched.map_pose, dtype=np.float64) if isinstance(matched, MapDescriptor) else None
         map_truth = matched.ground_truth if isinstance(matched, MapDescriptor) else None
         anchored = from_map and self._map_anchored(estimate)
@@ -282,12 +356,74 @@ class IcpLoopClosing(Stage):
             c = candidate.constraint
             cov = c.covariance + drift_covariance(predicted[1], self.p)
             if mahalanobis2(pose_error(predicted[0], c.relative), cov) > self.threshold:
-                self.counts["gate"] += 1
-                return []
-        if from_map and not anchored:
+                return "gate"
+        return candidate
+
+    def _accept(self, candidate: _Candidate, estimate: PoseEstimate | None) -> list[LoopConstraint]:
+        """Emit a candidate that passed every test (map matches wait for the run's anchoring in the map)."""
+        if candidate.map_pose is not None and not self._map_anchored(estimate):
             return self._confirm_map(candidate, estimate)
         self.accepted.append(candidate)
         return [candidate.constraint]
+
+    # -- neighbour consensus ----------------------------------------------------------------
+
+    def _remember(self, a: GroupAssignment) -> None:
+        """Keep an SGF's odometry-frame position, path distance and descriptor for the consensus test."""
+        d = a.descriptor
+        odometry = np.asarray(d.sgf.odometry, dtype=np.float64)
+        c = np.asarray(d.centroid, dtype=np.float64)[:2]
+        self._sgf_xy.append(odometry[:2, :2] @ c + odometry[:2, 3])
+        self._sgf_distance.append(self.distance[d.sgf.frame_index])
+        self._sgf_matrix.append(np.asarray(d.matrix))
+
+    def _support(self, a: GroupAssignment, c: LoopConstraint) -> int:
+        """How many other markings near the query agree with the match: seen where it puts them, and alike.
+
+        The match says the query's frame sits at ``c.relative`` in the matched frame; odometry is
+        accurate over tens of metres, so it carries the SGFs seen within ``consensus_window`` before
+        the query into the earlier pass's odometry frame. A neighbour agrees when an SGF of the
+        earlier pass (within the window around the matched SGF, and at least
+        ``min_separation_distance`` of path before the neighbour) lies within ``consensus_radius +
+        consensus_drift * (path from the two sightings)`` of it with an eq. 10 distance of at most
+        ``consensus_distance``. Agreeing neighbours closer than ``consensus_exclude`` to each other,
+        or to the query, are one marking; the count is of markings. A look-alike marking elsewhere
+        on campus has other neighbours, so its match finds none.
+        """
+        p = self.p
+        assert a.matched is not None
+        query, matched = a.descriptor, a.matched
+        odo_j = np.asarray(query.sgf.odometry, dtype=np.float64)
+        odo_i = np.asarray(matched.sgf.odometry, dtype=np.float64)
+        x, y, yaw = xy_yaw(odo_i @ c.relative @ invert(odo_j))
+        rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+        xy = np.asarray(self._sgf_xy)
+        dist = np.asarray(self._sgf_distance)
+        d_j, d_i = self.distance[query.sgf.frame_index], self.distance[matched.sgf.frame_index]
+        q_xy = odo_j[:2, :2] @ np.asarray(query.centroid, dtype=np.float64)[:2] + odo_j[:2, 3]
+        m_xy = odo_i[:2, :2] @ np.asarray(matched.centroid, dtype=np.float64)[:2] + odo_i[:2, 3]
+        near_query = (dist >= d_j - p.consensus_window) & (dist <= d_j)
+        near_query &= np.hypot(*(xy - q_xy).T) > p.consensus_exclude
+        near_match = (np.abs(dist - d_i) <= p.consensus_window) & (np.hypot(*(xy - m_xy).T) > p.consensus_exclude)
+        earlier = np.flatnonzero(near_match)
+        if not len(earlier):
+            return 0
+        agreeing: list[np.ndarray] = []
+        for k in np.flatnonzero(near_query):
+            here = rot @ xy[k] + (x, y)
+            tolerance = p.consensus_radius + p.consensus_drift * (d_j - dist[k] + np.abs(dist[earlier] - d_i))
+            close = earlier[
+                (np.hypot(*(xy[earlier] - here).T) <= tolerance)
+                & (dist[earlier] <= dist[k] - p.min_separation_distance)
+            ]
+            if not len(close):
+                continue
+            stack = np.stack([self._sgf_matrix[m] for m in close])
+            if shifted_distances(self._sgf_matrix[k], stack).min() > p.consensus_distance:
+                continue
+            if all(np.hypot(*(xy[k] - g)) > p.consensus_exclude for g in agreeing):
+                agreeing.append(xy[k])
+        return len(agreeing)
 
     # -- ICP --------------------------------------------------------------------------------
 
@@ -463,6 +599,7 @@ class IcpLoopClosing(Stage):
             "false_closed": sum(not t for t in known) if known else None,
             "rejected": {k: v for k, v in self.counts.items() if k != "candidates"},
             "candidates": self.counts["candidates"],
+            "ties_resolved": self.ties_resolved,
         }
         truth = context.truth if context.truth is not None else self.truth
         if not self.accepted and (truth is not None or self.ground_truth):

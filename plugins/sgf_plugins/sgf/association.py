@@ -18,6 +18,7 @@ from sgf_pipeline.types import (
     Frame,
     GroupAssignment,
     GroupAssignments,
+    LookAlike,
     PoseEstimate,
     SequenceTruth,
     SgfDescriptor,
@@ -413,7 +414,8 @@ class OnlineSgfGroups(Stage):
         n_s = query.matrix.shape[1]
         candidates = self.gated(query, estimate)
         best: tuple[SgfGroup, float] | None = None
-        tied_nearby = copy_nearby = False
+        tied: list[SgfGroup] = []
+        copy_nearby = False
         if candidates:
             stack = np.stack([c.group.descriptor for c in candidates])
             if stack.shape[1:] != query.matrix.shape:
@@ -433,9 +435,10 @@ class OnlineSgfGroups(Stage):
                 ties = np.flatnonzero(~copy & (per_group <= best_kept + p.tie_margin))
                 i = int(min(ties, key=lambda t: candidates[t].nearest))
                 best = (candidates[i].group, float(per_group[i]))
-                # Look-alike groups inside the gate (identical standard markings) cannot be told apart:
-                # the query joins the nearest, but the match is ambiguous and gives no loop factor.
-                tied_nearby = len(ties) > 1
+                # Look-alike groups inside the gate (identical standard markings) cannot be told apart
+                # by eq. 10: the query joins the nearest, the match is ambiguous, and the others are
+                # handed on as alternatives (a loop stage may tell them apart by their neighbours).
+                tied = [candidates[t].group for t in ties if t != i]
         if best is None or best[1] > p.new_group_distance:
             group = SgfGroup(self._next_id, aliased=copy_nearby)
             self._next_id += 1
@@ -446,15 +449,13 @@ class OnlineSgfGroups(Stage):
             self._groups.append(group)
             distance = 1.0 if best is None else best[1]
             return GroupAssignment(
-                query, group.group_id, True, distance, 0, 0.0, None, group.symmetric, ambiguous=group.aliased
+                query, group.group_id, True, distance, 0, 0.0, None, group.symmetric, group.aliased, group.aliased
             )
         group, best_distance = best
         group.aliased = group.aliased or copy_nearby
-        profiles = shifted_distances(query.matrix, group.matrices, p.columns)
-        m = int(np.argmin(profiles.min(axis=1)))
-        matched = group.members[m]
-        prior = None if group.anchors[m] is not None else self._prior_shift(query, matched, estimate)
-        shift = best_shift(profiles[m], prior, p.yaw_tolerance)
+        m, matched, shift = self._closest_member(query, group, estimate)
+        # An aliased look-alike (a repeated pattern) could be the true one: then nothing resolves the tie.
+        alternatives = () if any(g.aliased for g in tied) else tuple(self._look_alike(query, g, estimate) for g in tied)
         group.add(query, shift + group.offsets[m])
         self._index.add(self._slot[group.group_id], query, self._travelled.get(query.sgf.frame_index), None)
         group.refresh(p.columns, p.symmetry_threshold)
@@ -467,8 +468,26 @@ class OnlineSgfGroups(Stage):
             yaw=shift_to_yaw(shift, n_s),
             matched=matched,
             symmetric=group.symmetric,
-            ambiguous=group.aliased or tied_nearby,
+            ambiguous=group.aliased or bool(tied),
+            aliased=group.aliased,
+            alternatives=alternatives,
         )
+
+    def _closest_member(
+        self, query: SgfDescriptor, group: SgfGroup, estimate: PoseEstimate | None
+    ) -> tuple[int, SgfDescriptor, int]:
+        """The group member closest to the query by eq. 10, its index, and the query's column shift from it."""
+        p = self.params
+        profiles = shifted_distances(query.matrix, group.matrices, p.columns)
+        m = int(np.argmin(profiles.min(axis=1)))
+        matched = group.members[m]
+        prior = None if group.anchors[m] is not None else self._prior_shift(query, matched, estimate)
+        return m, matched, best_shift(profiles[m], prior, p.yaw_tolerance)
+
+    def _look_alike(self, query: SgfDescriptor, group: SgfGroup, estimate: PoseEstimate | None) -> LookAlike:
+        """A tied group's closest member, as an alternative match of the query."""
+        _, matched, shift = self._closest_member(query, group, estimate)
+        return LookAlike(group.group_id, matched, shift, shift_to_yaw(shift, query.matrix.shape[1]))
 
     def process(self, frame: Frame, descriptors: SgfDescriptors, estimate: Previous[PoseEstimate]) -> GroupAssignments:
         """Group this frame's SGF descriptors."""
