@@ -389,8 +389,8 @@ class IcpLoopClosing(Stage):
         ``min_separation_distance`` of path before the neighbour) lies within ``consensus_radius +
         consensus_drift * (path from the two sightings)`` of it with an eq. 10 distance of at most
         ``consensus_distance``. Agreeing neighbours closer than ``consensus_exclude`` to each other,
-        or to the query, are one marking; the count is of markings. SGFs of symmetric groups
-        (manholes, drain grates: everywhere, and without a heading) are no evidence on either side. A look-alike
+        or to the query, are one marking; the count is of markings. Alike includes the symmetry
+        flag: an SGF of a symmetric group (a manhole) only agrees with another such SGF. A look-alike
         marking elsewhere on campus has other neighbours, so its match finds none.
         """
         p = self.p
@@ -406,9 +406,9 @@ class IcpLoopClosing(Stage):
         q_xy = odo_j[:2, :2] @ np.asarray(query.centroid, dtype=np.float64)[:2] + odo_j[:2, 3]
         m_xy = odo_i[:2, :2] @ np.asarray(matched.centroid, dtype=np.float64)[:2] + odo_i[:2, 3]
         near_query = (dist >= d_j - p.consensus_window) & (dist <= d_j)
-        near_query &= (np.hypot(*(xy - q_xy).T) > p.consensus_exclude) & ~np.asarray(self._sgf_symmetric, dtype=bool)
+        near_query &= np.hypot(*(xy - q_xy).T) > p.consensus_exclude
         near_match = (np.abs(dist - d_i) <= p.consensus_window) & (np.hypot(*(xy - m_xy).T) > p.consensus_exclude)
-        near_match &= ~np.asarray(self._sgf_symmetric, dtype=bool)
+        symmetric = np.asarray(self._sgf_symmetric, dtype=bool)
         earlier = np.flatnonzero(near_match)
         if not len(earlier):
             return 0
@@ -419,6 +419,7 @@ class IcpLoopClosing(Stage):
             close = earlier[
                 (np.hypot(*(xy[earlier] - here).T) <= tolerance)
                 & (dist[earlier] <= dist[k] - p.min_separation_distance)
+                & (symmetric[earlier] == symmetric[k])
             ]
             if not len(close):
                 continue
