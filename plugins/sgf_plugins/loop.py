@@ -128,7 +128,7 @@ class IcpLoopParams(StageParams):
         2.0, ge=0.0, description="neighbours this close (m) to the matched SGF are the same marking, not evidence"
     )
     consensus_distance: float = Field(
-        0.1, gt=0.0, le=1.0, description="...and look like it: eq. 10 distance at most this"
+        0.15, gt=0.0, le=1.0, description="...and look like it: eq. 10 distance at most this"
     )
     tie_support: int = Field(
         1,
@@ -231,7 +231,6 @@ class IcpLoopClosing(Stage):
         self._sgf_xy: list[np.ndarray] = []
         self._sgf_distance: list[float] = []
         self._sgf_matrix: list[np.ndarray] = []
-        self._sgf_symmetric: list[bool] = []
         self._last: int | None = None
 
     # -- per frame --------------------------------------------------------------------------
@@ -377,7 +376,6 @@ class IcpLoopClosing(Stage):
         self._sgf_xy.append(odometry[:2, :2] @ c + odometry[:2, 3])
         self._sgf_distance.append(self.distance[d.sgf.frame_index])
         self._sgf_matrix.append(np.asarray(d.matrix))
-        self._sgf_symmetric.append(a.symmetric)
 
     def _support(self, a: GroupAssignment, c: LoopConstraint) -> int:
         """How many other markings near the query agree with the match: seen where it puts them, and alike.
@@ -389,9 +387,8 @@ class IcpLoopClosing(Stage):
         ``min_separation_distance`` of path before the neighbour) lies within ``consensus_radius +
         consensus_drift * (path from the two sightings)`` of it with an eq. 10 distance of at most
         ``consensus_distance``. Agreeing neighbours closer than ``consensus_exclude`` to each other,
-        or to the query, are one marking; the count is of markings. Alike includes the symmetry
-        flag: an SGF of a symmetric group (a manhole) only agrees with another such SGF. A look-alike
-        marking elsewhere on campus has other neighbours, so its match finds none.
+        or to the query, are one marking; the count is of markings. A look-alike marking elsewhere
+        on campus has other neighbours, so its match finds none.
         """
         p = self.p
         assert a.matched is not None
@@ -408,7 +405,6 @@ class IcpLoopClosing(Stage):
         near_query = (dist >= d_j - p.consensus_window) & (dist <= d_j)
         near_query &= np.hypot(*(xy - q_xy).T) > p.consensus_exclude
         near_match = (np.abs(dist - d_i) <= p.consensus_window) & (np.hypot(*(xy - m_xy).T) > p.consensus_exclude)
-        symmetric = np.asarray(self._sgf_symmetric, dtype=bool)
         earlier = np.flatnonzero(near_match)
         if not len(earlier):
             return 0
@@ -419,7 +415,6 @@ class IcpLoopClosing(Stage):
             close = earlier[
                 (np.hypot(*(xy[earlier] - here).T) <= tolerance)
                 & (dist[earlier] <= dist[k] - p.min_separation_distance)
-                & (symmetric[earlier] == symmetric[k])
             ]
             if not len(close):
                 continue
