@@ -61,6 +61,7 @@ from sgf_pipeline.types import (
     PoseEstimate,
     RevisitPair,
     SequenceTruth,
+    SgfDescriptor,
 )
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2_params
 from sgf_plugins.sgf.polar import shifted_distances
@@ -153,6 +154,7 @@ class _Candidate:
     map_pose: np.ndarray | None
     map_truth: np.ndarray | None
     group_id: int
+    anchored: bool = False  # a map match made once the run was placed in the map
 
 
 def drift_covariance(distance: float, p: IcpLoopParams) -> np.ndarray:
@@ -351,7 +353,7 @@ class IcpLoopClosing(Stage):
             assert map_pose is not None
             predicted = (invert(map_pose) @ self._pose(j, estimate), self._anchored_distance(_MAP, j, estimate))
         best = self._select(results, predicted)
-        candidate = _Candidate(self._constraint(a, best, from_map), map_pose, map_truth, a.group_id)
+        candidate = _Candidate(self._constraint(a, best, from_map), map_pose, map_truth, a.group_id, anchored)
         if predicted is not None and self.p.gate:
             c = candidate.constraint
             cov = c.covariance + drift_covariance(predicted[1], self.p)
@@ -361,7 +363,7 @@ class IcpLoopClosing(Stage):
 
     def _accept(self, candidate: _Candidate, estimate: PoseEstimate | None) -> list[LoopConstraint]:
         """Emit a candidate that passed every test (map matches wait for the run's anchoring in the map)."""
-        if candidate.map_pose is not None and not self._map_anchored(estimate):
+        if candidate.map_pose is not None and not candidate.anchored:
             return self._confirm_map(candidate, estimate)
         self.accepted.append(candidate)
         return [candidate.constraint]
@@ -371,9 +373,7 @@ class IcpLoopClosing(Stage):
     def _remember(self, a: GroupAssignment) -> None:
         """Keep an SGF's odometry-frame position, path distance and descriptor for the consensus test."""
         d = a.descriptor
-        odometry = np.asarray(d.sgf.odometry, dtype=np.float64)
-        c = np.asarray(d.centroid, dtype=np.float64)[:2]
-        self._sgf_xy.append(odometry[:2, :2] @ c + odometry[:2, 3])
+        self._sgf_xy.append(_odometry_xy(d))
         self._sgf_distance.append(self.distance[d.sgf.frame_index])
         self._sgf_matrix.append(np.asarray(d.matrix))
 
@@ -400,8 +400,7 @@ class IcpLoopClosing(Stage):
         xy = np.asarray(self._sgf_xy)
         dist = np.asarray(self._sgf_distance)
         d_j, d_i = self.distance[query.sgf.frame_index], self.distance[matched.sgf.frame_index]
-        q_xy = odo_j[:2, :2] @ np.asarray(query.centroid, dtype=np.float64)[:2] + odo_j[:2, 3]
-        m_xy = odo_i[:2, :2] @ np.asarray(matched.centroid, dtype=np.float64)[:2] + odo_i[:2, 3]
+        q_xy, m_xy = _odometry_xy(query), _odometry_xy(matched)
         near_query = (dist >= d_j - p.consensus_window) & (dist <= d_j)
         near_query &= np.hypot(*(xy - q_xy).T) > p.consensus_exclude
         near_match = (np.abs(dist - d_i) <= p.consensus_window) & (np.hypot(*(xy - m_xy).T) > p.consensus_exclude)
@@ -639,6 +638,12 @@ class IcpLoopClosing(Stage):
             ):
                 return True
         return False
+
+
+def _odometry_xy(descriptor: SgfDescriptor) -> np.ndarray:
+    """An SGF's centroid (x, y) in the odometry frame of the run that saw it."""
+    odometry = np.asarray(descriptor.sgf.odometry, dtype=np.float64)
+    return odometry[:2, :2] @ np.asarray(descriptor.centroid, dtype=np.float64)[:2] + odometry[:2, 3]
 
 
 def _pose4(r: IcpResult) -> np.ndarray:

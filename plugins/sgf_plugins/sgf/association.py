@@ -449,7 +449,16 @@ class OnlineSgfGroups(Stage):
             self._groups.append(group)
             distance = 1.0 if best is None else best[1]
             return GroupAssignment(
-                query, group.group_id, True, distance, 0, 0.0, None, group.symmetric, group.aliased, group.aliased
+                query,
+                group.group_id,
+                True,
+                distance,
+                0,
+                0.0,
+                None,
+                group.symmetric,
+                ambiguous=group.aliased,
+                aliased=group.aliased,
             )
         group, best_distance = best
         group.aliased = group.aliased or copy_nearby
