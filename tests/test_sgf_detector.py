@@ -198,8 +198,8 @@ def test_closing_joins_fragments_of_one_marking():
     prob[100:140, 100:118] = 1.0
     prob[100:140, 121:140] = 1.0  # the same marking, cut by a 3-pixel crack in the saliency
     bev = Bev(np.zeros((256, 256), np.uint8), valid, grid, 0, 0.0)
-    assert len(HuMomentDetector(HuWindowParams()).regions(bev, SaliencyMap(prob, bev))[1]) == 2
-    closed = HuMomentDetector(HuWindowParams(closing=2)).regions(bev, SaliencyMap(prob, bev))[1]
+    assert len(HuMomentDetector(HuWindowParams(merge_distance=0.0)).regions(bev, SaliencyMap(prob, bev))[1]) == 2
+    closed = HuMomentDetector(HuWindowParams(closing=2, merge_distance=0.0)).regions(bev, SaliencyMap(prob, bev))[1]
     assert len(closed) == 1 and 40 * 37 + 100 < len(closed[0].pixels) <= 40 * 40
 
 
@@ -210,7 +210,7 @@ def test_merge_distance_joins_the_glyphs_of_one_sign_into_one_sgf():
     prob[100:140, 122:137] = 1.0  # a second glyph 7 px = 0.14 m to the side
     prob[200:240, 100:115] = 1.0  # another marking 60 px = 1.2 m nearer
     bev = Bev(np.zeros((256, 256), np.uint8), valid, grid, 0, 0.0)
-    apart = HuMomentDetector(HuWindowParams()).regions(bev, SaliencyMap(prob, bev))[1]
+    apart = HuMomentDetector(HuWindowParams(merge_distance=0.0)).regions(bev, SaliencyMap(prob, bev))[1]
     assert sorted(len(r.pixels) for r in apart) == [600, 600, 600]
     merged = HuMomentDetector(HuWindowParams(merge_distance=0.2)).regions(bev, SaliencyMap(prob, bev))[1]
     # the two glyphs form one region of their own pixels only (the gap stays out); the far marking stays apart

@@ -111,9 +111,10 @@ class HuWindowParams(StageParams):
         0, ge=0, description="radius (px) of a morphological closing of the mask that joins fragments; 0 = none"
     )
     merge_distance: float = Field(
-        0.0,
+        0.3,
         ge=0.0,
-        description="regions closer than this (m) form one SGF: the glyphs of a sign, the triangles of a give-way row",
+        description="regions closer than this (m) form one SGF: the glyphs of a sign, the triangles of a give-way row "
+        "(0 = every region its own SGF)",
     )
     hu_scale: Literal["raw", "log"] = Field(
         "raw",
