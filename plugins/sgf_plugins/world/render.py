@@ -231,7 +231,10 @@ class Renderer:
         # 1. level of detail per sample; the tiles each level needs are loaded into its mosaic
         watch.lap("ray cast")
         weights = self._levels(pose, pts, hit, t, conditions.far_field)
-        hit &= weights.sum(axis=0) > 0.0
+        weight_sum = weights.sum(axis=0)
+        hit &= weight_sum > 0.0
+        # ground samples whose weights do not sum to one (a level's window ran out)
+        short = bool((weight_sum[hit] < 0.999).any())
         watch.lap("levels and tiles")
         # 2. light and haze per sample
         night = conditions.night
@@ -257,7 +260,6 @@ class Renderer:
         hx, hy, inv_f = self._upsample_planes([mx * inv, my * inv, inv])
         maps = cv2.merge([cv2.divide(hx, inv_f), cv2.divide(hy, inv_f)])
         s1_f, s2_f, depth_f = self._upsample_planes([s1 * self.vignette, s2 * self.vignette, depth])
-        depth_f = np.ascontiguousarray(depth_f)
         if bumpy.any():
             self._refine_bumps(maps, inv_f, depth_f, bumpy, cam, shift)
         # rows below ``top`` see only near ground (level 0, inside its window): the fast path
@@ -281,7 +283,7 @@ class Renderer:
             cv2.remap(m0.ids, maps[top:], None, cv2.INTER_NEAREST, dst=ids[top:], borderMode=cv2.BORDER_REPLICATE)  # type: ignore[call-overload]
         watch.lap("near ground lookup")
         if top > 0:
-            self._blend_levels(rgba, ids, maps, weights_f, ground, top, shift)
+            self._blend_levels(rgba, ids, maps, weights_f, ground, top, shift, short)
         watch.lap("far ground lookup")
         # 3. shadows of people and vehicles, light, haze, sky
         self.scenery.set_frame(conditions.time, cam)
@@ -413,15 +415,21 @@ class Renderer:
         ground_all: np.ndarray,
         top: int,
         shift: tuple[int, int],
+        renormalise: bool,
     ) -> None:
-        """Rows above ``top``: blend the levels of detail by weight; ids from the heaviest level."""
+        """Rows above ``top``: blend the levels of detail by weight; ids from the heaviest level.
+
+        The colour of pixels off the ground does not matter (the sky covers them), so only the
+        ids and the renormalisation look at ``ground_all``; ``renormalise`` says whether any
+        sample lost weight to a window running out (else the weights of ground pixels sum to one).
+        """
         lv0 = LEVELS[0]
         ground = ground_all[:top]
         # uint8 arithmetic (weights in 1/255): an order of magnitude faster than float blending
         acc = rgba[:top]  # zeros: accumulated in place
-        total = np.zeros((top, self.width), np.float32)
+        total = np.zeros((top, self.width), np.float32) if renormalise else None
         for k, mosaic in enumerate(self.mosaics):
-            weight = weights_f[k][:top] * ground
+            weight = weights_f[k][:top]
             used = weight > 0
             rows = np.flatnonzero(used.any(axis=1))
             if rows.size == 0:
@@ -429,27 +437,34 @@ class Renderer:
             cols = np.flatnonzero(used[rows[0] : rows[-1] + 1].any(axis=0))
             # the box of the pixels this level weighs in
             box = np.s_[int(rows[0]) : int(rows[-1]) + 1, int(cols[0]) : int(cols[-1]) + 1]
-            lv = mosaic.level
-            # texel coordinates of level k from those of level 0 (both world-aligned)
-            ratio = lv0.res / lv.res
-            sx, sy = mosaic.shift
-            offset = np.array([(shift[0] + 0.5) * ratio - 0.5 - sx, (shift[1] + 0.5) * ratio - 0.5 - sy], np.float32)
-            map_k = maps[box] * np.float32(ratio) + offset
-            # pixels with weight lie in the window (their tiles are loaded); clipping keeps the
-            # others on remap's fast in-range path
-            np.clip(map_k, 0.0, np.float32(mosaic.size - 1), out=map_k)
+            # texel coordinates of level k from those of level 0 (both world-aligned); pixels with
+            # weight lie in the window (their tiles are loaded), clipping keeps the others on
+            # remap's fast in-range path
+            top_texel = np.float32(mosaic.size - 1)
+            if k == 0:
+                map_k = np.clip(maps[box], 0.0, top_texel)
+            else:
+                ratio = lv0.res / mosaic.level.res
+                sx, sy = mosaic.shift
+                offset = ((shift[0] + 0.5) * ratio - 0.5 - sx, (shift[1] + 0.5) * ratio - 0.5 - sy)
+                map_k = np.multiply(maps[box], np.float32(ratio))
+                map_k += np.array(offset, np.float32)
+                np.clip(map_k, 0.0, top_texel, out=map_k)
             wk = weight[box]
             sample = _remap(mosaic.rgba, map_k, cv2.INTER_LINEAR)
             w8 = cv2.convertScaleAbs(wk, alpha=255.0)
             w4 = cv2.merge([w8, w8, w8, w8])  # (GRAY2RGBA would set the sunlit channel to 255)
             cv2.add(acc[box], cv2.multiply(sample, w4, scale=1.0 / 255.0), dst=acc[box])
-            total[box] += wk
-            # ids from the heaviest level (never blended)
-            heavy = wk > 0.5
+            if total is not None:
+                total[box] += wk
+            # ids from the heaviest level (never blended), on the ground only
+            heavy = (wk > 0.5) & ground[box]
             if heavy.any():
                 np.copyto(ids[box], _remap(mosaic.ids, map_k, cv2.INTER_NEAREST), where=heavy)
+        if total is None:
+            return
         # the weights sum to one except where a level's window ran out: renormalise those pixels
-        short = (total > 0.0) & (total < 0.99)
+        short = (total > 0.0) & (total < 0.99) & ground
         if short.any():
             acc[short] = np.clip(acc[short] / total[short][:, None], 0, 255).astype(np.uint8)
 
@@ -473,7 +488,10 @@ class Renderer:
         period = np.float32(self.detail.shape[0])
         # in range (truncation is the floor of the coordinates >= 0): remap's fast path; the
         # rare negative ones stay correct through the wrapping border
-        coords -= period * (coords * (1 / period)).astype(np.int32).astype(np.float32)
+        whole = np.multiply(coords, 1 / period)
+        np.trunc(whole, out=whole)
+        whole *= period
+        coords -= whole
         grain = _remap(self.detail, coords, cv2.INTER_LINEAR, cv2.BORDER_WRAP)
         fade = cv2.addWeighted(depth_f[r0:], -0.5, depth_f[r0:], 0.0, 0.5 * DETAIL_DEPTH)
         np.clip(fade, 0.0, 1.0, out=fade)
