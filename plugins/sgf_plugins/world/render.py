@@ -743,15 +743,24 @@ class Renderer:
             return s1, s2
         s1 = np.full(pts.shape[:2], light.ambient)
         if light.headlight_power > 0:
-            to = pts - light.headlight_origin
-            r2 = np.maximum((to**2).sum(axis=-1), 0.25)
-            facing = np.clip(-(normal * to).sum(axis=-1) / np.sqrt(r2), 0.0, None)
-            s1 = s1 + light.beam(to) * facing / r2
-        for pos, power in light.lamps:
-            to = pts - pos
-            r2 = np.maximum((to**2).sum(axis=-1), 1.0)
-            facing = np.clip(-(normal * to).sum(axis=-1) / np.sqrt(r2), 0.0, None)
-            s1 = s1 + power * facing / r2
+            to = (pts - light.headlight_origin).reshape(-1, 3)
+            r2 = np.maximum(np.einsum("ij,ij->i", to, to), 0.25)
+            facing = np.maximum(-np.einsum("ij,ij->i", normal.reshape(-1, 3), to), 0.0) / np.sqrt(r2)
+            s1 = s1 + (light.beam(to) * facing / r2).reshape(s1.shape)
+        if light.lamps:
+            # all lamps at once, the offsets expanded into matrix products (relative to the first
+            # lamp: small numbers); power x facing / r2 with facing = max(0, -n.(p - q)) / r
+            ref = light.lamps[0][0]
+            p = (pts - ref).reshape(-1, 3)
+            n = normal.reshape(-1, 3)
+            q = np.array([pos for pos, _ in light.lamps]) - ref
+            power = np.array([w for _, w in light.lamps])
+            r2 = np.einsum("ij,ij->i", p, p)[:, None] - 2.0 * (p @ q.T) + np.einsum("ij,ij->i", q, q)
+            np.maximum(r2, 1.0, out=r2)
+            facing = (n @ q.T) - np.einsum("ij,ij->i", n, p)[:, None]
+            np.maximum(facing, 0.0, out=facing)
+            facing /= r2 * np.sqrt(r2)
+            s1 = s1 + (facing @ power).reshape(s1.shape)
         return s1, np.zeros_like(s1)
 
     def _horizon_colour(self, night: bool) -> np.ndarray:
