@@ -215,6 +215,7 @@ class Renderer:
         self._smooth_hits = np.zeros((4, self.nv, self.nu))
         self.detail = _detail_texture(rng)
         self.stopwatch = Stopwatch()
+        self.vignette_f = np.ascontiguousarray(self._upsample(self.vignette))  # at every pixel
 
     # -- public --------------------------------------------------------------------------------
 
@@ -241,7 +242,7 @@ class Renderer:
         light = self._lighting(pose, conditions)
         normal = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
         normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-        s1, s2 = self._ground_light(pts, normal, light)
+        ground_light = self._ground_light(pts, normal, light)
         haze = 1.0 - np.exp(-horiz / (900.0 if not night else 300.0))
         haze = np.where(hit, np.maximum(haze, np.clip((horiz - 95.0) / 30.0, 0.0, 1.0)), 1.0)
         # L0 texel coordinates (small numbers: relative to a multiple of the mosaic size)
@@ -259,7 +260,7 @@ class Renderer:
         inv = np.where(hit, 1.0 / np.maximum(t_map, 1e-3), 1e-4)
         hx, hy, inv_f = self._upsample_planes([mx * inv, my * inv, inv])
         maps = cv2.merge([cv2.divide(hx, inv_f), cv2.divide(hy, inv_f)])
-        s1_f, s2_f, depth_f = self._upsample_planes([s1 * self.vignette, s2 * self.vignette, depth])
+        light_f, depth_f = self._upsample_planes([ground_light * self.vignette, depth])
         if bumpy.any():
             self._refine_bumps(maps, inv_f, depth_f, bumpy, cam, shift)
         # rows below ``top`` see only near ground (level 0, inside its window): the fast path
@@ -288,10 +289,13 @@ class Renderer:
         # 3. shadows of people and vehicles, light, haze, sky
         self.scenery.set_frame(conditions.time, cam)
         agents = self._agents(conditions, pose) if conditions.occluders or conditions.extra_occluders else []
-        sunlit = cv2.extractChannel(rgba, 3)
-        if agents and not night:
-            self._agent_shadows(agents, cam, sunlit)
-        light_f = cv2.add(cv2.multiply(sunlit, s2_f, dtype=cv2.CV_32F), s1_f)
+        if not night:
+            # sunlit fraction x sun + ambient, both vignetted
+            sunlit = cv2.extractChannel(rgba, 3)
+            if agents:
+                self._agent_shadows(agents, cam, sunlit)
+            light_f = cv2.multiply(sunlit, light_f, dtype=cv2.CV_32F)
+            cv2.scaleAdd(self.vignette_f, light.ambient, light_f, dst=light_f)
         watch.lap("shadows")
         self._add_detail(light_f, maps, depth_f, t, hit, top)
         watch.lap("grain")
@@ -320,13 +324,14 @@ class Renderer:
         # 4. things above the ground
         occlusion = np.zeros((h, w), np.uint8)
         self.scenery.draw(image, occlusion, depth_f, cam, self.K, light, agents, conditions.far_field)
-        ids[occlusion > 0] = 0
+        occluded = occlusion > 0
+        ids[occluded] = 0
         watch.lap("walls, trees, people")
         # 5. sensor noise
         if conditions.sensor_noise:
             image = self._noise(image, conditions)
         watch.lap("exposure and noise")
-        return RenderLayers(image, ids.astype(np.int32), depth_f, occlusion > 0, maps, shift, ground)
+        return RenderLayers(image, ids.astype(np.int32), depth_f, occluded, maps, shift, ground)
 
     def _levels(self, pose: np.ndarray, pts: np.ndarray, hit: np.ndarray, t: np.ndarray, far_field: bool) -> np.ndarray:
         """Weights (3, nv, nu) of the levels of detail per sample; loads the tiles each level needs.
@@ -395,12 +400,11 @@ class Renderer:
             a1 = np.clip(ranges[:, 1] - ox + 1, 0, size)
             b0 = np.clip(ranges[:, 2] - oy, 0, size)
             b1 = np.clip(ranges[:, 3] - oy + 1, 0, size)
-            diff = np.zeros((size + 1, size + 1), np.int64)
-            np.add.at(diff, (b0, a0), 1)
-            np.add.at(diff, (b0, a1), -1)
-            np.add.at(diff, (b1, a0), -1)
-            np.add.at(diff, (b1, a1), 1)
-            covered = diff.cumsum(axis=0).cumsum(axis=1)[:size, :size] > 0
+            n = size + 1
+            corners = np.concatenate([b0 * n + a0, b0 * n + a1, b1 * n + a0, b1 * n + a1])
+            signs = np.repeat(np.array([1.0, -1.0, -1.0, 1.0]), len(a0))
+            diff = np.bincount(corners, signs, minlength=n * n).reshape(n, n)
+            covered = diff.cumsum(axis=0).cumsum(axis=1)[:size, :size] > 0.5
             rows, cols = np.nonzero(covered)
             needed = {(ox + int(c), oy + int(r)) for r, c in zip(rows, cols, strict=True)}
             mosaic.ensure(self.cache, needed)
@@ -734,13 +738,12 @@ class Renderer:
             gain=conditions.exposure * (NIGHT_GAIN if night else 1.0),
         )
 
-    def _ground_light(self, pts: np.ndarray, normal: np.ndarray, light: Lighting) -> tuple[np.ndarray, np.ndarray]:
-        """Per-sample light not depending on shadows (s1) and the sunlit part (s2, times sunlit/255)."""
+    def _ground_light(self, pts: np.ndarray, normal: np.ndarray, light: Lighting) -> np.ndarray:
+        """Per-sample light: by day the sun's (times sunlit/255; the ambient is added per pixel), at night all of it."""
         if not light.night:
             cos_sun = np.clip(normal @ light.sun, 0.0, None) / max(light.sun[2], 1e-3)
-            s1 = np.full(pts.shape[:2], light.ambient)
-            s2 = light.sun_strength * cos_sun / 255.0
-            return s1, s2
+            sun: np.ndarray = light.sun_strength * cos_sun / 255.0
+            return sun
         s1 = np.full(pts.shape[:2], light.ambient)
         if light.headlight_power > 0:
             to = (pts - light.headlight_origin).reshape(-1, 3)
@@ -761,7 +764,7 @@ class Renderer:
             np.maximum(facing, 0.0, out=facing)
             facing /= r2 * np.sqrt(r2)
             s1 = s1 + (facing @ power).reshape(s1.shape)
-        return s1, np.zeros_like(s1)
+        return s1
 
     def _horizon_colour(self, night: bool) -> np.ndarray:
         return np.array([13, 14, 21], np.float32) if night else np.array([196, 206, 214], np.float32)
