@@ -215,6 +215,7 @@ class Renderer:
         self._smooth_hits = np.zeros((4, self.nv, self.nu))
         self.detail = _detail_texture(rng)
         self.stopwatch = Stopwatch()
+        self.vignette_f = np.ascontiguousarray(self._upsample(self.vignette))  # at every pixel
 
     # -- public --------------------------------------------------------------------------------
 
@@ -231,14 +232,17 @@ class Renderer:
         # 1. level of detail per sample; the tiles each level needs are loaded into its mosaic
         watch.lap("ray cast")
         weights = self._levels(pose, pts, hit, t, conditions.far_field)
-        hit &= weights.sum(axis=0) > 0.0
+        weight_sum = weights.sum(axis=0)
+        hit &= weight_sum > 0.0
+        # ground samples whose weights do not sum to one (a level's window ran out)
+        short = bool((weight_sum[hit] < 0.999).any())
         watch.lap("levels and tiles")
         # 2. light and haze per sample
         night = conditions.night
         light = self._lighting(pose, conditions)
         normal = np.stack([-gx, -gy, np.ones_like(gx)], axis=-1)
         normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-        s1, s2 = self._ground_light(pts, normal, light)
+        ground_light = self._ground_light(pts, normal, light)
         haze = 1.0 - np.exp(-horiz / (900.0 if not night else 300.0))
         haze = np.where(hit, np.maximum(haze, np.clip((horiz - 95.0) / 30.0, 0.0, 1.0)), 1.0)
         # L0 texel coordinates (small numbers: relative to a multiple of the mosaic size)
@@ -256,8 +260,7 @@ class Renderer:
         inv = np.where(hit, 1.0 / np.maximum(t_map, 1e-3), 1e-4)
         hx, hy, inv_f = self._upsample_planes([mx * inv, my * inv, inv])
         maps = cv2.merge([cv2.divide(hx, inv_f), cv2.divide(hy, inv_f)])
-        s1_f, s2_f, depth_f = self._upsample_planes([s1 * self.vignette, s2 * self.vignette, depth])
-        depth_f = np.ascontiguousarray(depth_f)
+        light_f, depth_f = self._upsample_planes([ground_light * self.vignette, depth])
         if bumpy.any():
             self._refine_bumps(maps, inv_f, depth_f, bumpy, cam, shift)
         # rows below ``top`` see only near ground (level 0, inside its window): the fast path
@@ -281,15 +284,18 @@ class Renderer:
             cv2.remap(m0.ids, maps[top:], None, cv2.INTER_NEAREST, dst=ids[top:], borderMode=cv2.BORDER_REPLICATE)  # type: ignore[call-overload]
         watch.lap("near ground lookup")
         if top > 0:
-            self._blend_levels(rgba, ids, maps, weights_f, ground, top, shift)
+            self._blend_levels(rgba, ids, maps, weights_f, ground, top, shift, short)
         watch.lap("far ground lookup")
         # 3. shadows of people and vehicles, light, haze, sky
         self.scenery.set_frame(conditions.time, cam)
         agents = self._agents(conditions, pose) if conditions.occluders or conditions.extra_occluders else []
-        sunlit = cv2.extractChannel(rgba, 3)
-        if agents and not night:
-            self._agent_shadows(agents, cam, sunlit)
-        light_f = cv2.add(cv2.multiply(sunlit, s2_f, dtype=cv2.CV_32F), s1_f)
+        if not night:
+            # sunlit fraction x sun + ambient, both vignetted
+            sunlit = cv2.extractChannel(rgba, 3)
+            if agents:
+                self._agent_shadows(agents, cam, sunlit)
+            light_f = cv2.multiply(sunlit, light_f, dtype=cv2.CV_32F)
+            cv2.scaleAdd(self.vignette_f, light.ambient, light_f, dst=light_f)
         watch.lap("shadows")
         self._add_detail(light_f, maps, depth_f, t, hit, top)
         watch.lap("grain")
@@ -318,13 +324,14 @@ class Renderer:
         # 4. things above the ground
         occlusion = np.zeros((h, w), np.uint8)
         self.scenery.draw(image, occlusion, depth_f, cam, self.K, light, agents, conditions.far_field)
-        ids[occlusion > 0] = 0
+        occluded = occlusion > 0
+        ids[occluded] = 0
         watch.lap("walls, trees, people")
         # 5. sensor noise
         if conditions.sensor_noise:
             image = self._noise(image, conditions)
         watch.lap("exposure and noise")
-        return RenderLayers(image, ids.astype(np.int32), depth_f, occlusion > 0, maps, shift, ground)
+        return RenderLayers(image, ids.astype(np.int32), depth_f, occluded, maps, shift, ground)
 
     def _levels(self, pose: np.ndarray, pts: np.ndarray, hit: np.ndarray, t: np.ndarray, far_field: bool) -> np.ndarray:
         """Weights (3, nv, nu) of the levels of detail per sample; loads the tiles each level needs.
@@ -393,12 +400,11 @@ class Renderer:
             a1 = np.clip(ranges[:, 1] - ox + 1, 0, size)
             b0 = np.clip(ranges[:, 2] - oy, 0, size)
             b1 = np.clip(ranges[:, 3] - oy + 1, 0, size)
-            diff = np.zeros((size + 1, size + 1), np.int64)
-            np.add.at(diff, (b0, a0), 1)
-            np.add.at(diff, (b0, a1), -1)
-            np.add.at(diff, (b1, a0), -1)
-            np.add.at(diff, (b1, a1), 1)
-            covered = diff.cumsum(axis=0).cumsum(axis=1)[:size, :size] > 0
+            n = size + 1
+            corners = np.concatenate([b0 * n + a0, b0 * n + a1, b1 * n + a0, b1 * n + a1])
+            signs = np.repeat(np.array([1.0, -1.0, -1.0, 1.0]), len(a0))
+            diff = np.bincount(corners, signs, minlength=n * n).reshape(n, n)
+            covered = diff.cumsum(axis=0).cumsum(axis=1)[:size, :size] > 0.5
             rows, cols = np.nonzero(covered)
             needed = {(ox + int(c), oy + int(r)) for r, c in zip(rows, cols, strict=True)}
             mosaic.ensure(self.cache, needed)
@@ -413,15 +419,21 @@ class Renderer:
         ground_all: np.ndarray,
         top: int,
         shift: tuple[int, int],
+        renormalise: bool,
     ) -> None:
-        """Rows above ``top``: blend the levels of detail by weight; ids from the heaviest level."""
+        """Rows above ``top``: blend the levels of detail by weight; ids from the heaviest level.
+
+        The colour of pixels off the ground does not matter (the sky covers them), so only the
+        ids and the renormalisation look at ``ground_all``; ``renormalise`` says whether any
+        sample lost weight to a window running out (else the weights of ground pixels sum to one).
+        """
         lv0 = LEVELS[0]
         ground = ground_all[:top]
         # uint8 arithmetic (weights in 1/255): an order of magnitude faster than float blending
         acc = rgba[:top]  # zeros: accumulated in place
-        total = np.zeros((top, self.width), np.float32)
+        total = np.zeros((top, self.width), np.float32) if renormalise else None
         for k, mosaic in enumerate(self.mosaics):
-            weight = weights_f[k][:top] * ground
+            weight = weights_f[k][:top]
             used = weight > 0
             rows = np.flatnonzero(used.any(axis=1))
             if rows.size == 0:
@@ -429,27 +441,34 @@ class Renderer:
             cols = np.flatnonzero(used[rows[0] : rows[-1] + 1].any(axis=0))
             # the box of the pixels this level weighs in
             box = np.s_[int(rows[0]) : int(rows[-1]) + 1, int(cols[0]) : int(cols[-1]) + 1]
-            lv = mosaic.level
-            # texel coordinates of level k from those of level 0 (both world-aligned)
-            ratio = lv0.res / lv.res
-            sx, sy = mosaic.shift
-            offset = np.array([(shift[0] + 0.5) * ratio - 0.5 - sx, (shift[1] + 0.5) * ratio - 0.5 - sy], np.float32)
-            map_k = maps[box] * np.float32(ratio) + offset
-            # pixels with weight lie in the window (their tiles are loaded); clipping keeps the
-            # others on remap's fast in-range path
-            np.clip(map_k, 0.0, np.float32(mosaic.size - 1), out=map_k)
+            # texel coordinates of level k from those of level 0 (both world-aligned); pixels with
+            # weight lie in the window (their tiles are loaded), clipping keeps the others on
+            # remap's fast in-range path
+            top_texel = np.float32(mosaic.size - 1)
+            if k == 0:
+                map_k = np.clip(maps[box], 0.0, top_texel)
+            else:
+                ratio = lv0.res / mosaic.level.res
+                sx, sy = mosaic.shift
+                offset = ((shift[0] + 0.5) * ratio - 0.5 - sx, (shift[1] + 0.5) * ratio - 0.5 - sy)
+                map_k = np.multiply(maps[box], np.float32(ratio))
+                map_k += np.array(offset, np.float32)
+                np.clip(map_k, 0.0, top_texel, out=map_k)
             wk = weight[box]
             sample = _remap(mosaic.rgba, map_k, cv2.INTER_LINEAR)
             w8 = cv2.convertScaleAbs(wk, alpha=255.0)
             w4 = cv2.merge([w8, w8, w8, w8])  # (GRAY2RGBA would set the sunlit channel to 255)
             cv2.add(acc[box], cv2.multiply(sample, w4, scale=1.0 / 255.0), dst=acc[box])
-            total[box] += wk
-            # ids from the heaviest level (never blended)
-            heavy = wk > 0.5
+            if total is not None:
+                total[box] += wk
+            # ids from the heaviest level (never blended), on the ground only
+            heavy = (wk > 0.5) & ground[box]
             if heavy.any():
                 np.copyto(ids[box], _remap(mosaic.ids, map_k, cv2.INTER_NEAREST), where=heavy)
+        if total is None:
+            return
         # the weights sum to one except where a level's window ran out: renormalise those pixels
-        short = (total > 0.0) & (total < 0.99)
+        short = (total > 0.0) & (total < 0.99) & ground
         if short.any():
             acc[short] = np.clip(acc[short] / total[short][:, None], 0, 255).astype(np.uint8)
 
@@ -473,7 +492,10 @@ class Renderer:
         period = np.float32(self.detail.shape[0])
         # in range (truncation is the floor of the coordinates >= 0): remap's fast path; the
         # rare negative ones stay correct through the wrapping border
-        coords -= period * (coords * (1 / period)).astype(np.int32).astype(np.float32)
+        whole = np.multiply(coords, 1 / period)
+        np.trunc(whole, out=whole)
+        whole *= period
+        coords -= whole
         grain = _remap(self.detail, coords, cv2.INTER_LINEAR, cv2.BORDER_WRAP)
         fade = cv2.addWeighted(depth_f[r0:], -0.5, depth_f[r0:], 0.0, 0.5 * DETAIL_DEPTH)
         np.clip(fade, 0.0, 1.0, out=fade)
@@ -716,25 +738,33 @@ class Renderer:
             gain=conditions.exposure * (NIGHT_GAIN if night else 1.0),
         )
 
-    def _ground_light(self, pts: np.ndarray, normal: np.ndarray, light: Lighting) -> tuple[np.ndarray, np.ndarray]:
-        """Per-sample light not depending on shadows (s1) and the sunlit part (s2, times sunlit/255)."""
+    def _ground_light(self, pts: np.ndarray, normal: np.ndarray, light: Lighting) -> np.ndarray:
+        """Per-sample light: by day the sun's (times sunlit/255; the ambient is added per pixel), at night all of it."""
         if not light.night:
             cos_sun = np.clip(normal @ light.sun, 0.0, None) / max(light.sun[2], 1e-3)
-            s1 = np.full(pts.shape[:2], light.ambient)
-            s2 = light.sun_strength * cos_sun / 255.0
-            return s1, s2
+            sun: np.ndarray = light.sun_strength * cos_sun / 255.0
+            return sun
         s1 = np.full(pts.shape[:2], light.ambient)
         if light.headlight_power > 0:
-            to = pts - light.headlight_origin
-            r2 = np.maximum((to**2).sum(axis=-1), 0.25)
-            facing = np.clip(-(normal * to).sum(axis=-1) / np.sqrt(r2), 0.0, None)
-            s1 = s1 + light.beam(to) * facing / r2
-        for pos, power in light.lamps:
-            to = pts - pos
-            r2 = np.maximum((to**2).sum(axis=-1), 1.0)
-            facing = np.clip(-(normal * to).sum(axis=-1) / np.sqrt(r2), 0.0, None)
-            s1 = s1 + power * facing / r2
-        return s1, np.zeros_like(s1)
+            to = (pts - light.headlight_origin).reshape(-1, 3)
+            r2 = np.maximum(np.einsum("ij,ij->i", to, to), 0.25)
+            facing = np.maximum(-np.einsum("ij,ij->i", normal.reshape(-1, 3), to), 0.0) / np.sqrt(r2)
+            s1 = s1 + (light.beam(to) * facing / r2).reshape(s1.shape)
+        if light.lamps:
+            # all lamps at once, the offsets expanded into matrix products (relative to the first
+            # lamp: small numbers); power x facing / r2 with facing = max(0, -n.(p - q)) / r
+            ref = light.lamps[0][0]
+            p = (pts - ref).reshape(-1, 3)
+            n = normal.reshape(-1, 3)
+            q = np.array([pos for pos, _ in light.lamps]) - ref
+            power = np.array([w for _, w in light.lamps])
+            r2 = np.einsum("ij,ij->i", p, p)[:, None] - 2.0 * (p @ q.T) + np.einsum("ij,ij->i", q, q)
+            np.maximum(r2, 1.0, out=r2)
+            facing = (n @ q.T) - np.einsum("ij,ij->i", n, p)[:, None]
+            np.maximum(facing, 0.0, out=facing)
+            facing /= r2 * np.sqrt(r2)
+            s1 = s1 + (facing @ power).reshape(s1.shape)
+        return s1
 
     def _horizon_colour(self, night: bool) -> np.ndarray:
         return np.array([13, 14, 21], np.float32) if night else np.array([196, 206, 214], np.float32)

@@ -50,7 +50,7 @@ class Lighting:
         ahead = np.maximum(local[..., 0], 1e-6)
         psi = np.arctan2(local[..., 1], ahead)
         phi = np.arctan2(-local[..., 2], np.hypot(ahead, local[..., 1]))
-        shape = np.exp(-((psi / 0.65) ** 2)) * np.exp(-(((phi - 0.2) / 0.3) ** 2))
+        shape = np.exp(-((psi / 0.65) ** 2) - ((phi - 0.2) / 0.3) ** 2)
         return self.headlight_power * shape * (local[..., 0] > 0)
 
     def at(self, point: np.ndarray, normal: np.ndarray | None = None) -> float:
