@@ -196,6 +196,33 @@ def test_a_symmetric_marking_is_flagged():
     assert not r.symmetric and arrow.groups[0].spread > 0.3
 
 
+def test_a_smeared_group_mean_does_not_make_a_match_symmetric():
+    # A group whose members were aligned at scattered shifts (members of different markings, or
+    # wrong shifts) has a flat mean although no member is flat: a match into it still goes to ICP.
+    views = [desc(ARROW, seen_from(ARROW, 3.0, 0.0), i) for i in range(30)]
+    smeared = SgfGroup(0)
+    for k, v in enumerate(views):
+        smeared.add(v, 3 * k, anchor=np.asarray(ARROW.pose[:2]))
+    smeared.refresh("intersection", 0.1)
+    assert smeared.symmetric  # the smear
+    s = stage()
+    s.seed_groups([smeared])
+    pose = seen_from(ARROW, 3.0, 0.4)
+    (r,) = feed(s, 40, pose, desc(ARROW, pose, 40))
+    assert not r.new_group and r.group_id == 0 and s.groups[0].symmetric
+    assert not r.symmetric
+    # The same smear of a disc's views stays symmetric: its own views are flat.
+    discs = [desc(DISC, seen_from(DISC, 3.0, 0.0), i) for i in range(30)]
+    flat = SgfGroup(0)
+    for k, v in enumerate(discs):
+        flat.add(v, 3 * k, anchor=np.asarray(DISC.pose[:2]))
+    d = stage()
+    d.seed_groups([flat])
+    pose = seen_from(DISC, 3.0, 0.4)
+    (r,) = feed(d, 40, pose, desc(DISC, pose, 40))
+    assert not r.new_group and r.symmetric
+
+
 def test_threshold_and_gate_open_new_groups():
     # Different markings at the same place, without the gate: eq. 10 decides (0.7 lets them merge).
     pose = seen_from(ARROW, 3.0, 0.0)

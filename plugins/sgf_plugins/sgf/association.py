@@ -204,7 +204,10 @@ class OnlineSgfGroups(Stage):
     first member's orientation: averaging unaligned descriptors of a feature seen from different
     headings (a reverse loop) would smear it over all sectors. A group whose
     self-distance profile over the N_s shifts is flat (spread below ``symmetry_threshold``, like a
-    round manhole) is ``symmetric`` and gives no loop factors.
+    round manhole) is ``symmetric``, and so is a match into it when the query's or the matched
+    member's own profile is flat too; symmetric matches give no loop factors. (A group that took
+    in members of different markings can have a flat mean of unflat views: its matches still go
+    to ICP, which tells them apart.)
 
     N_c of eq. 10 (an ambiguity): ``intersection`` averages over the columns occupied in both
     descriptors, as Scan Context does. Over 12 rendered markings seen from 5 headings
@@ -468,6 +471,12 @@ class OnlineSgfGroups(Stage):
         group.add(query, shift + group.offsets[m])
         self._index.add(self._slot[group.group_id], query, self._travelled.get(query.sgf.frame_index), None)
         group.refresh(p.columns, p.symmetry_threshold)
+        # A flat group mean may only be a smear of members from different markings: the match is
+        # symmetric when one of its two own views is flat too.
+        symmetric = group.symmetric and (
+            min(symmetry_spread(query.matrix, p.columns), symmetry_spread(matched.matrix, p.columns))
+            < p.symmetry_threshold
+        )
         return GroupAssignment(
             descriptor=query,
             group_id=group.group_id,
@@ -476,7 +485,7 @@ class OnlineSgfGroups(Stage):
             shift=shift,
             yaw=shift_to_yaw(shift, n_s),
             matched=matched,
-            symmetric=group.symmetric,
+            symmetric=symmetric,
             ambiguous=group.aliased or bool(tied),
             aliased=group.aliased,
             alternatives=alternatives,
