@@ -196,30 +196,28 @@ def test_a_symmetric_marking_is_flagged():
     assert not r.symmetric and arrow.groups[0].spread > 0.3
 
 
+def match_into_smeared_group(shape: GroundShape):
+    """A group of 30 views of ``shape`` aligned at scattered shifts (a flat mean), and a new view matched into it."""
+    smeared = SgfGroup(0)
+    for k in range(30):
+        smeared.add(desc(shape, seen_from(shape, 3.0, 0.0), k), 3 * k, anchor=np.asarray(shape.pose[:2]))
+    smeared.refresh("intersection", 0.1)
+    s = stage()
+    s.seed_groups([smeared])
+    pose = seen_from(shape, 3.0, 0.4)
+    (r,) = feed(s, 40, pose, desc(shape, pose, 40))
+    return smeared, s, r
+
+
 def test_a_smeared_group_mean_does_not_make_a_match_symmetric():
     # A group whose members were aligned at scattered shifts (members of different markings, or
     # wrong shifts) has a flat mean although no member is flat: a match into it still goes to ICP.
-    views = [desc(ARROW, seen_from(ARROW, 3.0, 0.0), i) for i in range(30)]
-    smeared = SgfGroup(0)
-    for k, v in enumerate(views):
-        smeared.add(v, 3 * k, anchor=np.asarray(ARROW.pose[:2]))
-    smeared.refresh("intersection", 0.1)
+    smeared, s, r = match_into_smeared_group(ARROW)
     assert smeared.symmetric  # the smear
-    s = stage()
-    s.seed_groups([smeared])
-    pose = seen_from(ARROW, 3.0, 0.4)
-    (r,) = feed(s, 40, pose, desc(ARROW, pose, 40))
     assert not r.new_group and r.group_id == 0 and s.groups[0].symmetric
     assert not r.symmetric
     # The same smear of a disc's views stays symmetric: its own views are flat.
-    discs = [desc(DISC, seen_from(DISC, 3.0, 0.0), i) for i in range(30)]
-    flat = SgfGroup(0)
-    for k, v in enumerate(discs):
-        flat.add(v, 3 * k, anchor=np.asarray(DISC.pose[:2]))
-    d = stage()
-    d.seed_groups([flat])
-    pose = seen_from(DISC, 3.0, 0.4)
-    (r,) = feed(d, 40, pose, desc(DISC, pose, 40))
+    _, _, r = match_into_smeared_group(DISC)
     assert not r.new_group and r.symmetric
 
 
