@@ -12,7 +12,8 @@ from backend_world import CALIBRATION, Marking, OracleAssociation, descriptor, m
 from sgf_plugins.backend import GtsamLmBackend, LmParams
 from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, drift_covariance
 
-from sgf_pipeline.geometry import invert, pose_from_xy_yaw, xy_yaw
+from sgf_pipeline import RunContext
+from sgf_pipeline.geometry import invert, pose_from_xy_yaw, wrap_angle, xy_yaw
 from sgf_pipeline.types import Frame, GroupAssignment, GroupAssignments, LookAlike
 
 
@@ -47,12 +48,23 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
     assert len(run.context.artifacts["loops"]) == 8
     assert all(entry["true"] is True for entry in run.context.artifacts["loops"])
     assert len(run.context.artifacts["group_assignments"]) == sum(len(v) for v in world.sgfs.values())
-    # by default a loop also needs a neighbouring marking that agrees: the toy world's two lone revisits lose theirs
-    default = run_stages(
-        world, loop=IcpLoopClosing(IcpLoopParams()), association=OracleAssociation(world, by="instance")
+    # by default a loop also needs a neighbouring marking that agrees: the toy world's first two revisits of a
+    # stretch have none behind them, and lose their loops when only earlier SGFs may vouch for them...
+    at_once = run_stages(
+        world,
+        loop=IcpLoopClosing(IcpLoopParams(consensus_wait=False)),
+        association=OracleAssociation(world, by="instance"),
     )
-    metrics = default.context.metrics["loops"]
+    metrics = at_once.context.metrics["loops"]
     assert (metrics["closed"], metrics["false_closed"], metrics["rejected"]["consensus"]) == (6, 0, 2)
+    # ...and keep them when they wait for the markings seen after them
+    waiting = run_stages(
+        world,
+        loop=IcpLoopClosing(IcpLoopParams(consensus_wait=True)),
+        association=OracleAssociation(world, by="instance"),
+    )
+    metrics = waiting.context.metrics["loops"]
+    assert (metrics["closed"], metrics["false_closed"], metrics["rejected"]["consensus"]) == (8, 0, 0)
 
 
 def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> None:  # type: ignore[no-untyped-def]
@@ -257,7 +269,10 @@ def _tied_arrows(n: int = 40, neighbour: bool = True):  # type: ignore[no-untype
 
 
 def _run_loop(stage: IcpLoopClosing, frames: list[Frame], by_frame: dict[int, GroupAssignments]) -> list:  # type: ignore[type-arg]
-    return [c for f in frames for c in stage.process(frame=f, assignments=by_frame.get(f.index), estimate=None).items]
+    """The loops of a run; matches still waiting for neighbours at its end are refused by ``finalize``."""
+    out = [c for f in frames for c in stage.process(frame=f, assignments=by_frame.get(f.index), estimate=None).items]
+    stage.finalize(RunContext(None))
+    return out
 
 
 def test_a_tie_between_look_alikes_is_resolved_by_the_neighbouring_markings() -> None:
@@ -299,3 +314,112 @@ def test_min_support_refuses_a_lone_match_that_no_neighbour_confirms() -> None:
     by_frame[68] = GroupAssignments((right,))
     (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False, min_support=1)), frames, by_frame)
     assert loop.instance_ids == (1, 1)
+
+
+def _repeated_arrows(matched_x: float):  # type: ignore[no-untyped-def]
+    """Two passes along x over an L (x = 8), a T (x = 12) and a pattern of arrows every 4 m (x = 16 ... 28).
+
+    On the second pass the view of the arrow at x = 28 joins the aliased pattern's group, matched to
+    the first-pass view of the arrow at ``matched_x``. Frames sit 2 m behind what they see.
+    """
+    n = 40
+    frames = _two_passes(n)
+    markings = [Marking(1, "ell", (8.0, -0.5, 0.0)), Marking(2, "tee", (12.0, 0.5, 0.0))]
+    markings += [Marking(10 + k, "arrow", (16.0 + 4.0 * k, 0.3, 0.2)) for k in range(4)]
+    by_frame: dict[int, GroupAssignments] = {}
+    first: dict[float, object] = {}
+    for m in markings:
+        k = int(m.pose[0]) - 2
+        first[m.pose[0]] = view = _view(frames[k], m)
+        by_frame[k] = GroupAssignments((GroupAssignment(view, m.instance_id, True, 1.0, 0, 0.0, None, False),))  # type: ignore[arg-type]
+        if m.pose[0] < 28.0:  # second-pass neighbours open groups of their own here: evidence only
+            again = _view(frames[n + k], m)
+            by_frame[n + k] = GroupAssignments(
+                (GroupAssignment(again, 100 + m.instance_id, True, 1.0, 0, 0.0, None, False),)
+            )  # type: ignore[arg-type]
+    query = _view(frames[n + 26], markings[-1])
+    match = GroupAssignment(query, 13, False, 0.01, 0, 0.0, first[matched_x], False, ambiguous=True, aliased=True)  # type: ignore[arg-type]
+    by_frame[n + 26] = GroupAssignments((match,))
+    return frames, by_frame
+
+
+def test_a_match_into_a_repeated_pattern_needs_neighbours_unlike_it() -> None:
+    # the right copy: the L and the T (unlike an arrow) land on their first-pass views
+    frames, by_frame = _repeated_arrows(28.0)
+    stage = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2))
+    (loop,) = _run_loop(stage, frames, by_frame)
+    assert stage.aliases_resolved == 1 and (loop.frame_from, loop.frame_to) == (26, 66)
+    assert np.allclose(xy_yaw(loop.relative), (0.0, 0.0, 0.0), atol=0.02)
+    # the copy one period back: ICP puts the robot 4 m off, where the other arrows agree with it (the pattern
+    # repeats) but the L and the T do not; counted without them, the false loop would pass
+    frames, by_frame = _repeated_arrows(24.0)
+    stage = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2))
+    assert _run_loop(stage, frames, by_frame) == [] and stage.counts["ambiguous"] == 1
+    wrong = replace(by_frame[66].items[0], aliased=False, ambiguous=False)
+    c = stage._evaluate(wrong, None)
+    # frame 66 stands where frame 22 stood, says ICP: truly it stands 4 m further on, where frame 26 stood
+    assert not isinstance(c, str) and np.allclose(xy_yaw(c.constraint.relative), (0.0, 0.0, 0.0), atol=0.05)
+    assert stage._support(wrong, c.constraint) >= 2 and stage._support(wrong, c.constraint, unlike=True) == 0
+    # aliased_support = 0 (the default): a repeated pattern never gives loop factors
+    frames, by_frame = _repeated_arrows(28.0)
+    strict = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=0))
+    assert _run_loop(strict, frames, by_frame) == [] and strict.counts["ambiguous"] == 1
+
+
+def test_a_match_waits_for_the_neighbours_seen_after_it() -> None:
+    # an arrow at x = 10 opens the second pass; its only neighbour, an L at x = 24, comes 14 m after it
+    n = 40
+    frames = _two_passes(n)
+    arrow, ell = Marking(1, "arrow", (10.0, 0.5, 0.3)), Marking(2, "ell", (24.0, -1.0, 0.0))
+    first = {m.instance_id: _view(frames[int(m.pose[0]) - 2], m) for m in (arrow, ell)}
+    by_frame = {
+        int(m.pose[0]) - 2: GroupAssignments(
+            (GroupAssignment(first[m.instance_id], m.instance_id, True, 1.0, 0, 0.0, None, False),)
+        )  # type: ignore[arg-type]
+        for m in (arrow, ell)
+    }
+    match = GroupAssignment(_view(frames[n + 8], arrow), 1, False, 0.01, 0, 0.0, first[1], False)  # type: ignore[arg-type]
+    by_frame[n + 8] = GroupAssignments((match,))
+    again = _view(frames[n + 22], ell)
+    by_frame[n + 22] = GroupAssignments((GroupAssignment(again, 12, True, 1.0, 0, 0.0, None, False),))  # type: ignore[arg-type]
+    at_once = IcpLoopClosing(IcpLoopParams(gate=False))  # the default: decide on the SGFs seen before
+    assert _run_loop(at_once, frames, by_frame) == [] and at_once.counts["consensus"] == 1
+    waits = IcpLoopClosing(IcpLoopParams(gate=False, consensus_wait=True))
+    emitted = {f.index: waits.process(frame=f, assignments=by_frame.get(f.index), estimate=None).items for f in frames}
+    (loop,) = [c for items in emitted.values() for c in items]
+    assert (loop.frame_from, loop.frame_to) == (8, n + 8) and loop.instance_ids == (1, 1)
+    assert emitted[n + 22] == (loop,)  # emitted when the L lands on its first-pass view, 14 m later
+    # nothing agrees within consensus_window (10 m): the match expires, refused, once the robot has driven past
+    short = IcpLoopClosing(IcpLoopParams(gate=False, consensus_window=10.0, consensus_wait=True))
+    assert _run_loop(short, frames, by_frame) == [] and short.counts["consensus"] == 1 and short.waiting == []
+
+
+def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
+    # a bar (twofold symmetric) fits itself turned by 180 degrees as well: two distinct near-equal fits
+    frames = _two_passes(40)
+    bar = Marking(7, "disc", (12.0, 0.3, 0.4))
+    points = np.array([(x, y) for x in np.linspace(-0.6, 0.6, 41) for y in np.linspace(-0.09, 0.09, 7)])
+    rng = np.random.default_rng(5)
+
+    def view(frame: Frame) -> object:
+        c, s = math.cos(0.4), math.sin(0.4)
+        world = points @ np.array([[c, -s], [s, c]]).T + (12.0, 0.3) + rng.normal(0.0, 0.004, points.shape)
+        inv = invert(frame.odometry)
+        return descriptor(frame, bar, world @ inv[:2, :2].T + inv[:2, 3])
+
+    match = GroupAssignment(view(frames[49]), 7, False, 0.01, 0, 0.0, view(frames[9]), False)  # type: ignore[arg-type]
+    # a second yaw seed half a turn on (the association's shift of a bar could be either)
+    loose = IcpLoopClosing(IcpLoopParams(extra_yaw_seeds=1, gate_floor_yaw_deg=120.0))  # heading too uncertain
+    tight = IcpLoopClosing(IcpLoopParams(extra_yaw_seeds=1))  # the default floors: 3 degrees
+    for f in frames[:50]:
+        loose.process(frame=f, assignments=None, estimate=None)
+        tight.process(frame=f, assignments=None, estimate=None)
+    fits = loose._fits(loose._align(match))
+    assert len(fits) == 2 and abs(abs(wrap_angle(fits[0].pose[2] - fits[1].pose[2])) - math.pi) < 0.02
+    assert loose._evaluate(match, None) == "not_unique"
+    c = tight._evaluate(match, None)
+    assert not isinstance(c, str) and np.allclose(xy_yaw(c.constraint.relative), (0.0, 0.0, 0.0), atol=0.02)
+    # an arrow has one fit
+    arrow = Marking(1, "arrow", (12.0, 0.3, 0.2))
+    single = GroupAssignment(_view(frames[49], arrow), 1, False, 0.01, 0, 0.0, _view(frames[9], arrow), False)  # type: ignore[arg-type]
+    assert len(tight._fits(tight._align(single))) == 1

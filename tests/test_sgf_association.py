@@ -11,11 +11,22 @@ from sgf_plugins.sgf.association import OnlineGroupsParams, OnlineSgfGroups, Sgf
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams, describe
 from sgf_plugins.sgf.hu import hu_moments
 from sgf_plugins.sgf.polar import align, shifted_distances
-from sgf_plugins.sgf.synthetic import DEFAULT_GRID, Annulus, GroundShape, arrow_shape, ell_shape, render_saliency
+from sgf_plugins.sgf.synthetic import (
+    DEFAULT_GRID,
+    Annulus,
+    GroundShape,
+    arrow_shape,
+    ell_shape,
+    render_saliency,
+    toy_calibration,
+)
 
 from sgf_pipeline import RunContext
-from sgf_pipeline.geometry import pose_from_xy_yaw
+from sgf_pipeline.geometry import invert, pose_from_xy_yaw
 from sgf_pipeline.types import (
+    Frame,
+    LoopConstraint,
+    LoopConstraints,
     MarkingPass,
     PoseEstimate,
     RevisitPair,
@@ -398,6 +409,44 @@ def test_look_alike_groups_inside_the_gate_tie_and_the_match_is_ambiguous():
     # a tighter gate (1.5 + 0.02 d = 10.1 m) holds only the first arrow (the second is 17 m away): unambiguous
     r1, r4 = _two_arrows_then_back(drift_rate=0.02, drift_quadratic=0.0)
     assert not r4.new_group and r4.group_id == r1.group_id and not r4.ambiguous and r4.alternatives == ()
+
+
+def _back_after_a_loop(estimate_error: float, **params):
+    """Arrows A (x = 5 m) and B (x = 25 m), 400 m away and back: a loop closes at A, then B is seen again.
+
+    The loop (frame 1 to frame 4) reaches the association on the next frame, with an estimate that
+    meets it (``estimate_error`` = 0) or is ``estimate_error`` metres off it.
+    """
+    far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
+    s = stage(**params)
+    p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(far, 3.0, 0.0)
+    feed(s, 1, p1, desc(ARROW, p1, 1))
+    (first_b,) = feed(s, 2, p2, desc(far, p2, 2))
+    p3 = pose_from_xy_yaw(220.0, 0.0, 0.0)
+    feed(s, 3, p3)
+    p4 = seen_from(ARROW, 3.0, math.pi)
+    feed(s, 4, p4)
+    loop = LoopConstraint(1, 4, invert(p1) @ p4, np.eye(3) * 0.01, 0, True, 0.01, 1.0)
+    estimate = PoseEstimate(4, {1: p1, 2: p2, 3: p3, 4: pose_from_xy_yaw(0.0, estimate_error, 0.0) @ p4})
+    p5 = seen_from(far, 3.0, math.pi)
+    f = Frame(5, 0.5, np.zeros((2, 2), np.uint8), p5, toy_calibration())
+    (back,) = s.process(f, SgfDescriptors((desc(far, p5, 5),)), estimate, LoopConstraints((loop,))).items
+    return first_b, back
+
+
+def test_a_closed_loop_the_estimate_meets_narrows_the_gate():
+    # 440 m after the first pass the gate (1.5 + 0.05 d + 0.0002 d^2 m) holds both look-alike arrows, unless a
+    # loop the estimate meets restarts the drift: B is then 20 m from the loop's frame and 20 m of path from
+    # its first sighting through the loop (gate 1.5 + 0.05 * 40 + 0.0002 * 40^2 = 3.8 m), A 20 m off its gate
+    first_b, back = _back_after_a_loop(0.0)
+    assert back.group_id == first_b.group_id and not back.new_group
+    assert not back.ambiguous and back.alternatives == ()
+    # a loop the back-end has not absorbed (the estimate is 2 m off it) anchors nothing: the tie stays
+    first_b, back = _back_after_a_loop(2.0)
+    assert back.group_id == first_b.group_id and back.ambiguous and len(back.alternatives) == 1
+    # and the gate can be told to ignore loops
+    first_b, back = _back_after_a_loop(0.0, anchored_gate=False)
+    assert back.group_id == first_b.group_id and back.ambiguous and len(back.alternatives) == 1
 
 
 def test_a_tie_with_an_aliased_group_has_no_alternatives():

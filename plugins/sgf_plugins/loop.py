@@ -29,7 +29,17 @@ through the neighbour consensus (:meth:`IcpLoopClosing._support`): the SGFs seen
 ``consensus_window`` metres, carried by the locally accurate odometry and the option's ICP pose
 into the earlier pass, must land on look-alike SGFs of that pass. The one option with at least
 ``tie_support`` agreeing markings wins; none or several, and the match gives no factor.
-``min_support`` asks the same of every loop. Aliased groups (a repeated pattern) stay refused.
+``min_support`` asks the same of every loop. With ``consensus_wait``, a match that has too few
+agreeing neighbours so far waits while the robot drives ``consensus_window`` metres on, and the
+SGFs seen after it count too: the first marking of a revisit (a reverse one above all, entered
+from a stretch never driven before) has no neighbour behind it that both passes saw.
+
+A match into an aliased group (a repeated pattern: dashes, chevrons, bars) may be with the wrong
+copy, one period away, where the pattern's other copies agree with it too; it needs
+``aliased_support`` agreeing markings that do not look like the query (0: aliased groups never
+give loop factors). When ICP finds several distinct near-equal fits (a twofold symmetric
+shape turned by 180 degrees, a row laid on itself one period on), the gate must leave exactly
+one, else the match is ``not_unique`` (:meth:`IcpLoopClosing._fits`).
 
 On a prior SGF map (``matched`` is a :class:`~sgf_pipeline.sgf_map.MapDescriptor`), a match is
 an inter-session constraint (``from_map``). Before the run is anchored in the map frame there is
@@ -40,7 +50,6 @@ same test); afterwards map matches are gated like loops, the map acting as one a
 
 from __future__ import annotations
 
-import heapq
 import itertools
 import math
 from dataclasses import dataclass, replace
@@ -63,10 +72,14 @@ from sgf_pipeline.types import (
     SequenceTruth,
     SgfDescriptor,
 )
+from sgf_plugins.anchoring import anchored_distances
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2_params
 from sgf_plugins.sgf.polar import shifted_distances
 
 _MAP = -1  # the prior map as one node of the anchoring graph
+#: Two ICP fits further apart than this are distinct fits of one match.
+FIT_TOLERANCE_M = 0.25
+FIT_TOLERANCE_DEG = 5.0
 
 
 class IcpLoopParams(StageParams):
@@ -138,6 +151,18 @@ class IcpLoopParams(StageParams):
         "wins (0 = tied matches never give loop factors)",
     )
     min_support: int = Field(1, ge=0, description="agreeing neighbours every loop needs (0 = ICP and the gate only)")
+    consensus_wait: bool = Field(
+        False,
+        description="a match short of agreeing neighbours waits while the robot drives consensus_window metres on: "
+        "SGFs seen after it count too (false = decide on the SGFs seen before it)",
+    )
+    aliased_support: int = Field(
+        0,
+        ge=0,
+        description="a match into an aliased group (a repeated pattern) needs this many agreeing neighbours that do "
+        "not look like the query, so that no copy of the pattern vouches for another (0 = aliased groups never give "
+        "loop factors)",
+    )
     map_anchor_matches: int = Field(
         2, ge=1, description="consistent map matches (different groups) needed before a run is placed in the map"
     )
@@ -155,6 +180,23 @@ class _Candidate:
     map_truth: np.ndarray | None
     group_id: int
     anchored: bool = False  # a map match made once the run was placed in the map
+
+
+@dataclass(frozen=True)
+class _Waiting:
+    """A match that passed ICP and the gate and waits for agreeing neighbours (``consensus_wait``).
+
+    ``options`` are the candidates of the match (one, or the look-alikes of a tie that passed);
+    the one with ``need`` agreeing neighbours wins. ``refused`` names the count of a match that
+    expires, ``resolved`` the counter of one that is settled (ties, aliases).
+    """
+
+    options: tuple[tuple[GroupAssignment, _Candidate], ...]
+    need: int
+    unlike: bool
+    refused: str
+    resolved: str | None
+    distance: float
 
 
 def drift_covariance(distance: float, p: IcpLoopParams) -> np.ndarray:
@@ -217,6 +259,7 @@ class IcpLoopClosing(Stage):
         self.ground_truth: dict[int, np.ndarray] = {}
         self.accepted: list[_Candidate] = []
         self.pending: list[_Candidate] = []
+        self.waiting: list[_Waiting] = []
         self.assignments: list[GroupAssignment] = []
         self.counts = {
             "candidates": 0,
@@ -227,9 +270,11 @@ class IcpLoopClosing(Stage):
             "icp": 0,
             "gate": 0,
             "consensus": 0,
+            "not_unique": 0,
             "map_unconfirmed": 0,
         }
         self.ties_resolved = 0
+        self.aliases_resolved = 0
         self._sgf_xy: list[np.ndarray] = []
         self._sgf_distance: list[float] = []
         self._sgf_matrix: list[np.ndarray] = []
@@ -243,13 +288,17 @@ class IcpLoopClosing(Stage):
         """Loop constraints of the SGFs assigned to groups on this frame."""
         self._record(frame)
         if assignments is None:
-            return LoopConstraints()
+            return LoopConstraints(tuple(self._settle_waiting(estimate, new_sgfs=False)))
+        waited = len(self.waiting)
         out: list[LoopConstraint] = []
         for a in assignments.items:
             self.assignments.append(replace(a, descriptor=a.descriptor.without_pixels()))  # for the map: no pixels
             if a.descriptor.sgf.frame_index in self.distance:
                 self._remember(a)
             out.extend(self._close(a, estimate))
+        fresh, self.waiting = self.waiting[waited:], self.waiting[:waited]
+        out.extend(self._settle_waiting(estimate, new_sgfs=bool(assignments.items)))
+        self.waiting.extend(fresh)
         return LoopConstraints(tuple(out))
 
     def _record(self, frame: Frame) -> None:
@@ -285,10 +334,8 @@ class IcpLoopClosing(Stage):
         if isinstance(candidate, str):
             self.counts[candidate] += 1
             return []
-        unmapped = candidate.map_pose is None
-        if self.p.min_support > 0 and unmapped and self._support(a, candidate.constraint) < self.p.min_support:
-            self.counts["consensus"] += 1
-            return []
+        if self.p.min_support > 0 and candidate.map_pose is None:
+            return self._consensus(((a, candidate),), self.p.min_support, False, "consensus", None, estimate)
         return self._accept(candidate, estimate)
 
     def _resolve_tie(self, a: GroupAssignment, estimate: PoseEstimate | None) -> list[LoopConstraint]:
@@ -297,25 +344,81 @@ class IcpLoopClosing(Stage):
             replace(a, group_id=alt.group_id, matched=alt.matched, shift=alt.shift, yaw=alt.yaw, alternatives=())
             for alt in a.alternatives
         ]
-        if (
-            a.aliased
-            or not a.alternatives
-            or self.p.tie_support == 0
-            or any(isinstance(o.matched, MapDescriptor) for o in options)
-        ):
+        if any(isinstance(o.matched, MapDescriptor) for o in options):
+            self.counts["ambiguous"] += 1
+            return []
+        if a.aliased and not a.alternatives and self.p.aliased_support > 0:
+            # a repeated pattern: only markings unlike the query may vouch for which copy it is
+            candidate = self._evaluate(a, estimate)
+            if isinstance(candidate, str):
+                self.counts["ambiguous"] += 1
+                return []
+            return self._consensus(((a, candidate),), self.p.aliased_support, True, "ambiguous", "aliases", estimate)
+        if a.aliased or not a.alternatives or self.p.tie_support == 0:
+            self.counts["ambiguous"] += 1
+            return []
+        passed = []
+        for option in options:
+            candidate = self._evaluate(option, estimate)
+            if not isinstance(candidate, str):
+                passed.append((option, candidate))
+        if not passed:
             self.counts["ambiguous"] += 1
             return []
         need = max(self.p.tie_support, self.p.min_support)
-        supported = []
-        for option in options:
-            candidate = self._evaluate(option, estimate)
-            if not isinstance(candidate, str) and self._support(option, candidate.constraint) >= need:
-                supported.append(candidate)
-        if len(supported) != 1:
-            self.counts["ambiguous"] += 1
+        return self._consensus(tuple(passed), need, False, "ambiguous", "ties", estimate)
+
+    # -- waiting for the neighbour consensus --------------------------------------------------
+
+    def _consensus(
+        self,
+        options: tuple[tuple[GroupAssignment, _Candidate], ...],
+        need: int,
+        unlike: bool,
+        refused: str,
+        resolved: str | None,
+        estimate: PoseEstimate | None,
+    ) -> list[LoopConstraint]:
+        """Settle a match by its neighbours now, or let it wait for the SGFs of the next ``consensus_window`` metres."""
+        distance = self.distance[options[0][0].descriptor.sgf.frame_index]
+        waiting = _Waiting(options, need, unlike, refused, resolved, distance)
+        out = self._settle(waiting, estimate, final=not self.p.consensus_wait)
+        if out is None:
+            self.waiting.append(waiting)
             return []
-        self.ties_resolved += 1
-        return self._accept(supported[0], estimate)
+        return out
+
+    def _settle(self, w: _Waiting, estimate: PoseEstimate | None, final: bool) -> list[LoopConstraint] | None:
+        """The constraint of the one option with enough agreeing neighbours, [] when refused, None to wait on."""
+        supported = [c for a, c in w.options if self._support(a, c.constraint, unlike=w.unlike) >= w.need]
+        if len(supported) == 1:
+            if w.resolved == "ties":
+                self.ties_resolved += 1
+            elif w.resolved == "aliases":
+                self.aliases_resolved += 1
+            return self._accept(supported[0], estimate)
+        if len(supported) > 1 or final:
+            self.counts["ambiguous" if len(supported) > 1 else w.refused] += 1
+            return []
+        return None
+
+    def _settle_waiting(self, estimate: PoseEstimate | None, new_sgfs: bool) -> list[LoopConstraint]:
+        """Re-test the waiting matches with the SGFs seen since; expire those the robot has driven past."""
+        if not self.waiting:
+            return []
+        assert self._last is not None
+        here = self.distance[self._last]
+        out: list[LoopConstraint] = []
+        still = []
+        for w in self.waiting:
+            expired = here - w.distance > self.p.consensus_window
+            settled = self._settle(w, estimate, final=expired) if new_sgfs or expired else None
+            if settled is None:
+                still.append(w)
+            else:
+                out.extend(settled)
+        self.waiting = still
+        return out
 
     def _evaluate(self, a: GroupAssignment, estimate: PoseEstimate | None) -> _Candidate | str:
         """Separation, ICP and the gate for one match: the candidate, or the name of the test it failed."""
@@ -352,14 +455,22 @@ class IcpLoopClosing(Stage):
         elif anchored:
             assert map_pose is not None
             predicted = (invert(map_pose) @ self._pose(j, estimate), self._anchored_distance(_MAP, j, estimate))
-        best = self._select(results, predicted)
-        candidate = _Candidate(self._constraint(a, best, from_map), map_pose, map_truth, a.group_id, anchored)
-        if predicted is not None and self.p.gate:
-            c = candidate.constraint
-            cov = c.covariance + drift_covariance(predicted[1], self.p)
-            if mahalanobis2(pose_error(predicted[0], c.relative), cov) > self.threshold:
-                return "gate"
-        return candidate
+        fits = self._fits(results)
+        if predicted is None or not self.p.gate:
+            best = self._select(fits, predicted)
+        else:
+            # several distinct fits (a twofold symmetric shape, a row one period on): the gate must pick one
+            passing = [r for r in fits if self._gated(a, r, from_map, predicted)]
+            if len(passing) != 1:
+                return "not_unique" if passing else "gate"
+            best = passing[0]
+        return _Candidate(self._constraint(a, best, from_map), map_pose, map_truth, a.group_id, anchored)
+
+    def _gated(self, a: GroupAssignment, r: IcpResult, from_map: bool, predicted: tuple[np.ndarray, float]) -> bool:
+        """Whether a fit's relative pose passes the chi-square test against the prediction."""
+        c = self._constraint(a, r, from_map)
+        cov = c.covariance + drift_covariance(predicted[1], self.p)
+        return mahalanobis2(pose_error(predicted[0], c.relative), cov) <= self.threshold
 
     def _accept(self, candidate: _Candidate, estimate: PoseEstimate | None) -> list[LoopConstraint]:
         """Emit a candidate that passed every test (map matches wait for the run's anchoring in the map)."""
@@ -377,18 +488,21 @@ class IcpLoopClosing(Stage):
         self._sgf_distance.append(self.distance[d.sgf.frame_index])
         self._sgf_matrix.append(np.asarray(d.matrix))
 
-    def _support(self, a: GroupAssignment, c: LoopConstraint) -> int:
+    def _support(self, a: GroupAssignment, c: LoopConstraint, unlike: bool = False) -> int:
         """How many other markings near the query agree with the match: seen where it puts them, and alike.
 
         The match says the query's frame sits at ``c.relative`` in the matched frame; odometry is
         accurate over tens of metres, so it carries the SGFs seen within ``consensus_window`` before
-        the query into the earlier pass's odometry frame. A neighbour agrees when an SGF of the
-        earlier pass (within the window around the matched SGF, and at least
-        ``min_separation_distance`` of path before the neighbour) lies within ``consensus_radius +
-        consensus_drift * (path from the two sightings)`` of it with an eq. 10 distance of at most
-        ``consensus_distance``. Agreeing neighbours closer than ``consensus_exclude`` to each other,
-        or to the query, are one marking; the count is of markings. A look-alike marking elsewhere
-        on campus has other neighbours, so its match finds none.
+        the query (and after it so far, with ``consensus_wait``) into the earlier pass's odometry
+        frame. A neighbour agrees when an SGF of the earlier pass (within the window around the
+        matched SGF, and at least ``min_separation_distance`` of path before the neighbour) lies
+        within ``consensus_radius + consensus_drift * (path from the two sightings)`` of it with an
+        eq. 10 distance of at most ``consensus_distance``. Agreeing neighbours closer than
+        ``consensus_exclude`` to each other, or to the query, are one marking; the count is of
+        markings. A look-alike marking elsewhere on campus has other neighbours, so its match finds
+        none. With ``unlike``, neighbours that look like the query (eq. 10 distance at most
+        ``consensus_distance``) do not count: in a repeated pattern they are its other copies, which
+        agree with a match shifted by a period.
         """
         p = self.p
         assert a.matched is not None
@@ -401,16 +515,22 @@ class IcpLoopClosing(Stage):
         dist = np.asarray(self._sgf_distance)
         d_j, d_i = self.distance[query.sgf.frame_index], self.distance[matched.sgf.frame_index]
         q_xy, m_xy = _odometry_xy(query), _odometry_xy(matched)
-        near_query = (dist >= d_j - p.consensus_window) & (dist <= d_j)
+        near_query = (dist >= d_j - p.consensus_window) & (
+            dist <= d_j + (p.consensus_window if p.consensus_wait else 0.0)
+        )
         near_query &= np.hypot(*(xy - q_xy).T) > p.consensus_exclude
         near_match = (np.abs(dist - d_i) <= p.consensus_window) & (np.hypot(*(xy - m_xy).T) > p.consensus_exclude)
         earlier = np.flatnonzero(near_match)
         if not len(earlier):
             return 0
         agreeing: list[np.ndarray] = []
-        for k in np.flatnonzero(near_query):
+        neighbours = np.flatnonzero(near_query)
+        if unlike and len(neighbours):
+            alike = shifted_distances(query.matrix, np.stack([self._sgf_matrix[k] for k in neighbours])).min(axis=1)
+            neighbours = neighbours[alike > p.consensus_distance]
+        for k in neighbours:
             here = rot @ xy[k] + (x, y)
-            tolerance = p.consensus_radius + p.consensus_drift * (d_j - dist[k] + np.abs(dist[earlier] - d_i))
+            tolerance = p.consensus_radius + p.consensus_drift * (abs(d_j - dist[k]) + np.abs(dist[earlier] - d_i))
             close = earlier[
                 (np.hypot(*(xy[earlier] - here).T) <= tolerance)
                 & (dist[earlier] <= dist[k] - p.min_separation_distance)
@@ -454,10 +574,30 @@ class IcpLoopClosing(Stage):
                 good.append(r)
         return good
 
+    def _fits(self, results: list[IcpResult]) -> list[IcpResult]:
+        """The distinct near-equal fits of a match (RMS within ``ambiguity_ratio`` of the best), best first.
+
+        Several come from a twofold symmetric shape turned by 180 degrees, or from a row of
+        triangles or bars laid on itself one period on. Fits closer than ``FIT_TOLERANCE_M`` and
+        ``FIT_TOLERANCE_DEG`` are one.
+        """
+        best = min(r.fitness for r in results)
+        distinct: list[IcpResult] = []
+        for r in sorted(results, key=lambda r: r.fitness):
+            if r.fitness > best * self.p.ambiguity_ratio:
+                break
+            x, y, yaw = r.pose
+            if all(
+                math.hypot(x - d.pose[0], y - d.pose[1]) > FIT_TOLERANCE_M
+                or abs(wrap_angle(yaw - d.pose[2])) > math.radians(FIT_TOLERANCE_DEG)
+                for d in distinct
+            ):
+                distinct.append(r)
+        return distinct
+
     def _select(self, results: list[IcpResult], predicted: tuple[np.ndarray, float] | None) -> IcpResult:
-        """The best fit; among near-equal fits (a twofold symmetric shape), the one nearest the prediction."""
-        best = min(results, key=lambda r: r.fitness)
-        near = [r for r in results if r.fitness <= best.fitness * self.p.ambiguity_ratio]
+        """The first fit; among several (a twofold symmetric shape), the one nearest the prediction (gate off)."""
+        best, near = results[0], results
         if predicted is None or len(near) == 1:
             return best
         target, distance = predicted
@@ -515,34 +655,25 @@ class IcpLoopClosing(Stage):
         return any(c.constraint.from_map and self._absorbed(c, estimate) for c in self.accepted)
 
     def _anchored_distance(self, a: int, b: int, estimate: PoseEstimate | None) -> float:
-        """Shortest odometry path from ``a`` to ``b`` where absorbed loops (and the map) join frames at no cost."""
-        edges: list[tuple[int, int]] = []
+        """Path distance from ``a`` to ``b`` where absorbed loops (and the map) join frames at no cost."""
+        shortcuts: list[tuple[float, float]] = []
+        on_map: list[float] = []  # frames anchored in the map are all joined through it
         for c in self.accepted:
             if self._absorbed(c, estimate):
                 k = c.constraint
-                edges.append((_MAP if k.from_map else k.frame_from, k.frame_to))
-        frames = sorted({a, b, *(f for e in edges for f in e)} - {_MAP})
-        graph: dict[int, list[tuple[int, float]]] = {n: [] for n in [*frames, _MAP]}
-        for f, g in itertools.pairwise(frames):
-            w = abs(self.distance[g] - self.distance[f])
-            graph[f].append((g, w))
-            graph[g].append((f, w))
-        for f, g in edges:
-            graph[f].append((g, 0.0))
-            graph[g].append((f, 0.0))
-        best = {a: 0.0}
-        queue = [(0.0, a)]
-        while queue:
-            d, n = heapq.heappop(queue)
-            if n == b:
-                return d
-            if d > best.get(n, math.inf):
-                continue
-            for m, w in graph[n]:
-                if d + w < best.get(m, math.inf):
-                    best[m] = d + w
-                    heapq.heappush(queue, (d + w, m))
-        return math.inf
+                if k.from_map:
+                    on_map.append(self.distance[k.frame_to])
+                else:
+                    shortcuts.append((self.distance[k.frame_from], self.distance[k.frame_to]))
+        on_map.sort()
+        shortcuts.extend(itertools.pairwise(on_map))
+        if a == _MAP:
+            if not on_map:
+                return math.inf
+            start = on_map[0]
+        else:
+            start = self.distance[a]
+        return float(anchored_distances(start, np.array([self.distance[b]]), shortcuts)[0])
 
     def _confirm_map(self, candidate: _Candidate, estimate: PoseEstimate | None) -> list[LoopConstraint]:
         """Hold map matches until enough of them (different groups) agree on where the run is in the map."""
@@ -589,6 +720,9 @@ class IcpLoopClosing(Stage):
 
     def finalize(self, context: RunContext) -> None:
         """Loop metrics (Table 3: loops closed, reverse ones, false ones) and the accepted loops for plots."""
+        for w in self.waiting:  # the run ended before they were settled
+            self.counts[w.refused] += 1
+        self.waiting = []
         truths = [self._true(c) for c in self.accepted]
         known = [t for t in truths if t is not None]
         loops: dict[str, Any] = {
@@ -599,6 +733,7 @@ class IcpLoopClosing(Stage):
             "rejected": {k: v for k, v in self.counts.items() if k != "candidates"},
             "candidates": self.counts["candidates"],
             "ties_resolved": self.ties_resolved,
+            "aliases_resolved": self.aliases_resolved,
         }
         truth = context.truth if context.truth is not None else self.truth
         if not self.accepted and (truth is not None or self.ground_truth):

@@ -19,11 +19,13 @@ from sgf_pipeline.types import (
     GroupAssignment,
     GroupAssignments,
     LookAlike,
+    LoopConstraints,
     PoseEstimate,
     SequenceTruth,
     SgfDescriptor,
     SgfDescriptors,
 )
+from sgf_plugins.anchoring import anchored_distances
 from sgf_plugins.sgf.polar import (
     ColumnSet,
     align,
@@ -125,6 +127,14 @@ class OnlineGroupsParams(StageParams):
     prior_map: str | None = Field(
         None, description="an SGF map (sgf_map.safetensors) whose groups seed the association: localization on it"
     )
+    anchored_gate: bool = Field(
+        True,
+        description="count the gate's distance travelled from the loop closures the estimate satisfies (drift "
+        "restarts at a closed loop); false = between the two sightings only",
+    )
+    anchor_tolerance: float = Field(
+        0.5, gt=0.0, description="a loop anchors the gate when the estimate meets its relative pose within this (m)"
+    )
     yaw_tolerance: float = Field(
         0.02,
         ge=0.0,
@@ -178,6 +188,19 @@ class _MemberIndex:
 
 
 _NO_ESTIMATE = object()
+#: A loop anchors the gate when the estimate's relative yaw between its frames is within this of the loop's (rad).
+ANCHOR_YAW_TOLERANCE = 0.05
+
+
+@dataclass(frozen=True)
+class _Closure:
+    """An accepted loop closure of this run and the distance travelled up to each of its frames."""
+
+    frame_from: int
+    frame_to: int
+    relative: np.ndarray
+    travelled_from: float
+    travelled_to: float
 
 
 class OnlineSgfGroups(Stage):
@@ -187,7 +210,11 @@ class OnlineSgfGroups(Stage):
     ``gate_radius + drift_rate * (distance travelled between the two sightings)`` of the query's.
     Map positions apply the back-end's previous estimate of the member's frame to its centroid,
     or the odometry pose when no back-end runs; the gate keeps identical standard markings at
-    different places (perceptual aliasing) in different groups while allowing for drift.
+    different places (perceptual aliasing) in different groups while allowing for drift. With
+    ``anchored_gate``, the distance travelled is counted as the loop stage counts it
+    (:mod:`sgf_plugins.anchoring`): a loop closure that the estimate meets (within
+    ``anchor_tolerance``) joins its two frames at no cost, so once a revisit is anchored the gate
+    shrinks back to what the odometry drifts since the loop, not since the first sighting.
 
     The query joins the candidate group of smallest eq. 10 distance if it is at most
     ``new_group_distance`` (0.7), else it opens a group (then ``distance`` is the smallest
@@ -234,6 +261,8 @@ class OnlineSgfGroups(Stage):
         self._next_id = 0
         self._index = _MemberIndex()
         self._slot: dict[int, int] = {}
+        self._closures: list[_Closure] = []
+        self._shortcuts: tuple[object, list[tuple[float, float]]] = (_NO_ESTIMATE, [])
 
     # -- groups ---------------------------------------------------------------------------
 
@@ -277,6 +306,8 @@ class OnlineSgfGroups(Stage):
         self._distance = 0.0
         self._index = _MemberIndex()
         self._slot = {g.group_id: k for k, g in enumerate(self._groups)}
+        self._closures = []
+        self._shortcuts = (_NO_ESTIMATE, [])
         for k, group in enumerate(self._groups):
             for member, anchor in zip(group.members, group.anchors, strict=True):
                 self._index.add(k, member, None, anchor)
@@ -385,9 +416,14 @@ class OnlineSgfGroups(Stage):
         if unknown.any():
             odometry = np.asarray(query.sgf.odometry, dtype=np.float64)[:3, 3]
             travelled[unknown] = np.linalg.norm(index.odometry[:n][unknown, :3, 3] - odometry, axis=1)
+        repeated = ~anchored & (travelled <= p.repeat_window) & (distance > p.repeat_radius)
+        if p.anchored_gate and since is not None:
+            shortcuts = self._anchoring(estimate)
+            if shortcuts:
+                known = ~unknown
+                travelled[known] = anchored_distances(since, index.travelled[:n][known], shortcuts)
         radius = p.gate_radius + p.drift_rate * travelled + p.drift_quadratic * travelled**2
         radius[anchored] = math.inf if p.prior_gate_radius is None else p.prior_gate_radius
-        repeated = ~anchored & (travelled <= p.repeat_window) & (distance > p.repeat_radius)
         groups = index.group[:n]
         count = len(self._groups)
         nearest = np.full(count, math.inf)
@@ -399,6 +435,48 @@ class OnlineSgfGroups(Stage):
         return [
             GatedGroup(group, float(nearest[k]), bool(repeats[k])) for k, group in enumerate(self._groups) if inside[k]
         ]
+
+    def _remember_loops(self, loops: LoopConstraints | None) -> None:
+        """Keep this run's accepted loop closures (map matches are anchored by the map's own gate)."""
+        for c in () if loops is None else loops.items:
+            if c.from_map:
+                continue
+            ends = [self._travelled_at(c.frame_from), self._travelled_at(c.frame_to)]
+            if all(t is not None for t in ends):
+                self._closures.append(_Closure(c.frame_from, c.frame_to, np.asarray(c.relative), *ends))  # type: ignore[arg-type]
+
+    def _travelled_at(self, frame_index: int) -> float | None:
+        """Distance travelled up to a frame: remembered for recent frames and for group members."""
+        known = self._travelled.get(frame_index)
+        if known is not None:
+            return known
+        index = self._index
+        hits = np.flatnonzero(index.frame[: index.size] == frame_index)
+        if hits.size and not math.isnan(index.travelled[hits[0]]):
+            return float(index.travelled[hits[0]])
+        return None
+
+    def _anchoring(self, estimate: PoseEstimate | None) -> list[tuple[float, float]]:
+        """Travelled distances of the two frames of each loop closure the estimate satisfies (cached per estimate).
+
+        A loop the back-end has not absorbed (no back-end, a loop down-weighted by the robust kernel)
+        anchors nothing: between its frames the estimate may still carry the whole drift.
+        """
+        if estimate is None or not self._closures:
+            return []
+        if self._shortcuts[0] is estimate:
+            return self._shortcuts[1]
+        tolerance = self.params.anchor_tolerance
+        shortcuts = []
+        for c in self._closures:
+            start, end = estimate.poses.get(c.frame_from), estimate.poses.get(c.frame_to)
+            if start is None or end is None:
+                continue
+            error = invert(c.relative) @ invert(np.asarray(start)) @ np.asarray(end)
+            if math.hypot(error[0, 3], error[1, 3]) <= tolerance and abs(xy_yaw(error)[2]) <= ANCHOR_YAW_TOLERANCE:
+                shortcuts.append((c.travelled_from, c.travelled_to))
+        self._shortcuts = (estimate, shortcuts)
+        return shortcuts
 
     # -- eq. 10 ------------------------------------------------------------------------------
 
@@ -507,9 +585,16 @@ class OnlineSgfGroups(Stage):
         _, matched, shift = self._closest_member(query, group, estimate)
         return LookAlike(group.group_id, matched, shift, shift_to_yaw(shift, query.matrix.shape[1]))
 
-    def process(self, frame: Frame, descriptors: SgfDescriptors, estimate: Previous[PoseEstimate]) -> GroupAssignments:
+    def process(
+        self,
+        frame: Frame,
+        descriptors: SgfDescriptors,
+        estimate: Previous[PoseEstimate],
+        loops: Previous[LoopConstraints] = None,
+    ) -> GroupAssignments:
         """Group this frame's SGF descriptors."""
         self._record(frame)
+        self._remember_loops(loops)
         return GroupAssignments(tuple(self.assign(d, estimate) for d in descriptors.items))
 
     # -- evaluation ---------------------------------------------------------------------------
