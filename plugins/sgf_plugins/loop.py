@@ -289,16 +289,14 @@ class IcpLoopClosing(Stage):
         self._record(frame)
         if assignments is None:
             return LoopConstraints(tuple(self._settle_waiting(estimate, new_sgfs=False)))
-        waited = len(self.waiting)
+        earlier, self.waiting = self.waiting, []  # this frame's matches were just decided: they wait untested
         out: list[LoopConstraint] = []
         for a in assignments.items:
             self.assignments.append(replace(a, descriptor=a.descriptor.without_pixels()))  # for the map: no pixels
             if a.descriptor.sgf.frame_index in self.distance:
                 self._remember(a)
             out.extend(self._close(a, estimate))
-        fresh, self.waiting = self.waiting[waited:], self.waiting[:waited]
-        out.extend(self._settle_waiting(estimate, new_sgfs=bool(assignments.items)))
-        self.waiting.extend(fresh)
+        out.extend(self._settle_waiting(estimate, new_sgfs=bool(assignments.items), waiting=earlier))
         return LoopConstraints(tuple(out))
 
     def _record(self, frame: Frame) -> None:
@@ -402,22 +400,25 @@ class IcpLoopClosing(Stage):
             return []
         return None
 
-    def _settle_waiting(self, estimate: PoseEstimate | None, new_sgfs: bool) -> list[LoopConstraint]:
-        """Re-test the waiting matches with the SGFs seen since; expire those the robot has driven past."""
-        if not self.waiting:
-            return []
+    def _settle_waiting(
+        self, estimate: PoseEstimate | None, new_sgfs: bool, waiting: list[_Waiting] | None = None
+    ) -> list[LoopConstraint]:
+        """Re-test waiting matches (all, or ``waiting`` taken out of the list) with the SGFs seen since.
+
+        Those the robot has driven ``consensus_window`` past expire; the unsettled go back on the list.
+        """
+        if waiting is None:
+            waiting, self.waiting = self.waiting, []
         assert self._last is not None
         here = self.distance[self._last]
         out: list[LoopConstraint] = []
-        still = []
-        for w in self.waiting:
+        for w in waiting:
             expired = here - w.distance > self.p.consensus_window
             settled = self._settle(w, estimate, final=expired) if new_sgfs or expired else None
             if settled is None:
-                still.append(w)
+                self.waiting.append(w)
             else:
                 out.extend(settled)
-        self.waiting = still
         return out
 
     def _evaluate(self, a: GroupAssignment, estimate: PoseEstimate | None) -> _Candidate | str:
@@ -597,12 +598,11 @@ class IcpLoopClosing(Stage):
 
     def _select(self, results: list[IcpResult], predicted: tuple[np.ndarray, float] | None) -> IcpResult:
         """The first fit; among several (a twofold symmetric shape), the one nearest the prediction (gate off)."""
-        best, near = results[0], results
-        if predicted is None or len(near) == 1:
-            return best
+        if predicted is None or len(results) == 1:
+            return results[0]
         target, distance = predicted
         cov = drift_covariance(distance, self.p)
-        return min(near, key=lambda r: mahalanobis2(pose_error(target, _pose4(r)), cov + r.covariance))
+        return min(results, key=lambda r: mahalanobis2(pose_error(target, _pose4(r)), cov + r.covariance))
 
     def _constraint(self, a: GroupAssignment, r: IcpResult, from_map: bool) -> LoopConstraint:
         """The relative pose of the query's frame in the matched frame, with the floored ICP covariance."""
