@@ -26,6 +26,8 @@ from sgf_plugins.ipm import (
     IpmParams,
     MotionCompensatedIPM,
     MotionCompensatedIpmParams,
+    PlaneMotionCompensatedIPM,
+    PlaneMotionCompensatedIpmParams,
     PoseQueue,
     bev_to_image_homography,
     visible_mask,
@@ -108,6 +110,8 @@ def run(n: int, repeats: int) -> dict[str, float]:
     out["plain_frame"] = _timed(lambda i: plain.process(frames[i], images[i]), n, repeats)
     out["mc_frame"] = _timed(lambda i: mc.process(frames[i], images[i]), n, repeats)
     out["mc_ahead_frame"] = _timed(lambda i: ahead.process(frames[i], images[i]), n, repeats)
+    plane = PlaneMotionCompensatedIPM(PlaneMotionCompensatedIpmParams(**AHEAD_MC))
+    out["mc_plane_frame"] = _timed(lambda i: plane.process(frames[i], images[i]), max(10, n // 4), repeats)
     try:
         import torch
 
@@ -159,6 +163,7 @@ def report(t: dict[str, float]) -> str:
         ("plain_frame", "**ipm=plain** process()"),
         ("mc_frame", "**ipm=mc** process(): queue, H, mask, warp"),
         ("mc_ahead_frame", "**ipm=mc_ahead** process()"),
+        ("mc_plane_frame", "**ipm=mc_plane** process(): mc_ahead + the two-view plane fit (3 levels)"),
         ("mc_frame_all_cores", "ipm=mc process(), cv2 on all cores"),
         ("mc_frame_kornia_cpu", "ipm=mc backend=kornia, CPU, 1 torch thread"),
     ):

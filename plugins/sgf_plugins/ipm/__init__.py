@@ -1,4 +1,4 @@
-"""IPM stages (paper Sec. III-A, eq. 1-4): ``ipm=plain`` and the motion-compensated ``ipm=mc``."""
+"""IPM stages (paper Sec. III-A, eq. 1-4): ``ipm=plain``, the motion-compensated ``ipm=mc`` and ``ipm=mc_plane``."""
 
 from __future__ import annotations
 
@@ -18,6 +18,8 @@ from sgf_plugins.ipm.stages import (
     IpmParams,
     MotionCompensatedIPM,
     MotionCompensatedIpmParams,
+    PlaneMotionCompensatedIPM,
+    PlaneMotionCompensatedIpmParams,
 )
 
 __all__ = [
@@ -25,6 +27,8 @@ __all__ = [
     "IpmParams",
     "MotionCompensatedIPM",
     "MotionCompensatedIpmParams",
+    "PlaneMotionCompensatedIPM",
+    "PlaneMotionCompensatedIpmParams",
     "PoseQueue",
     "ReferenceAttitude",
     "bev_to_image_homography",
@@ -40,6 +44,7 @@ __all__ = [
 
 @hookimpl
 def sgf_register_stages(registry: StageRegistry) -> None:
-    """Register plain IPM and MC-IPM."""
+    """Register plain IPM, MC-IPM and MC-IPM with the ground plane measured from two views."""
     registry.add(InversePerspectiveMapping)
     registry.add(MotionCompensatedIPM)
+    registry.add(PlaneMotionCompensatedIPM)

@@ -41,6 +41,8 @@ from sgf_plugins.ipm.stages import (
     IpmParams,
     MotionCompensatedIPM,
     MotionCompensatedIpmParams,
+    PlaneMotionCompensatedIPM,
+    PlaneMotionCompensatedIpmParams,
 )
 
 GroundKind = Literal["flat", "slope", "transition", "bump"]
@@ -169,11 +171,12 @@ AHEAD_MC: dict[str, Any] = {"reference_fit": "line", "lookahead": 2.0, "attitude
 
 
 def default_variants() -> dict[str, InversePerspectiveMapping]:
-    """Plain IPM, MC-IPM as in the paper (``ipm=mc``) and with its extensions (``ipm=mc_ahead``)."""
+    """Plain IPM, the paper's MC-IPM (``ipm=mc``), ``ipm=mc_ahead`` and ``ipm=mc_plane`` (plane fitted to two views)."""
     return {
         "plain": InversePerspectiveMapping(IpmParams()),
         "mc": MotionCompensatedIPM(MotionCompensatedIpmParams()),
         "mc_ahead": MotionCompensatedIPM(MotionCompensatedIpmParams(**AHEAD_MC)),
+        "mc_plane": PlaneMotionCompensatedIPM(PlaneMotionCompensatedIpmParams(**AHEAD_MC)),
     }
 
 
@@ -207,7 +210,7 @@ def evaluate(
         result.frames.append(k)
         result.kinds.append(ground_kind(world, pose))
         for name, stage in stages.items():
-            psi, theta = stage.compensation(frame)
+            psi, theta = stage.compensation(frame, layers.image)
             h = stage.homography(frame.calibration, psi, theta)
             result.errors[name].append(_position_error(relative, pose, h, samples[stage.grid]))
     return result

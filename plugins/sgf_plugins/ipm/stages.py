@@ -15,6 +15,7 @@ from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.geometry import rpy_from_rotation
 from sgf_pipeline.types import Bev, BevGrid, CameraImage, Frame
 from sgf_plugins.ipm.geometry import RollAxis, bev_to_image_homography, visible_mask
+from sgf_plugins.ipm.ground_plane import GradeFilter, GroundPlaneTracker
 from sgf_plugins.ipm.reference import PoseQueue, ReferenceAttitude, ReferenceCenter, ReferenceFit
 
 _INTERPOLATION = {"linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST, "cubic": cv2.INTER_CUBIC}
@@ -84,8 +85,8 @@ class InversePerspectiveMapping(Stage):
         """Forget the calibration checked on the previous sequence."""
         self._checked = None
 
-    def compensation(self, frame: Frame) -> tuple[float, float]:
-        """``(psi, theta)`` of eq. 1-2 for this frame: none for plain IPM."""
+    def compensation(self, frame: Frame, image: np.ndarray | None = None) -> tuple[float, float]:
+        """``(psi, theta)`` of eq. 1-2 for this frame (``image``: the pixels the IPM warps): none for plain IPM."""
         return 0.0, 0.0
 
     def homography(self, calibration: Calibration, psi: float = 0.0, theta: float = 0.0) -> np.ndarray:
@@ -97,7 +98,7 @@ class InversePerspectiveMapping(Stage):
         pixels = image.pixels
         calibration = frame.calibration
         self._check(calibration, pixels)
-        psi, theta = self.compensation(frame)
+        psi, theta = self.compensation(frame, pixels)
         h = self.homography(calibration, psi, theta)
         bev, valid = self.warp(pixels, h)
         ids = frame.truth_ids()
@@ -284,6 +285,7 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
         )
         self._last_position: np.ndarray | None = None
         self.last_reference: ReferenceAttitude | None = None
+        self.last_motion = (0.0, 0.0)
         self.counts: dict[str, int] = {}
         self._reset_counts()
 
@@ -324,7 +326,7 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
             return float(roll), float(pitch)
         return _odometry_attitude(frame)
 
-    def compensation(self, frame: Frame) -> tuple[float, float]:
+    def compensation(self, frame: Frame, image: np.ndarray | None = None) -> tuple[float, float]:
         """``(psi, theta)`` of eq. 1-2: the current attitude relative to the queue's reference."""
         self.counts["frames"] += 1
         roll, pitch = self.attitude(frame)
@@ -332,6 +334,7 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
             roll, pitch = _odometry_attitude(frame)
             if math.isfinite(roll) and math.isfinite(pitch):
                 self._count("attitude_from_odometry", frame, "the IMU roll/pitch is not finite; the odometry's is used")
+        self.last_motion = (0.0, 0.0)
         if not (math.isfinite(roll) and math.isfinite(pitch)):
             self._count("attitude_dropouts", frame, "no finite roll/pitch; warped at the reference attitude")
             return 0.0, 0.0
@@ -347,6 +350,7 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
         # it is kept whole when large (a bump) and mostly dropped when of the noise's size
         roll_motion = _shrink(roll - reference.roll, noise)
         pitch_motion = _shrink(pitch - reference.pitch, noise)
+        self.last_motion = (-roll_motion, pitch_motion)  # the robot's own (psi, theta) against its ground
         psi = -roll_motion if self.params.compensate_roll else 0.0
         # the ground ahead's pitch against the ground under the robot: exactly 0.0 for the paper's mean
         ahead = reference.pitch - reference.target_pitch
@@ -371,3 +375,145 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
     def homography(self, calibration: Calibration, psi: float = 0.0, theta: float = 0.0) -> np.ndarray:
         """BEV index coordinates -> image pixels, compensated by ``psi`` and ``theta`` (eq. 1-4)."""
         return bev_to_image_homography(calibration, self.grid, psi, theta, self.params.roll_axis)
+
+
+class PlaneMotionCompensatedIpmParams(MotionCompensatedIpmParams):
+    """``ipm=mc_plane``: ``ipm=mc_ahead``'s attitude, with the ground ahead's plane measured from two views."""
+
+    reference_fit: ReferenceFit = "line"
+    lookahead: float = 2.0
+    attitude_noise: float = 0.005
+    plane_baseline: float = Field(1.0, gt=0.0, description="metres driven between the two views the plane is fitted to")
+    plane_min_baseline: float = Field(0.5, gt=0.0, description="no fit with less than this between the views")
+    plane_scales: list[int] = Field(
+        default_factory=lambda: [4, 2, 1],
+        min_length=1,
+        description="image downsampling per level of the fit, coarse to fine",
+    )
+    plane_iterations: int = Field(8, ge=1, description="Gauss-Newton iterations per level")
+    plane_rotation_prior: float = Field(
+        0.005, gt=0.0, description="rad: the odometry's relative rotation between the views, corrected by the fit"
+    )
+    plane_height_prior: float = Field(
+        0.03, gt=0.0, description="relative: the odometry's scale (camera height over the plane), corrected by the fit"
+    )
+    plane_measurement_noise: float = Field(0.003, gt=0.0, description="rad: one fit's noise (the filter's R)")
+    plane_rate_noise: float = Field(
+        0.01, gt=0.0, description="rad/m per sqrt(m): how fast the grade ahead may change (the filter's Q)"
+    )
+    plane_bump_threshold: float = Field(
+        0.01,
+        gt=0.0,
+        description="rad: while the robot's own pitch (the IMU against the reference) exceeds this, "
+        "within a baseline, the fit is not used (a bump's image pair breaks the plane); the IMU compensates",
+    )
+
+    @model_validator(mode="after")
+    def _check_plane(self) -> PlaneMotionCompensatedIpmParams:
+        if self.plane_min_baseline > self.plane_baseline:
+            raise ValueError(
+                f"plane_min_baseline ({self.plane_min_baseline}) must not exceed plane_baseline ({self.plane_baseline})"
+            )
+        if any(scale < 1 for scale in self.plane_scales):
+            raise ValueError(f"plane_scales must be whole downsampling factors >= 1, got {list(self.plane_scales)}")
+        return self
+
+
+class PlaneMotionCompensatedIPM(MotionCompensatedIPM):
+    """MC-IPM whose BEV plane is the ground ahead as the camera sees it (extension of Sec. III-A).
+
+    The robot's own roll and pitch against its ground (a bump) come from the IMU as in ``ipm=mc_ahead``
+    (eq. 1-2 against the queue's reference, the noise shrunk out). The ground ahead's attitude
+    against the ground under the robot, which no past pose knows at the foot or crest of a hill,
+    is measured from the image: :class:`~sgf_plugins.ipm.ground_plane.GroundPlaneTracker` fits the
+    plane that maps the current view onto one about ``plane_baseline`` metres back, and a Kalman
+    filter over distance (:class:`~sgf_plugins.ipm.ground_plane.GradeFilter`) smooths the fitted
+    ``(psi, theta)`` minus the robot's own. Until the first fit, and without an image, it is
+    ``ipm=mc_ahead``. ``finalize`` adds ``plane_fits``, ``plane_skipped_bumps`` and
+    ``plane_no_fit`` to metrics.json under ``ipm``.
+    """
+
+    name = "mc_plane"
+    Params = PlaneMotionCompensatedIpmParams
+
+    def __init__(self, params: PlaneMotionCompensatedIpmParams) -> None:
+        super().__init__(params)
+        self.params: PlaneMotionCompensatedIpmParams = params
+        self.tracker = GroundPlaneTracker(
+            self.grid,
+            baseline=params.plane_baseline,
+            min_baseline=params.plane_min_baseline,
+            scales=tuple(params.plane_scales),
+            iterations=params.plane_iterations,
+            rotation_prior=params.plane_rotation_prior,
+            height_prior=params.plane_height_prior,
+            roll_axis=params.roll_axis,
+        )
+        self.pitch_filter = GradeFilter(params.plane_rate_noise, params.plane_measurement_noise)
+        self.roll_filter = GradeFilter(params.plane_rate_noise, params.plane_measurement_noise)
+        self._recent_motion: list[tuple[float, float]] = []
+        self._travelled = 0.0
+        self._plane_position: np.ndarray | None = None
+        self._start: tuple[float, float] | None = None
+        self.plane_counts = {"plane_fits": 0, "plane_skipped_bumps": 0, "plane_no_fit": 0}
+
+    def begin(self, context: RunContext) -> None:
+        """Forget the views, the filters and the counts of the previous sequence."""
+        super().begin(context)
+        self.tracker.reset()
+        self.pitch_filter.reset()
+        self.roll_filter.reset()
+        self._recent_motion = []
+        self._travelled = 0.0
+        self._plane_position = None
+        self._start = None
+        self.plane_counts = dict.fromkeys(self.plane_counts, 0)
+
+    def finalize(self, context: RunContext) -> None:
+        """MC-IPM's counts, and how many frames had a plane fit, were skipped in a bump, or had none."""
+        super().finalize(context)
+        context.metrics.setdefault("ipm", {}).update(self.plane_counts)
+
+    def compensation(self, frame: Frame, image: np.ndarray | None = None) -> tuple[float, float]:
+        """``(psi, theta)``: the robot's own attitude (IMU) plus the ground ahead's (fitted, filtered)."""
+        psi_ahead, theta_ahead = super().compensation(frame, image)
+        psi_motion, theta_motion = self.last_motion
+        step = self._step_plane(frame)
+        self.pitch_filter.predict(step)
+        self.roll_filter.predict(step)
+        threshold = self.params.plane_bump_threshold
+        window = self.params.plane_baseline + 0.4
+        self._recent_motion = [(d, m) for d, m in self._recent_motion if self._travelled - d <= window]
+        bumpy = abs(theta_motion) > threshold or any(m > threshold for _, m in self._recent_motion)
+        self._recent_motion.append((self._travelled, abs(theta_motion)))
+        if image is not None:
+            start = self._start if self._start is not None else (psi_ahead, theta_ahead)
+            fit = self.tracker.measure(image, frame.odometry, frame.calibration, *start)
+            if fit is None:
+                self.plane_counts["plane_no_fit"] += 1
+                self._start = None
+            elif bumpy:
+                self.plane_counts["plane_skipped_bumps"] += 1
+                self._start = (fit.psi, fit.theta)
+            else:
+                self.plane_counts["plane_fits"] += 1
+                self.pitch_filter.update(fit.theta - theta_motion)
+                self.roll_filter.update(fit.psi - psi_motion)
+                self._start = (fit.psi, fit.theta)
+        pitch_ahead, roll_ahead = self.pitch_filter.value, self.roll_filter.value
+        if pitch_ahead is None or roll_ahead is None:
+            return psi_ahead, theta_ahead
+        psi = psi_motion + roll_ahead if self.params.compensate_roll else 0.0
+        theta = theta_motion + pitch_ahead if self.params.compensate_pitch else 0.0
+        return psi, theta
+
+    def _step_plane(self, frame: Frame) -> float:
+        """Metres driven since the previous frame (0 when the odometry is not finite)."""
+        odometry = np.asarray(frame.odometry, dtype=np.float64)
+        if odometry.shape != (4, 4) or not np.all(np.isfinite(odometry[:3, 3])):
+            return 0.0
+        position = odometry[:3, 3].copy()
+        previous, self._plane_position = self._plane_position, position
+        step = 0.0 if previous is None else float(np.linalg.norm(position - previous))
+        self._travelled += step
+        return step
