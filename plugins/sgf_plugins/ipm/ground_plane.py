@@ -32,7 +32,7 @@ from sgf_plugins.ipm.geometry import RollAxis, bev_to_image_homography, compensa
 
 #: Parameters: psi, theta (rad, eq. 1-2), log of the height scale, relative rotation correction (rad, 3).
 NUM_PARAMS = 6
-_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4])
+_STEP = 1e-4  # finite-difference step of every parameter
 
 
 @dataclass(frozen=True)
@@ -80,7 +80,6 @@ class GroundPlaneTracker:
         height_prior: float = 0.03,
         roll_axis: RollAxis = "optical",
         history: int = 64,
-        distance_weight: float = 0.0,
     ) -> None:
         if min_baseline <= 0.0 or baseline < min_baseline:
             raise ValueError(f"need 0 < min_baseline ({min_baseline}) <= baseline ({baseline})")
@@ -94,8 +93,6 @@ class GroundPlaneTracker:
         self.roll_axis = roll_axis
         v, u = np.mgrid[sample_step // 2 : grid.height : sample_step, sample_step // 2 : grid.width : sample_step]
         self._bev_samples = np.stack([u.ravel(), v.ravel(), np.ones(u.size)]).astype(np.float64)
-        ahead, _ = grid.pixel_to_ground(u.ravel(), v.ravel())
-        self._sample_weights = (ahead / ahead.mean()) ** distance_weight
         self._views: deque[_View] = deque(maxlen=history)
         self._travelled = 0.0
         self._last_position: np.ndarray | None = None
@@ -172,7 +169,6 @@ class GroundPlaneTracker:
         if inside.sum() < 200:
             return None
         u, v = u[inside], v[inside]
-        prior_weights = self._sample_weights[inside]
         params = np.array([psi, theta, 0.0, 0.0, 0.0, 0.0])
         prior_std = np.array([np.inf, np.inf, self.height_prior, *(3 * [self.rotation_prior])])
         precision = np.where(np.isfinite(prior_std), 1.0 / np.square(prior_std), 0.0)
@@ -219,15 +215,15 @@ class GroundPlaneTracker:
                 derivatives = np.empty((valid.sum(), NUM_PARAMS))
                 for j in range(NUM_PARAMS):
                     step = np.zeros(NUM_PARAMS)
-                    step[j] = _STEP[j]
+                    step[j] = _STEP
                     up, vp = warp(params + step)
-                    derivatives[:, j] = gain * (gu * (up[valid] - us[valid]) + gv * (vp[valid] - vs[valid])) / _STEP[j]
+                    derivatives[:, j] = gain * (gu * (up[valid] - us[valid]) + gv * (vp[valid] - vs[valid])) / _STEP
                 sigma = 1.4826 * float(np.median(np.abs(residual))) + 1e-6
                 huber = 1.345 * sigma
-                weights = np.minimum(1.0, huber / np.maximum(np.abs(residual), 1e-12)) * prior_weights[valid]
+                weights = np.minimum(1.0, huber / np.maximum(np.abs(residual), 1e-12))
                 jw = derivatives * weights[:, None]
                 normal_matrix = jw.T @ derivatives / sigma**2 + np.diag(precision)
-                gradient = jw.T @ residual / sigma**2 + precision * params * (np.arange(NUM_PARAMS) >= 2)
+                gradient = jw.T @ residual / sigma**2 + precision * params  # no prior on psi, theta
                 try:
                     delta = -np.linalg.solve(normal_matrix, gradient)
                 except np.linalg.LinAlgError:

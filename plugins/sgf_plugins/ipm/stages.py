@@ -286,6 +286,7 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
         self._last_position: np.ndarray | None = None
         self.last_reference: ReferenceAttitude | None = None
         self.last_motion = (0.0, 0.0)
+        self.last_step = 0.0
         self.counts: dict[str, int] = {}
         self._reset_counts()
 
@@ -335,10 +336,12 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
             if math.isfinite(roll) and math.isfinite(pitch):
                 self._count("attitude_from_odometry", frame, "the IMU roll/pitch is not finite; the odometry's is used")
         self.last_motion = (0.0, 0.0)
+        self.last_step = 0.0  # a frame without attitude is not queued: the next frame's step covers it
         if not (math.isfinite(roll) and math.isfinite(pitch)):
             self._count("attitude_dropouts", frame, "no finite roll/pitch; warped at the reference attitude")
             return 0.0, 0.0
-        self.queue.push(roll, pitch, self._step(frame))
+        self.last_step = self._step(frame)
+        self.queue.push(roll, pitch, self.last_step)
         reference = self.queue.reference()
         self.last_reference = reference
         if reference.inliers == 0:
@@ -453,7 +456,6 @@ class PlaneMotionCompensatedIPM(MotionCompensatedIPM):
         self.roll_filter = GradeFilter(params.plane_rate_noise, params.plane_measurement_noise)
         self._recent_motion: list[tuple[float, float]] = []
         self._travelled = 0.0
-        self._plane_position: np.ndarray | None = None
         self._start: tuple[float, float] | None = None
         self.plane_counts = {"plane_fits": 0, "plane_skipped_bumps": 0, "plane_no_fit": 0}
 
@@ -465,7 +467,6 @@ class PlaneMotionCompensatedIPM(MotionCompensatedIPM):
         self.roll_filter.reset()
         self._recent_motion = []
         self._travelled = 0.0
-        self._plane_position = None
         self._start = None
         self.plane_counts = dict.fromkeys(self.plane_counts, 0)
 
@@ -478,7 +479,8 @@ class PlaneMotionCompensatedIPM(MotionCompensatedIPM):
         """``(psi, theta)``: the robot's own attitude (IMU) plus the ground ahead's (fitted, filtered)."""
         psi_ahead, theta_ahead = super().compensation(frame, image)
         psi_motion, theta_motion = self.last_motion
-        step = self._step_plane(frame)
+        step = self.last_step
+        self._travelled += step
         self.pitch_filter.predict(step)
         self.roll_filter.predict(step)
         threshold = self.params.plane_bump_threshold
@@ -506,14 +508,3 @@ class PlaneMotionCompensatedIPM(MotionCompensatedIPM):
         psi = psi_motion + roll_ahead if self.params.compensate_roll else 0.0
         theta = theta_motion + pitch_ahead if self.params.compensate_pitch else 0.0
         return psi, theta
-
-    def _step_plane(self, frame: Frame) -> float:
-        """Metres driven since the previous frame (0 when the odometry is not finite)."""
-        odometry = np.asarray(frame.odometry, dtype=np.float64)
-        if odometry.shape != (4, 4) or not np.all(np.isfinite(odometry[:3, 3])):
-            return 0.0
-        position = odometry[:3, 3].copy()
-        previous, self._plane_position = self._plane_position, position
-        step = 0.0 if previous is None else float(np.linalg.norm(position - previous))
-        self._travelled += step
-        return step
