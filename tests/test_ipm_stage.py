@@ -272,3 +272,16 @@ def test_runs_in_a_pipeline_after_enhance() -> None:
     assert [r.outputs["bev"].frame_index for r in results] == [0, 1, 2]
     assert all(r.outputs["bev"].instance_ids is not None for r in results)
     assert results[-1].outputs["bev"].image.shape == (256, 256, 3)
+
+
+@pytest.mark.parametrize(
+    "override,message",
+    [
+        ({"plane_scales": [4, 0]}, "plane_scales must be whole downsampling factors >= 1"),
+        ({"plane_min_baseline": 2.0}, r"plane_min_baseline \(2.0\) must not exceed plane_baseline \(1.0\)"),
+        ({"plane_scales": []}, "plane_scales"),
+    ],
+)
+def test_mc_plane_refuses_bad_fit_parameters(override: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        PlaneMotionCompensatedIpmParams(**override)
