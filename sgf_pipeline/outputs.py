@@ -1,11 +1,15 @@
-"""The run directory: metrics.json, trajectories, effective config, plot and report (DESIGN.md section 4)."""
+"""The run directory: metrics.json, trajectories, loops, effective config, plot and report (DESIGN.md section 4)."""
 
 from __future__ import annotations
 
+import csv
+import io
 import logging
+import math
 import traceback
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import yaml
 
 from sgf_pipeline.evaluation import ate_rmse
@@ -31,6 +35,31 @@ METRIC_SKELETON: dict[str, Any] = {
         "false_closed": None,
     },
 }
+
+
+#: Columns of ``loops.csv``: one row per accepted loop, from the loop stage's ``artifacts["loops"]`` records.
+LOOP_COLUMNS = (
+    "frame_from",
+    "frame_to",
+    "time_from",
+    "time_to",
+    "reverse",
+    "from_map",
+    "group_id",
+    "x",
+    "y",
+    "yaw_deg",
+    "fitness",
+    "inlier_ratio",
+    "instance_from",
+    "instance_to",
+    "truth_error_m",
+    "truth_error_deg",
+    "true",
+)
+
+#: Rows of the loop table in ``report.md`` (``loops.csv`` has them all).
+REPORT_LOOP_ROWS = 30
 
 
 def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
@@ -82,9 +111,12 @@ def write_run(pipeline: Pipeline, trajectories: dict[str, Trajectory], metrics: 
         write_tum(run_dir / f"trajectory_{name}.tum", trajectory)
     if pipeline.effective_config is not None:
         atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(pipeline.effective_config, sort_keys=False))
+    loops = pipeline.context.artifacts.get("loops")
+    if loops is not None:
+        atomic_write_text(run_dir / "loops.csv", render_loops_csv(loops))
     if pipeline.config.run.plots:
-        plot_trajectories(run_dir / "trajectory.png", trajectories, metrics)
-        atomic_write_text(run_dir / "report.md", render_report(metrics))
+        plot_trajectories(run_dir / "trajectory.png", trajectories, metrics, loops)
+        atomic_write_text(run_dir / "report.md", render_report(metrics, loops))
     atomic_write_json(run_dir / "metrics.json", metrics)
 
 
@@ -126,8 +158,59 @@ def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:
         log.exception("could not record the failed run")
 
 
-def plot_trajectories(path: Any, trajectories: dict[str, Trajectory], metrics: dict[str, Any]) -> None:
-    """Top-down plot of the ground truth, odometry and SGF trajectories (aligned as for ATE)."""
+def _loop_row(loop: dict[str, Any]) -> dict[str, Any]:
+    x, y, yaw = loop.get("relative_xy_yaw") or (None, None, None)
+    ids = loop.get("instance_ids") or (None, None)
+    return {
+        **{k: loop.get(k) for k in LOOP_COLUMNS},
+        "x": x,
+        "y": y,
+        "yaw_deg": None if yaw is None else math.degrees(yaw),
+        "instance_from": ids[0],
+        "instance_to": ids[1],
+    }
+
+
+def render_loops_csv(loops: list[dict[str, Any]]) -> str:
+    """``loops.csv``: the accepted loops, one per row (empty cells: unknown, e.g. no ground truth)."""
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=LOOP_COLUMNS, lineterminator="\n")
+    writer.writeheader()
+    for loop in loops:
+        row = _loop_row(loop)
+        writer.writerow({k: "" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+    return out.getvalue()
+
+
+LoopSegment = tuple[np.ndarray, np.ndarray, bool | None]
+
+
+def loop_segments(loops: list[dict[str, Any]], trajectory: Trajectory) -> list[LoopSegment]:
+    """Where each loop's two frames are on ``trajectory`` (nearest stamps), with the loop's truth flag.
+
+    Loops against a prior map (no ``time_from`` in this run) are left out.
+    """
+    segments: list[LoopSegment] = []
+    if len(trajectory) == 0:
+        return segments
+    stamps = trajectory.timestamps
+    for loop in loops:
+        times = (loop.get("time_from"), loop.get("time_to"))
+        if times[0] is None or times[1] is None:
+            continue
+        ends = [trajectory.positions[int(np.argmin(np.abs(stamps - t))), :2] for t in times]
+        segments.append((ends[0], ends[1], loop.get("true")))
+    return segments
+
+
+def plot_trajectories(
+    path: Any, trajectories: dict[str, Trajectory], metrics: dict[str, Any], loops: list[dict[str, Any]] | None = None
+) -> None:
+    """Top-down plot of the ground truth, odometry and SGF trajectories (aligned as for ATE), with the loops.
+
+    Each accepted loop joins its two frames on the ground truth (else on the SGF trajectory): green when
+    it is true, magenta when false, grey when the run cannot tell.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -145,6 +228,24 @@ def plot_trajectories(path: Any, trajectories: dict[str, Trajectory], metrics: d
         if ate is not None:
             label = f"{label} (ATE {ate:.2f} m)"
         ax.plot(xy[:, 0], xy[:, 1], color=color, lw=1.2, label=label)
+    base = gt if gt is not None else trajectories.get("sgf")
+    if loops and base is not None:
+        kinds = {
+            True: ("tab:green", "o", "loop"),
+            False: ("magenta", "x", "false loop"),
+            None: ("0.4", "o", "loop (truth unknown)"),
+        }
+        counts: dict[bool | None, int] = {}
+        segments = loop_segments(loops, base)
+        for _, _, true in segments:
+            counts[true] = counts.get(true, 0) + 1
+        labelled: set[bool | None] = set()
+        for start, end, true in segments:
+            color, marker, name = kinds[true]
+            legend = None if true in labelled else f"{name}s ({counts[true]})"
+            labelled.add(true)
+            ax.plot([start[0], end[0]], [start[1], end[1]], color=color, lw=2.0, zorder=4)
+            ax.plot(end[0], end[1], marker, color=color, ms=6, mfc="none", mew=1.5, zorder=5, label=legend)
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
@@ -166,8 +267,8 @@ def _fmt(value: Any, digits: int = 3) -> str:
     return str(value)
 
 
-def render_report(metrics: dict[str, Any]) -> str:
-    """A short Markdown report of one run."""
+def render_report(metrics: dict[str, Any], accepted: list[dict[str, Any]] | None = None) -> str:
+    """A short Markdown report of one run (with the ``accepted`` loops when the run has a loop stage)."""
     ate = metrics.get("ate_rmse_m", {})
     sgf = metrics.get("sgf", {})
     loops = metrics.get("loops", {})
@@ -202,4 +303,28 @@ def render_report(metrics: dict[str, Any]) -> str:
         "![trajectories](trajectory.png)",
         "",
     ]
+    if accepted is not None:
+        lines += _loop_table(accepted)
     return "\n".join(lines)
+
+
+def _loop_table(loops: list[dict[str, Any]]) -> list[str]:
+    lines = [f"## Accepted loops ({len(loops)}; all in `loops.csv`)", ""]
+    if not loops:
+        return [*lines, "None.", ""]
+    lines += [
+        "| frames | reverse | map | x, y (m), yaw (deg) | fitness | inliers | off the truth (m, deg) | true |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for loop in loops[:REPORT_LOOP_ROWS]:
+        row = _loop_row(loop)
+        pose = "-" if row["x"] is None else f"{row['x']:.2f}, {row['y']:.2f}, {row['yaw_deg']:.1f}"
+        off = "-" if row["truth_error_m"] is None else f"{row['truth_error_m']:.2f}, {row['truth_error_deg']:.1f}"
+        lines.append(
+            f"| {row['frame_from']} -> {row['frame_to']} | {'yes' if row['reverse'] else 'no'} "
+            f"| {'yes' if row['from_map'] else 'no'} | {pose} | {_fmt(row['fitness'])} "
+            f"| {_fmt(row['inlier_ratio'], 2)} | {off} | {_fmt(row['true'])} |"
+        )
+    if len(loops) > REPORT_LOOP_ROWS:
+        lines.append(f"| ... and {len(loops) - REPORT_LOOP_ROWS} more | | | | | | | |")
+    return [*lines, ""]

@@ -32,7 +32,7 @@ from sgf_pipeline.types import Frame, PoseEstimate
 log = logging.getLogger("sgf_pipeline")
 
 #: Files of a finished run that the runner writes (plus ``trajectory_*.tum``); cleared before an overwrite.
-RUN_FILES = ("metrics.json", "report.md", "trajectory.png", "config.yaml", "failure.json")
+RUN_FILES = ("metrics.json", "report.md", "trajectory.png", "loops.csv", "config.yaml", "failure.json")
 #: The lock a running pipeline holds on its run directory (a second run into it is refused).
 LOCK_FILE = ".sgf-run.lock"
 #: Largest deviation of an odometry rotation from orthonormal that the runner accepts.

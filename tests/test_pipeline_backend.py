@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 from dataclasses import replace
@@ -92,14 +93,14 @@ class ToyPlugin:
         registry.add(OracleGroups)
 
 
-def config(backend: dict[str, Any], association: dict[str, Any] | None = None) -> dict[str, Any]:
+def config(backend: dict[str, Any], association: dict[str, Any] | None = None, plots: bool = False) -> dict[str, Any]:
     return {
         "pipeline": ["dataset", "association", "loop", "backend"],
         "dataset": {"name": "toy_world"},
         "association": {"name": "oracle", **(association or {})},
         "loop": {"name": "icp"},
         "backend": backend,
-        "run": {"progress": False, "plots": False},
+        "run": {"progress": False, "plots": plots},
     }
 
 
@@ -110,7 +111,7 @@ def plugins():  # type: ignore[no-untyped-def]
 
 def test_a_run_closes_loops_and_writes_trajectory_metrics_and_map(tmp_path: Path, plugins) -> None:  # type: ignore[no-untyped-def]
     WORLDS.clear()
-    pipeline = Pipeline.from_config(config({"name": "isam2"}), run_dir=tmp_path, plugins=plugins)
+    pipeline = Pipeline.from_config(config({"name": "isam2"}, plots=True), run_dir=tmp_path, plugins=plugins)
     metrics = pipeline.run()
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["loops"]["closed"] == metrics["loops"]["closed"] == 5
@@ -122,6 +123,22 @@ def test_a_run_closes_loops_and_writes_trajectory_metrics_and_map(tmp_path: Path
     assert len(trajectory) == len(next(iter(WORLDS.values())).frames)
     sgf_map = load_map(tmp_path / "sgf_map.safetensors", calibration=CALIBRATION)
     assert len(sgf_map.views) == saved["backend"]["map"]["views"] == 15
+    # every accepted loop is listed, where the plot and the report can show it
+    with open(tmp_path / "loops.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == saved["loops"]["accepted"] == 5
+    gt = read_tum(tmp_path / "trajectory_gt.tum")
+    for row in rows:
+        assert row["true"] == "True" and row["from_map"] == "False"
+        assert float(row["truth_error_m"]) < 0.05 and float(row["truth_error_deg"]) < 1.0
+        assert row["instance_from"] == row["instance_to"] != ""
+        assert float(row["time_from"]) < float(row["time_to"])
+        assert min(abs(gt.timestamps - float(row["time_to"]))) < 1e-6  # the stamps are the frames' own
+    assert sum(row["reverse"] == "True" for row in rows) == 3
+    report = (tmp_path / "report.md").read_text()
+    assert "## Accepted loops (5; all in `loops.csv`)" in report
+    assert report.count("| True |") == 5
+    assert (tmp_path / "trajectory.png").stat().st_size > 10_000
 
 
 def test_a_second_session_through_the_runner_localizes_on_the_first_ones_map(tmp_path: Path, plugins) -> None:  # type: ignore[no-untyped-def]
@@ -133,6 +150,12 @@ def test_a_second_session_through_the_runner_localizes_on_the_first_ones_map(tmp
     metrics = Pipeline.from_config(cfg, run_dir=tmp_path / "second", plugins=plugins).run()
     assert metrics["loops"]["accepted_map"] >= 2
     assert metrics["loops"]["false_closed"] == 0
+    with open(tmp_path / "second" / "loops.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    from_map = [row for row in rows if row["from_map"] == "True"]
+    assert len(from_map) == metrics["loops"]["accepted_map"]
+    # a map loop's first frame is the map's, not this run's: no time in this run, but its truth is known
+    assert all(row["time_from"] == "" and float(row["truth_error_m"]) < 0.5 for row in from_map)
     assert metrics["backend"]["prior_map"]["anchored"] is True
 
 

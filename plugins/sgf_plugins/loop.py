@@ -700,19 +700,25 @@ class IcpLoopClosing(Stage):
 
     # -- evaluation ---------------------------------------------------------------------------
 
-    def _true(self, c: _Candidate) -> bool | None:
-        """Whether an accepted constraint joins the same marking at the true relative pose (None: unknown)."""
+    def _truth_error(self, c: _Candidate) -> tuple[float, float] | None:
+        """How far (m, rad) an accepted constraint's relative pose is from the ground truth's (None: unknown)."""
         k = c.constraint
-        ids = k.instance_ids
-        if ids[0] is not None and ids[1] is not None and ids[0] != ids[1]:
-            return False
         start = c.map_truth if k.from_map else self.ground_truth.get(k.frame_from)
         end = self.ground_truth.get(k.frame_to)
-        if start is not None and end is not None:
-            x, y, yaw = pose_error(invert(start) @ end, k.relative)
+        if start is None or end is None:
+            return None
+        x, y, yaw = pose_error(invert(start) @ end, k.relative)
+        return math.hypot(x, y), abs(yaw)
+
+    def _true(self, c: _Candidate) -> bool | None:
+        """Whether an accepted constraint joins the same marking at the true relative pose (None: unknown)."""
+        ids = c.constraint.instance_ids
+        if ids[0] is not None and ids[1] is not None and ids[0] != ids[1]:
+            return False
+        error = self._truth_error(c)
+        if error is not None:
             return bool(
-                math.hypot(x, y) <= self.p.truth_tolerance_xy
-                and abs(yaw) <= math.radians(self.p.truth_tolerance_yaw_deg)
+                error[0] <= self.p.truth_tolerance_xy and error[1] <= math.radians(self.p.truth_tolerance_yaw_deg)
             )
         if ids[0] is not None and ids[1] is not None:
             return True
@@ -743,22 +749,30 @@ class IcpLoopClosing(Stage):
             loops["closed"] = len(closed)
             loops["closed_reverse"] = sum(bool(r.reverse) for r in closed)
         context.metrics.setdefault("loops", {}).update(loops)
-        context.artifacts["loops"] = [
-            {
-                "frame_from": c.constraint.frame_from,
-                "frame_to": c.constraint.frame_to,
-                "relative_xy_yaw": list(xy_yaw(c.constraint.relative)),
-                "group_id": c.group_id,
-                "reverse": c.constraint.reverse,
-                "fitness": c.constraint.fitness,
-                "inlier_ratio": c.constraint.inlier_ratio,
-                "instance_ids": list(c.constraint.instance_ids),
-                "from_map": c.constraint.from_map,
-                "true": None if t is None else bool(t),
-            }
-            for c, t in zip(self.accepted, truths, strict=True)
-        ]
+        context.artifacts["loops"] = [self._loop_entry(c, t) for c, t in zip(self.accepted, truths, strict=True)]
         context.artifacts["group_assignments"] = list(self.assignments)
+
+    def _loop_entry(self, c: _Candidate, true: bool | None) -> dict[str, Any]:
+        """One accepted loop as the run reports it (``artifacts['loops']``, ``loops.csv``)."""
+        k = c.constraint
+        x, y, yaw = xy_yaw(k.relative)
+        error = self._truth_error(c)
+        return {
+            "frame_from": k.frame_from,
+            "frame_to": k.frame_to,
+            "time_from": None if k.from_map else self.time.get(k.frame_from),
+            "time_to": self.time.get(k.frame_to),
+            "relative_xy_yaw": [x, y, yaw],
+            "group_id": c.group_id,
+            "reverse": k.reverse,
+            "from_map": k.from_map,
+            "fitness": k.fitness,
+            "inlier_ratio": k.inlier_ratio,
+            "instance_ids": list(k.instance_ids),
+            "truth_error_m": None if error is None else error[0],
+            "truth_error_deg": None if error is None else math.degrees(error[1]),
+            "true": None if true is None else bool(true),
+        }
 
     def _closes(self, pair: RevisitPair, truths: list[bool | None]) -> bool:
         """Whether an accepted, not false constraint joins the pair's two passes over its marking."""

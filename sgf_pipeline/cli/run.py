@@ -45,7 +45,8 @@ def summary(metrics: dict[str, Any], run_dir: Path) -> str:
     ]
     width = max(len(k) for k, _ in rows)
     lines = [f"  {k:<{width}}  {v}" for k, v in rows]
-    files = [run_dir / n for n in ("metrics.json", "report.md", "trajectory.png") if (run_dir / n).exists()]
+    names = ("metrics.json", "report.md", "trajectory.png", "loops.csv")
+    files = [run_dir / n for n in names if (run_dir / n).exists()]
     lines.append("")
     lines += [f"  {f}" for f in files]
     return "\n".join([f"sgf-run: {metrics.get('sequence', '')}", *lines])

@@ -257,6 +257,7 @@ def test_a_dataset_that_breaks_is_named(plugins, tmp_path: Path):
 def test_overwrite_replaces_every_file_of_the_old_run(plugins, tmp_path: Path):
     Pipeline.from_config(config(backend={"name": "trust_odometry"}), run_dir=tmp_path, plugins=plugins).run()
     assert (tmp_path / "trajectory_sgf.tum").exists()
+    (tmp_path / "loops.csv").write_text("frame_from,frame_to\n3,9\n")  # as a run with a loop stage leaves it
     before = (tmp_path / "metrics.json").read_bytes()
     with pytest.raises(ConfigError, match=r"already holds a finished run \(metrics.json\)"):
         Pipeline.from_config(config(frames=5), run_dir=tmp_path, plugins=plugins)
@@ -265,6 +266,7 @@ def test_overwrite_replaces_every_file_of_the_old_run(plugins, tmp_path: Path):
     rerun["run"]["overwrite"] = True
     Pipeline.from_config(rerun, run_dir=tmp_path, plugins=plugins).run()
     assert not (tmp_path / "trajectory_sgf.tum").exists()  # the old run's trajectory does not outlive it
+    assert not (tmp_path / "loops.csv").exists()  # nor its loop list (this run has no loop stage)
     assert len(read_tum(tmp_path / "trajectory_odometry.tum")) == 5
     assert json.loads((tmp_path / "metrics.json").read_text())["timing"]["frames"] == 5
 
