@@ -372,3 +372,34 @@ def test_a_loop_to_a_frame_between_nodes_moves_by_the_adjoint() -> None:
         return float(np.linalg.norm((invert(invert(poses[3]) @ poses[74]) @ loop.relative)[:2, 3]))
 
     assert loop_error(np.stack(odometry)) > 0.5 and loop_error(dense) < 0.05
+
+
+def test_isam2_reports_how_much_each_update_reeliminates_and_a_contradicted_graph_shows(world) -> None:  # type: ignore[no-untyped-def]
+    """``backend.isam2`` in metrics.json: a graph whose loops contradict its odometry (a jump the odometry
+    missed, like the soak's lap ends before the eleventh session) keeps re-eliminating much of itself."""
+    loops = true_loops(world)
+    consistent, _ = feed(world, Isam2Backend(Isam2Params(save_map=False)), loops)
+    from backend_world import World
+
+    half = world.frames[len(world.frames) // 2].odometry
+    jump = half @ pose_from_xy_yaw(5.0, 0.0, 0.5) @ invert(half)  # the odometry misses 5 m and 0.5 rad halfway
+    frames = [
+        Frame(
+            f.index,
+            f.timestamp,
+            f.image,
+            jump @ f.odometry if k >= len(world.frames) // 2 else f.odometry,
+            CALIBRATION,
+            ground_truth=f.ground_truth,
+        )
+        for k, f in enumerate(world.frames)
+    ]
+    jumped = World(world.gt, np.stack([f.odometry for f in frames]), world.markings, frames, world.sgfs, world.truth)
+    contradicted, _ = feed(jumped, Isam2Backend(Isam2Params(save_map=False)), loops)
+    a = consistent.metrics["backend"]["isam2"]
+    b = contradicted.metrics["backend"]["isam2"]
+    for run, counts in ((consistent, a), (contradicted, b)):  # an update per pose node, and per loop landing on one
+        backend = run.metrics["backend"]
+        assert backend["pose_nodes"] <= counts["updates"] <= backend["pose_nodes"] + backend["loop_factors"]
+    assert a["reeliminated_median"] <= 10 and a["relinearized_median"] <= 10
+    assert b["reeliminated_p90"] > 5 * a["reeliminated_p90"]

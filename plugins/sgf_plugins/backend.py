@@ -336,6 +336,8 @@ class Isam2Backend(_GraphBackend):
         """Start an empty graph and solver."""
         super().begin(context)
         self.isam = self._solver()
+        self.reeliminated: list[int] = []  # per iSAM2 update: variables re-eliminated, and re-linearized
+        self.relinearized: list[int] = []
 
     def _solver(self) -> Any:
         import gtsam
@@ -360,7 +362,9 @@ class Isam2Backend(_GraphBackend):
             # A frame between nodes: its pose rides on the last node's estimate (set when it was added).
             self.update_seconds.append(time.perf_counter() - t0)
             return self.estimate()
-        self.isam.update(factors, values)
+        result = self.isam.update(factors, values)
+        self.reeliminated.append(int(result.getVariablesReeliminated()))
+        self.relinearized.append(int(result.getVariablesRelinearized()))
         if count:
             params = self.params
             assert isinstance(params, Isam2Params)
@@ -373,6 +377,25 @@ class Isam2Backend(_GraphBackend):
             self.graph.set_latest(value)
         self.update_seconds.append(time.perf_counter() - t0)
         return self.estimate()
+
+    def extra_metrics(self) -> dict[str, Any]:
+        """The graph's figures and how much of it each iSAM2 update re-eliminated and re-linearized.
+
+        An update that re-eliminates a large part of the graph is what makes iSAM2 slow; a pose
+        graph whose loops contradict its odometry keeps re-linearizing (``bench/RESULTS.md`` ## soak).
+        """
+        out = super().extra_metrics()
+        if self.reeliminated:
+            reeliminated, relinearized = np.asarray(self.reeliminated), np.asarray(self.relinearized)
+            out["isam2"] = {
+                "updates": int(reeliminated.size),
+                "reeliminated_median": float(np.median(reeliminated)),
+                "reeliminated_p90": float(np.percentile(reeliminated, 90)),
+                "reeliminated_max": int(reeliminated.max()),
+                "relinearized_median": float(np.median(relinearized)),
+                "relinearized_max": int(relinearized.max()),
+            }
+        return out
 
     def finalize(self, context: RunContext) -> None:
         """The final iSAM2 estimate (optionally refined by batch LM), then the trajectory, metrics and map."""
