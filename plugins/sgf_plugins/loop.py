@@ -710,12 +710,14 @@ class IcpLoopClosing(Stage):
         x, y, yaw = pose_error(invert(start) @ end, k.relative)
         return math.hypot(x, y), abs(yaw)
 
-    def _true(self, c: _Candidate) -> bool | None:
-        """Whether an accepted constraint joins the same marking at the true relative pose (None: unknown)."""
+    def _true(self, c: _Candidate, error: tuple[float, float] | None) -> bool | None:
+        """Whether an accepted constraint joins the same marking at the true relative pose (None: unknown).
+
+        ``error`` is the constraint's :meth:`_truth_error`.
+        """
         ids = c.constraint.instance_ids
         if ids[0] is not None and ids[1] is not None and ids[0] != ids[1]:
             return False
-        error = self._truth_error(c)
         if error is not None:
             return bool(
                 error[0] <= self.p.truth_tolerance_xy and error[1] <= math.radians(self.p.truth_tolerance_yaw_deg)
@@ -729,7 +731,8 @@ class IcpLoopClosing(Stage):
         for w in self.waiting:  # the run ended before they were settled
             self.counts[w.refused] += 1
         self.waiting = []
-        truths = [self._true(c) for c in self.accepted]
+        errors = [self._truth_error(c) for c in self.accepted]
+        truths = [self._true(c, e) for c, e in zip(self.accepted, errors, strict=True)]
         known = [t for t in truths if t is not None]
         loops: dict[str, Any] = {
             "accepted": len(self.accepted),
@@ -749,14 +752,15 @@ class IcpLoopClosing(Stage):
             loops["closed"] = len(closed)
             loops["closed_reverse"] = sum(bool(r.reverse) for r in closed)
         context.metrics.setdefault("loops", {}).update(loops)
-        context.artifacts["loops"] = [self._loop_entry(c, t) for c, t in zip(self.accepted, truths, strict=True)]
+        context.artifacts["loops"] = [
+            self._loop_entry(c, e, t) for c, e, t in zip(self.accepted, errors, truths, strict=True)
+        ]
         context.artifacts["group_assignments"] = list(self.assignments)
 
-    def _loop_entry(self, c: _Candidate, true: bool | None) -> dict[str, Any]:
+    def _loop_entry(self, c: _Candidate, error: tuple[float, float] | None, true: bool | None) -> dict[str, Any]:
         """One accepted loop as the run reports it (``artifacts['loops']``, ``loops.csv``)."""
         k = c.constraint
         x, y, yaw = xy_yaw(k.relative)
-        error = self._truth_error(c)
         return {
             "frame_from": k.frame_from,
             "frame_to": k.frame_to,
