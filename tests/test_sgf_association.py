@@ -245,6 +245,56 @@ def test_threshold_and_gate_open_new_groups():
     assert ell.new_group and ell.distance > 0.1 and ell.group_id == 1
 
 
+def _mixed_group_and_query(**params):
+    """A map group holding an arrow and an ell (a group that took in two markings), and a new view of the ell."""
+    mixed = SgfGroup(0)
+    for k, shape in enumerate((ARROW, ELL)):
+        mixed.add(desc(shape, seen_from(shape, 3.0, 0.0), k), 0, anchor=np.asarray(shape.pose[:2]))
+    s = OnlineSgfGroups(OnlineGroupsParams(**params))
+    s.seed_groups([mixed])
+    s.begin(RunContext(None))
+    pose = seen_from(ELL, 3.0, 0.6)
+    return s, pose, desc(ELL, pose, 10)
+
+
+def test_nearest_member_distance_matches_a_view_the_group_mean_blurs():
+    s, pose, query = _mixed_group_and_query()
+    group = s.groups[0]
+    to_mean = shifted_distances(query.matrix, group.descriptor[None])[0].min()
+    to_members = shifted_distances(query.matrix, group.matrices).min(axis=1)
+    assert to_members[1] < 0.06 < to_mean and to_members[0] > to_members[1] + 0.1  # the ell, not the arrow
+    threshold = float((to_mean + to_members[1]) / 2.0)
+    (by_mean,) = feed(s, 10, pose, query)
+    assert not by_mean.new_group and by_mean.distance == pytest.approx(to_mean)
+    strict, _, _ = _mixed_group_and_query(new_group_distance=threshold)
+    (opened,) = feed(strict, 10, pose, query)
+    assert opened.new_group and opened.distance == pytest.approx(to_mean)
+    nearest, _, _ = _mixed_group_and_query(new_group_distance=threshold, group_distance="nearest_member")
+    (joined,) = feed(nearest, 10, pose, query)
+    assert not joined.new_group and joined.distance == pytest.approx(to_members[1])
+    assert joined.matched is nearest.groups[0].members[1]
+    assert angle_error(joined.yaw, 0.6) < 0.1
+
+
+def test_nearest_member_distances_are_per_group_minima():
+    # Groups of 2, 1 and 3 members: one pass over all members, split back into groups.
+    views = [
+        desc(shape, seen_from(shape, 3.0, h), k)
+        for k, (shape, h) in enumerate([(ARROW, 0.0), (ELL, 1.0), (DISC, 0.0), (ARROW, 2.0), (ELL, -1.0), (DISC, 0.5)])
+    ]
+    groups = []
+    for gid, members in enumerate(([0, 1], [2], [3, 4, 5])):
+        g = SgfGroup(gid)
+        for m in members:
+            g.add(views[m], 0)
+        groups.append(g)
+    s = stage(group_distance="nearest_member")
+    query = desc(ELL, seen_from(ELL, 2.5, 0.3), 20)
+    got = s._nearest_member_distances(query, groups)
+    want = [min(shifted_distances(query.matrix, m.matrix[None])[0].min() for m in g.members) for g in groups]
+    assert np.allclose(got, want) and got[2] < 0.06 and got[1] > 0.1
+
+
 def test_identical_markings_far_apart_stay_in_their_own_groups():
     """Perceptual aliasing: the same arrow design at x = 5 and x = 25 m; the robot comes back to the first."""
     far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
@@ -362,6 +412,39 @@ def test_metrics_purity_and_loop_pairs():
     none = RunContext(None)
     s.finalize(none)
     assert none.metrics["sgf"]["purity"] is None and none.metrics["loops"]["pairs_found"] is None
+
+
+def test_metrics_share_of_decisions_where_eq10_ranks_the_own_marking_first():
+    from dataclasses import replace
+
+    def group(gid: int, *views: SgfDescriptor) -> SgfGroup:
+        g = SgfGroup(gid)
+        for v in views:
+            g.add(v, 0, anchor=np.asarray(v.centroid[:2]))
+        return g
+
+    arrow_view = desc(ARROW, seen_from(ARROW, 3.0, 0.0), 1)
+    # Group 2 is labelled as the ell (instance 3) but holds this very arrow view: eq. 10 prefers it.
+    impostor = replace(arrow_view, sgf=replace(arrow_view.sgf, instance_id=ELL.instance_id))
+    s = OnlineSgfGroups(OnlineGroupsParams())
+    s.seed_groups(
+        [
+            group(0, desc(ARROW, seen_from(ARROW, 3.0, 1.0), 0)),
+            group(1, desc(ELL, seen_from(ELL, 3.0, 0.0), 2)),
+            group(2, impostor, impostor),
+        ]
+    )
+    context = RunContext(None)
+    s.begin(context)
+    pose = seen_from(ELL, 3.0, 0.5)
+    feed(s, 10, pose, desc(ELL, pose, 10))  # own group 1 first
+    feed(s, 11, pose, desc(DISC, pose, 11))  # no group of the disc: no decision
+    feed(s, 12, pose, desc(ARROW, seen_from(ARROW, 3.0, 0.0), 12))  # the impostor ranks first
+    unlabelled = desc(ELL, pose, 13)
+    feed(s, 13, pose, replace(unlabelled, sgf=replace(unlabelled.sgf, instance_id=None)))
+    context.truth = SequenceTruth(passes=[], revisits=[])
+    s.finalize(context)
+    assert context.metrics["sgf"]["own_group_ranked_first"] == {"decisions": 2, "share": 0.5}
 
 
 def test_a_repeated_pattern_is_aliased_and_never_joins_its_neighbour():

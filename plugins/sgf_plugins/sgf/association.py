@@ -109,6 +109,11 @@ class OnlineGroupsParams(StageParams):
     prior_gate_radius: float | None = Field(
         None, gt=0.0, description="gate (m) around members of groups seeded from a saved map; null = no gate"
     )
+    group_distance: Literal["mean", "nearest_member"] = Field(
+        "mean",
+        description="a group's eq. 10 distance: to the mean of its aligned members (the paper's D^sg), or to its "
+        "closest member (a view that differs from the others by a partial mask still matches its own)",
+    )
     tie_margin: float = Field(
         0.05,
         ge=0.0,
@@ -263,6 +268,7 @@ class OnlineSgfGroups(Stage):
         self._slot: dict[int, int] = {}
         self._closures: list[_Closure] = []
         self._shortcuts: tuple[object, list[tuple[float, float]]] = (_NO_ESTIMATE, [])
+        self._ranked = [0, 0]  # labelled decisions between the own marking's group and others; own ranked first
 
     # -- groups ---------------------------------------------------------------------------
 
@@ -308,6 +314,7 @@ class OnlineSgfGroups(Stage):
         self._slot = {g.group_id: k for k, g in enumerate(self._groups)}
         self._closures = []
         self._shortcuts = (_NO_ESTIMATE, [])
+        self._ranked = [0, 0]
         for k, group in enumerate(self._groups):
             for member, anchor in zip(group.members, group.anchors, strict=True):
                 self._index.add(k, member, None, anchor)
@@ -504,7 +511,11 @@ class OnlineSgfGroups(Stage):
                     f"descriptor shape {query.matrix.shape} differs from the groups' {stack.shape[1:]}; "
                     "all SGF descriptors of a run (and of a seeded map) need the same N_r and N_s"
                 )
-            per_group = shifted_distances(query.matrix, stack, p.columns).min(axis=1)
+            if p.group_distance == "mean":
+                per_group = shifted_distances(query.matrix, stack, p.columns).min(axis=1)
+            else:
+                per_group = self._nearest_member_distances(query, [c.group for c in candidates])
+            self._rank_own_group(query, candidates, per_group)
             # A look-alike group just seen elsewhere is a neighbouring copy of a repeated pattern
             # (give-way triangles, dashes): the query may not join it, and neither gives loop factors.
             copy = np.array([c.repeated for c in candidates]) & (per_group <= p.copy_distance)
@@ -569,6 +580,27 @@ class OnlineSgfGroups(Stage):
             alternatives=alternatives,
         )
 
+    def _rank_own_group(self, query: SgfDescriptor, candidates: list[GatedGroup], per_group: np.ndarray) -> None:
+        """Count whether eq. 10 ranks the group of the query's own marking (its members' majority) above the others.
+
+        Only labelled queries whose own group and another one are both gated count: the share
+        ranked first measures how well the descriptor tells markings apart on this run.
+        """
+        instance = query.sgf.instance_id
+        if instance is None:
+            return
+        own = np.array([_majority_instance(c.group) == instance for c in candidates])
+        if own.any() and not own.all():
+            self._ranked[0] += 1
+            self._ranked[1] += int(per_group[own].min() < per_group[~own].min())
+
+    def _nearest_member_distances(self, query: SgfDescriptor, groups: list[SgfGroup]) -> np.ndarray:
+        """Eq. 10 distance (best shift) from the query to each group's closest member, in one pass over all members."""
+        members = np.concatenate([g.matrices for g in groups])
+        per_member = shifted_distances(query.matrix, members, self.params.columns).min(axis=1)
+        starts = np.cumsum([0] + [len(g.members) for g in groups[:-1]])
+        return np.minimum.reduceat(per_member, starts)
+
     def _closest_member(
         self, query: SgfDescriptor, group: SgfGroup, estimate: PoseEstimate | None
     ) -> tuple[int, SgfDescriptor, int]:
@@ -613,6 +645,8 @@ class OnlineSgfGroups(Stage):
         )
         if context.truth is not None:
             sgf["purity"] = group_purity(self._groups)
+            decisions, first = self._ranked
+            sgf["own_group_ranked_first"] = {"decisions": decisions, "share": first / decisions if decisions else None}
             sgf["mixed_groups"] = sum(1 for g in self._groups if len({i for i in g.instance_ids if i is not None}) > 1)
             loops.update(loop_pairs(self._groups, context.truth))
 
@@ -621,6 +655,15 @@ def _odometry_position(member: SgfDescriptor) -> np.ndarray:
     """Map position of a member's centroid under its own odometry pose (the frame of the session that saw it)."""
     pose = np.asarray(member.sgf.odometry, dtype=np.float64)
     return pose[:2, :2] @ np.asarray(member.centroid[:2], dtype=np.float64) + pose[:2, 3]
+
+
+def _majority_instance(group: SgfGroup) -> int | None:
+    """The ground-truth instance most of a group's labelled members show (None when none is labelled)."""
+    ids = [i for i in group.instance_ids if i is not None]
+    if not ids:
+        return None
+    values, counts = np.unique(ids, return_counts=True)
+    return int(values[np.argmax(counts)])
 
 
 def group_purity(groups: Iterable[SgfGroup]) -> float | None:
