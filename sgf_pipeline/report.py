@@ -206,6 +206,21 @@ def _sum(runs: list[RunRecord], *path: str) -> int | None:
     return None if any(v is None for v in values) else int(sum(values))
 
 
+def _purities(runs: list[RunRecord]) -> list[float | None]:
+    """Each run's SGF group purity, in seed order (None where a run has none)."""
+    ordered = sorted(runs, key=lambda r: str(r.seed))
+    return [_get(r.metrics, "sgf", "purity") for r in ordered]
+
+
+def _ranked_first(runs: list[RunRecord]) -> tuple[int, int] | None:
+    """Decisions where eq. 10 ranked the own marking's group first, and all such decisions, over the runs."""
+    found = [_get(r.metrics, "sgf", "own_group_ranked_first") for r in runs]
+    known = [f for f in found if isinstance(f, dict) and f.get("decisions")]
+    if not known:
+        return None
+    return sum(round(f["share"] * f["decisions"]) for f in known), sum(int(f["decisions"]) for f in known)
+
+
 def _variant_label(run: RunRecord, keys: list[str]) -> str:
     flat = _flatten(run.config)
     return ", ".join(f"{k}={flat.get(k)}" for k in keys if k != "dataset.name") or "default"
@@ -245,6 +260,8 @@ def build_tables(runs: list[RunRecord]) -> dict[str, Any]:
                 "closed": _sum(members, "loops", "closed"),
                 "closed_reverse": _sum(members, "loops", "closed_reverse"),
                 "false_closed": _sum(members, "loops", "false_closed"),
+                "purity": _purities(members),
+                "own_group_ranked_first": _ranked_first(members),
                 "fps": fps,
                 "realtime_factor": rtf,
             }
@@ -288,7 +305,8 @@ def render_markdown(runs: list[RunRecord], tables: dict[str, Any], figures: dict
 
     out += ["## Table 3: SGF detection, loop pairs found and loops closed", ""]
     header = ["variant", "sequence", "runs", "detection", "find loop pairs (rev.)", "loops closed (rev.)"]
-    out += ["| " + " | ".join([*header, "false loops", "paper"]) + " |", "|---" * 8 + "|"]
+    extra = ["false loops", "group purity per seed", "eq. 10 ranks the own group first", "paper"]
+    out += ["| " + " | ".join([*header, *extra]) + " |", "|---" * (len(header) + len(extra)) + "|"]
     for r in sorted(rows, key=lambda r: (r["variant"], _ordered([r["sequence"]]))):
         paper3 = PAPER_TABLE3.get(r["sequence"])
         reverse = _ratio(r["pairs_found_reverse"], r["pairs_total_reverse"])
@@ -302,6 +320,8 @@ def render_markdown(runs: list[RunRecord], tables: dict[str, Any], figures: dict
             pairs,
             closed,
             _num(r["false_closed"]),
+            ", ".join(_num(v) for v in r["purity"]),
+            "-" if r["own_group_ranked_first"] is None else _ratio(*r["own_group_ranked_first"]),
             " / ".join(paper3) if paper3 else "-",
         ]
         out.append("| " + " | ".join(cells) + " |")
@@ -364,6 +384,7 @@ def runs_csv(runs: list[RunRecord]) -> str:
         "closed",
         "closed_reverse",
         "false_closed",
+        "purity",
         "fps",
         "realtime_factor",
         "peak_rss_mb",
@@ -391,6 +412,7 @@ def runs_csv(runs: list[RunRecord]) -> str:
                 "closed": _get(m, "loops", "closed"),
                 "closed_reverse": _get(m, "loops", "closed_reverse"),
                 "false_closed": _get(m, "loops", "false_closed"),
+                "purity": _get(m, "sgf", "purity"),
                 "fps": _get(m, "timing", "fps"),
                 "realtime_factor": _get(m, "timing", "realtime_factor"),
                 "peak_rss_mb": m.get("peak_rss_mb"),

@@ -31,7 +31,12 @@ def fake_run(
         "status": "finished",
         "sequence": sequence,
         "ate_rmse_m": {"odometry": ate[0], "sgf": ate[1]},
-        "sgf": {"detected": counts["detected"], "total": counts["total"]},
+        "sgf": {
+            "detected": counts["detected"],
+            "total": counts["total"],
+            "purity": counts.get("purity"),
+            "own_group_ranked_first": counts.get("ranked"),
+        },
         "loops": {
             "pairs_found": counts["found"],
             "pairs_total": counts["pairs"],
@@ -57,6 +62,8 @@ def test_tables_aggregate_over_seeds_and_split_by_swept_keys(tmp_path: Path):
     ates = {("mc", 0): (100.0, 5.0), ("mc", 1): (120.0, 7.0), ("plain", 0): (100.0, 20.0), ("plain", 1): (120.0, 30.0)}
     for i, ((ipm, seed), ate) in enumerate(ates.items()):
         counts = {"detected": 9 + seed, "total": 10, "found": 3, "pairs": 4, "closed": 2 + seed}
+        counts["purity"] = 0.9 - 0.1 * seed if ipm == "mc" else None
+        counts["ranked"] = {"decisions": 4 + seed, "share": 0.5 if seed == 0 else 0.8}
         fake_run(tmp_path, f"{i}_run", "campus_reverse_slope", seed, ipm, ate, counts)
     tables = write_report(tmp_path)
     assert tables["swept"] == ["ipm.name"]
@@ -72,8 +79,12 @@ def test_tables_aggregate_over_seeds_and_split_by_swept_keys(tmp_path: Path):
     assert "| campus_reverse_slope | 6.00 ± 1.41 | 25.00 ± 7.07 | 14.384 | 67.625 |" in report
     assert "| paper: odometry + SGF | 14.384 |" in report
     assert "19/20" in report and "6/8 (2/2)" in report
+    # purity per seed in seed order; eq. 10's ranking pooled over seeds: 2 of 4 and 4 of 5
+    assert mc["purity"] == [pytest.approx(0.9), pytest.approx(0.8)] and mc["own_group_ranked_first"] == (6, 9)
+    assert "| 0 | 0.900, 0.800 | 6/9 |" in report and "| 0 | -, - | 6/9 |" in report
     rows_csv = list(csv.DictReader((tmp_path / "runs.csv").open()))
     assert len(rows_csv) == 4 and rows_csv[0]["ipm.name"] in {"mc", "plain"}
+    assert sorted(r["purity"] for r in rows_csv if r["ipm.name"] == "mc") == ["0.8", "0.9"]
     assert (tmp_path / "timing.png").stat().st_size > 1000
     assert json.loads((tmp_path / "tables.json").read_text())["swept"] == ["ipm.name"]
 
