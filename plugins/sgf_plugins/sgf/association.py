@@ -647,7 +647,7 @@ class OnlineSgfGroups(Stage):
             sgf["purity"] = group_purity(self._groups)
             decisions, first = self._ranked
             sgf["own_group_ranked_first"] = {"decisions": decisions, "share": first / decisions if decisions else None}
-            sgf["mixed_groups"] = sum(1 for g in self._groups if len({i for i in g.instance_ids if i is not None}) > 1)
+            sgf["mixed_groups"] = sum(1 for g in self._groups if len(_instance_counts(g)[0]) > 1)
             loops.update(loop_pairs(self._groups, context.truth))
 
 
@@ -657,24 +657,25 @@ def _odometry_position(member: SgfDescriptor) -> np.ndarray:
     return pose[:2, :2] @ np.asarray(member.centroid[:2], dtype=np.float64) + pose[:2, 3]
 
 
+def _instance_counts(group: SgfGroup) -> tuple[np.ndarray, np.ndarray]:
+    """The ground-truth instances of a group's labelled members (sorted) and how many members show each."""
+    return np.unique([i for i in group.instance_ids if i is not None], return_counts=True)
+
+
 def _majority_instance(group: SgfGroup) -> int | None:
     """The ground-truth instance most of a group's labelled members show (None when none is labelled)."""
-    ids = [i for i in group.instance_ids if i is not None]
-    if not ids:
-        return None
-    values, counts = np.unique(ids, return_counts=True)
-    return int(values[np.argmax(counts)])
+    values, counts = _instance_counts(group)
+    return int(values[np.argmax(counts)]) if len(values) else None
 
 
 def group_purity(groups: Iterable[SgfGroup]) -> float | None:
     """Share of ground-truth-labelled members that carry their group's majority instance (None if no labels)."""
     majority = total = 0
     for group in groups:
-        ids = [i for i in group.instance_ids if i is not None]
-        if ids:
-            _, counts = np.unique(ids, return_counts=True)
+        _, counts = _instance_counts(group)
+        if len(counts):
             majority += int(counts.max())
-            total += len(ids)
+            total += int(counts.sum())
     return majority / total if total else None
 
 
