@@ -278,7 +278,7 @@ def test_runs_in_a_pipeline_after_enhance() -> None:
     "override,message",
     [
         ({"plane_scales": [4, 0]}, "plane_scales must be whole downsampling factors >= 1"),
-        ({"plane_min_baseline": 2.0}, r"plane_min_baseline \(2.0\) must not exceed plane_baseline \(1.0\)"),
+        ({"plane_min_baseline": 2.0}, r"plane_min_baseline \(2.0\) must not exceed plane_baseline \(0.6\)"),
         ({"plane_scales": []}, "plane_scales"),
     ],
 )

@@ -7,7 +7,7 @@ seen from two places along the drive is related by the homography its plane indu
 
     x_s ~ K (R_st - t_st n^T / h) K^-1 x_t,                 (plane n . X = -h in camera t)
 
-where ``(R_st, t_st)`` is camera t's pose in camera s (from the odometry, about a metre back),
+where ``(R_st, t_st)`` is camera t's pose in camera s (from the odometry, about 0.6 m back),
 ``n`` the plane's upward normal and ``h`` the camera's height above it. The plane is
 parameterised by the ``(psi, theta)`` of eq. 1-2 (the compensated camera's up axis is ``n``), so
 the estimate goes straight into the IPM's homography. :class:`GroundPlaneTracker` finds ``(psi,
@@ -71,13 +71,13 @@ class GroundPlaneTracker:
     def __init__(
         self,
         grid: BevGrid,
-        baseline: float = 1.0,
-        min_baseline: float = 0.5,
+        baseline: float = 0.6,
+        min_baseline: float = 0.4,
         scales: tuple[int, ...] = (4, 2),
         iterations: int = 8,
         sample_step: int = 4,
-        rotation_prior: float = 0.005,
-        height_prior: float = 0.03,
+        rotation_prior: float = 0.003,
+        height_prior: float = 0.005,
         roll_axis: RollAxis = "optical",
         history: int = 64,
     ) -> None:

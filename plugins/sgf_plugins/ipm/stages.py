@@ -386,8 +386,13 @@ class PlaneMotionCompensatedIpmParams(MotionCompensatedIpmParams):
     reference_fit: ReferenceFit = "line"
     lookahead: float = 2.0
     attitude_noise: float = 0.005
-    plane_baseline: float = Field(1.0, gt=0.0, description="metres driven between the two views the plane is fitted to")
-    plane_min_baseline: float = Field(0.5, gt=0.0, description="no fit with less than this between the views")
+    plane_baseline: float = Field(
+        0.6,
+        gt=0.0,
+        description="metres driven between the two views the plane is fitted to (near a paving's period, "
+        "0.7-1.0 m here, the fit can lock onto the wrong joint)",
+    )
+    plane_min_baseline: float = Field(0.4, gt=0.0, description="no fit with less than this between the views")
     plane_scales: list[int] = Field(
         default_factory=lambda: [4, 2, 1],
         min_length=1,
@@ -395,10 +400,13 @@ class PlaneMotionCompensatedIpmParams(MotionCompensatedIpmParams):
     )
     plane_iterations: int = Field(8, ge=1, description="Gauss-Newton iterations per level")
     plane_rotation_prior: float = Field(
-        0.005, gt=0.0, description="rad: the odometry's relative rotation between the views, corrected by the fit"
+        0.003, gt=0.0, description="rad: the odometry's relative rotation between the views, corrected by the fit"
     )
     plane_height_prior: float = Field(
-        0.03, gt=0.0, description="relative: the odometry's scale (camera height over the plane), corrected by the fit"
+        0.005,
+        gt=0.0,
+        description="relative: the odometry's scale (camera height over the plane), corrected by the fit; tight, "
+        "so that the height cannot stand in for the plane's pitch on a curved ground",
     )
     plane_measurement_noise: float = Field(0.003, gt=0.0, description="rad: one fit's noise (the filter's R)")
     plane_rate_noise: float = Field(
