@@ -50,8 +50,9 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
     assert len(run.context.artifacts["group_assignments"]) == sum(len(v) for v in world.sgfs.values())
     # by default a loop also needs a neighbouring marking that agrees: the toy world's first two revisits of a
     # stretch have none behind them, and lose their loops when only earlier SGFs may vouch for them, but keep
-    # them when they wait for the markings seen after them
-    for wait, expected in ((False, (6, 0, 2)), (True, (8, 0, 0))):
+    # them when they wait for the markings seen after them; a third (the tee's) has only the manhole behind it,
+    # which fixes no heading and counts half a marking
+    for wait, expected in ((False, (5, 0, 3)), (True, (8, 0, 0))):
         consensus = run_stages(
             world,
             loop=IcpLoopClosing(IcpLoopParams(consensus_wait=wait)),
@@ -73,11 +74,12 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     assert ungated.context.metrics["loops"]["false_closed"] == 4
     # look-alikes take the place of true loops in the arrow group: fewer pairs closed
     assert ungated.context.metrics["loops"]["closed"] < 8
-    # the neighbour consensus alone (the default min_support = 1) also keeps the look-alikes out
+    # the neighbour consensus alone (the default min_support = 1) also keeps the look-alikes out; it also
+    # refuses the tee's revisit, which has only the manhole behind it (half a marking: it fixes no heading)
     consensus = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False)))
     assert consensus.context.metrics["loops"]["false_closed"] == 0
-    assert consensus.context.metrics["loops"]["rejected"]["consensus"] == 4
-    assert consensus.context.metrics["loops"]["closed"] == 5
+    assert consensus.context.metrics["loops"]["rejected"]["consensus"] == 5
+    assert consensus.context.metrics["loops"]["closed"] == 4
 
 
 def _straight_run(n: int, yaw_at_end: float) -> list[Frame]:
@@ -308,6 +310,61 @@ def test_min_support_refuses_a_lone_match_that_no_neighbour_confirms() -> None:
     by_frame[68] = GroupAssignments((right,))
     (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False, min_support=1)), frames, by_frame)
     assert loop.instance_ids == (1, 1)
+
+
+def _revisit_with_neighbours(first: list[Marking], second: list[Marking]):  # type: ignore[no-untyped-def]
+    """Two passes along x; the second pass's view of an arrow (x = 30) is matched to its first-pass view.
+
+    ``first`` and ``second`` are the neighbouring markings seen on each pass (frames 2 m behind them);
+    on the second pass they open groups of their own: evidence only.
+    """
+    n = 40
+    frames = _two_passes(n)
+    arrow = Marking(1, "arrow", (30.0, 0.5, 0.3))
+    by_frame: dict[int, GroupAssignments] = {}
+    seen = _view(frames[28], arrow)
+    by_frame[28] = GroupAssignments((GroupAssignment(seen, 1, True, 1.0, 0, 0.0, None, False),))  # type: ignore[arg-type]
+    for offset, markings in ((0, first), (n, second)):
+        for m in markings:
+            k = offset + int(m.pose[0]) - 2
+            view = _view(frames[k], m)
+            by_frame[k] = GroupAssignments(
+                (GroupAssignment(view, offset + m.instance_id, True, 1.0, 0, 0.0, None, False),)
+            )  # type: ignore[arg-type]
+    query = _view(frames[n + 28], arrow)
+    by_frame[n + 28] = GroupAssignments((GroupAssignment(query, 1, False, 0.01, 0, 0.0, seen, False),))  # type: ignore[arg-type]
+    return frames, by_frame
+
+
+def test_a_neighbour_agrees_only_at_the_heading_the_match_predicts() -> None:
+    ell = Marking(3, "ell", (22.0, -1.0, 0.0))
+    turned = Marking(3, "ell", (22.0, -1.0, math.pi / 2))  # the same shape, lying a quarter turn round
+    frames, by_frame = _revisit_with_neighbours([ell], [ell])
+    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False)), frames, by_frame)
+    assert loop.instance_ids == (1, 1)
+    # a look-alike where the match puts it but turned: eq. 10 alone (any heading) takes it as the same marking
+    frames, by_frame = _revisit_with_neighbours([ell], [turned])
+    stage = IcpLoopClosing(IcpLoopParams(gate=False))
+    assert _run_loop(stage, frames, by_frame) == [] and stage.counts["consensus"] == 1
+    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False, consensus_heading_deg=None)), frames, by_frame)
+    assert loop.instance_ids == (1, 1)
+
+
+def test_a_neighbour_that_fixes_no_heading_counts_half() -> None:
+    discs = [
+        Marking(3, "disc", (22.0, -1.0, 0.0), symmetric=True),
+        Marking(4, "disc", (16.0, 1.0, 0.0), symmetric=True),
+    ]
+    frames, by_frame = _revisit_with_neighbours(discs[:1], discs[:1])
+    stage = IcpLoopClosing(IcpLoopParams(gate=False))
+    assert _run_loop(stage, frames, by_frame) == [] and stage.counts["consensus"] == 1
+    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False, consensus_unoriented_weight=1.0)), frames, by_frame)
+    assert loop.instance_ids == (1, 1)
+    frames, by_frame = _revisit_with_neighbours(discs, discs)  # two manholes: one marking's worth
+    stage = IcpLoopClosing(IcpLoopParams(gate=False))
+    (loop,) = _run_loop(stage, frames, by_frame)
+    a = replace(by_frame[68].items[0])
+    assert stage._support(a, loop) == pytest.approx(1.0)
 
 
 def _repeated_arrows(matched_x: float):  # type: ignore[no-untyped-def]

@@ -144,6 +144,20 @@ class IcpLoopParams(StageParams):
     consensus_distance: float = Field(
         0.15, gt=0.0, le=1.0, description="...and look like it: eq. 10 distance at most this"
     )
+    consensus_heading_deg: float | None = Field(
+        15.0,
+        gt=0.0,
+        le=180.0,
+        description="a neighbour agrees only when it looks alike at the heading the match predicts for it, within "
+        "this (deg); null: at any heading (rotation-invariant eq. 10)",
+    )
+    consensus_unoriented_weight: float = Field(
+        0.5,
+        ge=0.0,
+        le=1.0,
+        description="a neighbour that looks alike at the opposite heading too (a bar, a disc) fixes no heading: it "
+        "counts this much of an agreeing marking",
+    )
     tie_support: int = Field(
         1,
         ge=0,
@@ -278,6 +292,7 @@ class IcpLoopClosing(Stage):
         self._sgf_xy: list[np.ndarray] = []
         self._sgf_distance: list[float] = []
         self._sgf_matrix: list[np.ndarray] = []
+        self._sgf_yaw: list[float] = []
         self._last: int | None = None
 
     # -- per frame --------------------------------------------------------------------------
@@ -488,8 +503,9 @@ class IcpLoopClosing(Stage):
         self._sgf_xy.append(_odometry_xy(d))
         self._sgf_distance.append(self.distance[d.sgf.frame_index])
         self._sgf_matrix.append(np.asarray(d.matrix))
+        self._sgf_yaw.append(_odometry_yaw(d))
 
-    def _support(self, a: GroupAssignment, c: LoopConstraint, unlike: bool = False) -> int:
+    def _support(self, a: GroupAssignment, c: LoopConstraint, unlike: bool = False) -> float:
         """How many other markings near the query agree with the match: seen where it puts them, and alike.
 
         The match says the query's frame sits at ``c.relative`` in the matched frame; odometry is
@@ -497,13 +513,16 @@ class IcpLoopClosing(Stage):
         the query (and after it so far, with ``consensus_wait``) into the earlier pass's odometry
         frame. A neighbour agrees when an SGF of the earlier pass (within the window around the
         matched SGF, and at least ``min_separation_distance`` of path before the neighbour) lies
-        within ``consensus_radius + consensus_drift * (path from the two sightings)`` of it with an
-        eq. 10 distance of at most ``consensus_distance``. Agreeing neighbours closer than
-        ``consensus_exclude`` to each other, or to the query, are one marking; the count is of
-        markings. A look-alike marking elsewhere on campus has other neighbours, so its match finds
-        none. With ``unlike``, neighbours that look like the query (eq. 10 distance at most
-        ``consensus_distance``) do not count: in a repeated pattern they are its other copies, which
-        agree with a match shifted by a period.
+        within ``consensus_radius + consensus_drift * (path from the two sightings)`` of it and
+        looks like it (eq. 10 distance at most ``consensus_distance``) at the heading the match
+        predicts for it, within ``consensus_heading_deg``. A neighbour that looks alike at the
+        opposite heading too (a bar, a disc) confirms the position but not the heading, and counts
+        ``consensus_unoriented_weight``. Agreeing neighbours closer than ``consensus_exclude`` to
+        each other, or to the query, are one marking; the count is of markings. A look-alike
+        marking elsewhere on campus has other neighbours, so its match finds none. With ``unlike``,
+        neighbours that look like the query (eq. 10 distance at most ``consensus_distance``) do not
+        count: in a repeated pattern they are its other copies, which agree with a match shifted by
+        a period.
         """
         p = self.p
         assert a.matched is not None
@@ -514,6 +533,7 @@ class IcpLoopClosing(Stage):
         rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
         xy = np.asarray(self._sgf_xy)
         dist = np.asarray(self._sgf_distance)
+        headings = np.asarray(self._sgf_yaw)
         d_j, d_i = self.distance[query.sgf.frame_index], self.distance[matched.sgf.frame_index]
         q_xy, m_xy = _odometry_xy(query), _odometry_xy(matched)
         near_query = (dist >= d_j - p.consensus_window) & (
@@ -523,8 +543,8 @@ class IcpLoopClosing(Stage):
         near_match = (np.abs(dist - d_i) <= p.consensus_window) & (np.hypot(*(xy - m_xy).T) > p.consensus_exclude)
         earlier = np.flatnonzero(near_match)
         if not len(earlier):
-            return 0
-        agreeing: list[np.ndarray] = []
+            return 0.0
+        agreeing: list[tuple[np.ndarray, float]] = []
         neighbours = np.flatnonzero(near_query)
         if unlike and len(neighbours):
             alike = shifted_distances(query.matrix, np.stack([self._sgf_matrix[k] for k in neighbours])).min(axis=1)
@@ -538,12 +558,20 @@ class IcpLoopClosing(Stage):
             ]
             if not len(close):
                 continue
-            stack = np.stack([self._sgf_matrix[m] for m in close])
-            if shifted_distances(self._sgf_matrix[k], stack).min() > p.consensus_distance:
+            profiles = shifted_distances(self._sgf_matrix[k], np.stack([self._sgf_matrix[m] for m in close]))
+            # the neighbour's heading in each earlier SGF's frame, as the match predicts it (eq. 10's shift convention)
+            predicted = headings[k] + yaw - headings[close]
+            weight = _agreement(
+                profiles, predicted, p.consensus_distance, p.consensus_heading_deg, p.consensus_unoriented_weight
+            )
+            if weight <= 0.0:
                 continue
-            if all(np.hypot(*(xy[k] - g)) > p.consensus_exclude for g in agreeing):
-                agreeing.append(xy[k])
-        return len(agreeing)
+            same = [n for n, (g, _) in enumerate(agreeing) if np.hypot(*(xy[k] - g)) <= p.consensus_exclude]
+            if same:
+                agreeing[same[0]] = (agreeing[same[0]][0], max(agreeing[same[0]][1], weight))
+            else:
+                agreeing.append((xy[k], weight))
+        return float(sum(w for _, w in agreeing))
 
     # -- ICP --------------------------------------------------------------------------------
 
@@ -797,6 +825,38 @@ def _odometry_xy(descriptor: SgfDescriptor) -> np.ndarray:
     """An SGF's centroid (x, y) in the odometry frame of the run that saw it."""
     odometry = np.asarray(descriptor.sgf.odometry, dtype=np.float64)
     return odometry[:2, :2] @ np.asarray(descriptor.centroid, dtype=np.float64)[:2] + odometry[:2, 3]
+
+
+def _odometry_yaw(descriptor: SgfDescriptor) -> float:
+    """The heading (rad) of the frame that saw an SGF, in the odometry frame of its run."""
+    return float(xy_yaw(np.asarray(descriptor.sgf.odometry, dtype=np.float64))[2])
+
+
+def _agreement(
+    profiles: np.ndarray, predicted: np.ndarray, distance: float, heading_deg: float | None, unoriented: float
+) -> float:
+    """How much a neighbour agrees with its best earlier look-alike: 1, ``unoriented``, or 0.
+
+    ``profiles`` holds eq. 10 at every column shift against each earlier SGF, ``predicted`` the
+    neighbour's heading in each one's frame. It agrees when some profile is at most ``distance``
+    within ``heading_deg`` of the predicted heading (anywhere when ``None``: weight 1), and counts
+    ``unoriented`` when that profile is as low at the opposite heading (the shape fixes no heading).
+    """
+    if heading_deg is None:
+        return 1.0 if float(profiles.min()) <= distance else 0.0
+    n_s = profiles.shape[1]
+    shifts = np.arange(n_s)[None, :]
+    width = heading_deg / 360.0 * n_s
+
+    def lowest(yaws: np.ndarray) -> np.ndarray:
+        centre = np.mod(yaws * (n_s / (2.0 * math.pi)), n_s)[:, None]
+        gap = np.abs(np.mod(shifts - centre + n_s / 2.0, n_s) - n_s / 2.0)
+        return np.where(gap <= width, profiles, np.inf).min(axis=1)
+
+    at = lowest(predicted)
+    opposite = lowest(predicted + math.pi)
+    weights = np.where(at <= distance, np.where(opposite <= distance, unoriented, 1.0), 0.0)
+    return float(weights.max())
 
 
 def _pose4(r: IcpResult) -> np.ndarray:
