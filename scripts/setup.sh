@@ -21,7 +21,7 @@ if ! .venv/bin/python -c "import torch" >/dev/null 2>&1; then
   pip_install "torch==${TORCH_VERSION}+cpu" \
     || pip_install "torch==${TORCH_VERSION}" --index-url https://download.pytorch.org/whl/cpu
 fi
-.venv/bin/python -c "import sys, torch; sys.exit(0 if torch.version.cuda is None else \
+.venv/bin/python -W ignore::UserWarning -c "import sys, torch; sys.exit(0 if torch.version.cuda is None else \
 'a CUDA build of torch is in .venv: remove .venv and run scripts/setup.sh again')"
 
 # Reinstall only when pyproject.toml changed since the last setup with the same extras.

@@ -50,9 +50,8 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
     assert len(run.context.artifacts["group_assignments"]) == sum(len(v) for v in world.sgfs.values())
     # by default a loop also needs a neighbouring marking that agrees: the toy world's first two revisits of a
     # stretch have none behind them, and lose their loops when only earlier SGFs may vouch for them, but keep
-    # them when they wait for the markings seen after them; a third (the tee's) has only the manhole behind it,
-    # which fixes no heading and counts half a marking
-    for wait, expected in ((False, (5, 0, 3)), (True, (8, 0, 0))):
+    # them when they wait for the markings seen after them
+    for wait, expected in ((False, (6, 0, 2)), (True, (8, 0, 0))):
         consensus = run_stages(
             world,
             loop=IcpLoopClosing(IcpLoopParams(consensus_wait=wait)),
@@ -74,12 +73,17 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     assert ungated.context.metrics["loops"]["false_closed"] == 4
     # look-alikes take the place of true loops in the arrow group: fewer pairs closed
     assert ungated.context.metrics["loops"]["closed"] < 8
-    # the neighbour consensus alone (the default min_support = 1) also keeps the look-alikes out; it also
-    # refuses the tee's revisit, which has only the manhole behind it (half a marking: it fixes no heading)
+    # the neighbour consensus alone (the default min_support = 1) also keeps the look-alikes out
     consensus = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False)))
     assert consensus.context.metrics["loops"]["false_closed"] == 0
-    assert consensus.context.metrics["loops"]["rejected"]["consensus"] == 5
-    assert consensus.context.metrics["loops"]["closed"] == 4
+    assert consensus.context.metrics["loops"]["rejected"]["consensus"] == 4
+    assert consensus.context.metrics["loops"]["closed"] == 5
+    # with the heading test and a manhole worth half a marking, the tee's revisit (only the manhole behind it)
+    # is refused too
+    headed = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False, consensus_heading_deg=15.0)))
+    assert headed.context.metrics["loops"]["false_closed"] == 0
+    assert headed.context.metrics["loops"]["rejected"]["consensus"] == 5
+    assert headed.context.metrics["loops"]["closed"] == 4
 
 
 def _straight_run(n: int, yaw_at_end: float) -> list[Frame]:
@@ -339,14 +343,16 @@ def _revisit_with_neighbours(first: list[Marking], second: list[Marking]):  # ty
 def test_a_neighbour_agrees_only_at_the_heading_the_match_predicts() -> None:
     ell = Marking(3, "ell", (22.0, -1.0, 0.0))
     turned = Marking(3, "ell", (22.0, -1.0, math.pi / 2))  # the same shape, lying a quarter turn round
+    headed = IcpLoopParams(gate=False, consensus_heading_deg=15.0)
     frames, by_frame = _revisit_with_neighbours([ell], [ell])
-    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False)), frames, by_frame)
+    (loop,) = _run_loop(IcpLoopClosing(headed), frames, by_frame)
     assert loop.instance_ids == (1, 1)
-    # a look-alike where the match puts it but turned: eq. 10 alone (any heading) takes it as the same marking
+    # a look-alike where the match puts it but turned: eq. 10 alone (any heading, the default) takes it as the
+    # same marking
     frames, by_frame = _revisit_with_neighbours([ell], [turned])
-    stage = IcpLoopClosing(IcpLoopParams(gate=False))
+    stage = IcpLoopClosing(headed)
     assert _run_loop(stage, frames, by_frame) == [] and stage.counts["consensus"] == 1
-    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False, consensus_heading_deg=None)), frames, by_frame)
+    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False)), frames, by_frame)
     assert loop.instance_ids == (1, 1)
 
 
@@ -355,16 +361,20 @@ def test_a_neighbour_that_fixes_no_heading_counts_half() -> None:
         Marking(3, "disc", (22.0, -1.0, 0.0), symmetric=True),
         Marking(4, "disc", (16.0, 1.0, 0.0), symmetric=True),
     ]
+    headed = IcpLoopParams(gate=False, consensus_heading_deg=15.0)
     frames, by_frame = _revisit_with_neighbours(discs[:1], discs[:1])
-    stage = IcpLoopClosing(IcpLoopParams(gate=False))
+    stage = IcpLoopClosing(headed)
     assert _run_loop(stage, frames, by_frame) == [] and stage.counts["consensus"] == 1
-    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False, consensus_unoriented_weight=1.0)), frames, by_frame)
-    assert loop.instance_ids == (1, 1)
+    for params in (headed.model_copy(update={"consensus_unoriented_weight": 1.0}), IcpLoopParams(gate=False)):
+        (loop,) = _run_loop(IcpLoopClosing(params), frames, by_frame)
+        assert loop.instance_ids == (1, 1)
     frames, by_frame = _revisit_with_neighbours(discs, discs)  # two manholes: one marking's worth
-    stage = IcpLoopClosing(IcpLoopParams(gate=False))
+    stage = IcpLoopClosing(headed)
     (loop,) = _run_loop(stage, frames, by_frame)
-    a = replace(by_frame[68].items[0])
-    assert stage._support(a, loop) == pytest.approx(1.0)
+    assert stage._support(by_frame[68].items[0], loop) == pytest.approx(1.0)
+    stage = IcpLoopClosing(IcpLoopParams(gate=False))  # at any heading each manhole is a whole marking
+    (loop,) = _run_loop(stage, frames, by_frame)
+    assert stage._support(by_frame[68].items[0], loop) == pytest.approx(2.0)
 
 
 def _repeated_arrows(matched_x: float):  # type: ignore[no-untyped-def]

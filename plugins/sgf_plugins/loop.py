@@ -27,8 +27,11 @@ larger than their spacing, the gate too. The association then reports the match 
 the tied groups as ``alternatives``; each option is put through ICP and the gate, and then
 through the neighbour consensus (:meth:`IcpLoopClosing._support`): the SGFs seen in the last
 ``consensus_window`` metres, carried by the locally accurate odometry and the option's ICP pose
-into the earlier pass, must land on look-alike SGFs of that pass. The one option with at least
-``tie_support`` agreeing markings wins; none or several, and the match gives no factor.
+into the earlier pass, must land on look-alike SGFs of that pass (with ``consensus_heading_deg``
+set, look-alike at the heading the match predicts for them, and a neighbour that looks alike
+turned half a turn too, a bar or a disc, fixes no heading and counts
+``consensus_unoriented_weight``; off by default, see docs/results.md). The one option with at
+least ``tie_support`` agreeing markings wins; none or several, and the match gives no factor.
 ``min_support`` asks the same of every loop. With ``consensus_wait``, a match that has too few
 agreeing neighbours so far waits while the robot drives ``consensus_window`` metres on, and the
 SGFs seen after it count too: the first marking of a revisit (a reverse one above all, entered
@@ -145,7 +148,7 @@ class IcpLoopParams(StageParams):
         0.15, gt=0.0, le=1.0, description="...and look like it: eq. 10 distance at most this"
     )
     consensus_heading_deg: float | None = Field(
-        15.0,
+        None,
         gt=0.0,
         le=180.0,
         description="a neighbour agrees only when it looks alike at the heading the match predicts for it, within "
@@ -514,12 +517,13 @@ class IcpLoopClosing(Stage):
         frame. A neighbour agrees when an SGF of the earlier pass (within the window around the
         matched SGF, and at least ``min_separation_distance`` of path before the neighbour) lies
         within ``consensus_radius + consensus_drift * (path from the two sightings)`` of it and
-        looks like it (eq. 10 distance at most ``consensus_distance``) at the heading the match
-        predicts for it, within ``consensus_heading_deg``. A neighbour that looks alike at the
-        opposite heading too (a bar, a disc) confirms the position but not the heading, and counts
-        ``consensus_unoriented_weight``. Agreeing neighbours closer than ``consensus_exclude`` to
-        each other, or to the query, are one marking; the count is of markings. A look-alike
-        marking elsewhere on campus has other neighbours, so its match finds none. With ``unlike``,
+        looks like it (eq. 10 distance at most ``consensus_distance``); with ``consensus_heading_deg``
+        set, at the heading the match predicts for it, within that many degrees, and a neighbour
+        that looks alike at the opposite heading too (a bar, a disc) confirms the position but not
+        the heading, and counts ``consensus_unoriented_weight``. Agreeing neighbours closer than
+        ``consensus_exclude`` to each other, or to the query, are one marking; the count is of
+        markings. A look-alike marking elsewhere on campus has other neighbours, so its match finds
+        none. With ``unlike``,
         neighbours that look like the query (eq. 10 distance at most ``consensus_distance``) do not
         count: in a repeated pattern they are its other copies, which agree with a match shifted by
         a period.
