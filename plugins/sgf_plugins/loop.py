@@ -77,7 +77,7 @@ from sgf_pipeline.types import (
 )
 from sgf_plugins.anchoring import anchored_distances
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2_params
-from sgf_plugins.sgf.polar import shifted_distances
+from sgf_plugins.sgf.polar import shifted_distances, yaw_to_shift
 
 _MAP = -1  # the prior map as one node of the anchoring graph
 #: Two ICP fits further apart than this are distinct fits of one match.
@@ -523,10 +523,9 @@ class IcpLoopClosing(Stage):
         the heading, and counts ``consensus_unoriented_weight``. Agreeing neighbours closer than
         ``consensus_exclude`` to each other, or to the query, are one marking; the count is of
         markings. A look-alike marking elsewhere on campus has other neighbours, so its match finds
-        none. With ``unlike``,
-        neighbours that look like the query (eq. 10 distance at most ``consensus_distance``) do not
-        count: in a repeated pattern they are its other copies, which agree with a match shifted by
-        a period.
+        none. With ``unlike``, neighbours that look like the query (eq. 10 distance at most
+        ``consensus_distance``) do not count: in a repeated pattern they are its other copies, which
+        agree with a match shifted by a period.
         """
         p = self.p
         assert a.matched is not None
@@ -853,7 +852,7 @@ def _agreement(
     width = heading_deg / 360.0 * n_s
 
     def lowest(yaws: np.ndarray) -> np.ndarray:
-        centre = np.mod(yaws * (n_s / (2.0 * math.pi)), n_s)[:, None]
+        centre = np.array([yaw_to_shift(float(y), n_s) for y in yaws])[:, None]
         gap = np.abs(np.mod(shifts - centre + n_s / 2.0, n_s) - n_s / 2.0)
         return np.where(gap <= width, profiles, np.inf).min(axis=1)
 
