@@ -17,6 +17,7 @@ from sgf_plugins.sgf.synthetic import (
     GroundShape,
     arrow_shape,
     ell_shape,
+    rectangle,
     render_saliency,
     toy_calibration,
 )
@@ -258,7 +259,7 @@ def _mixed_group_and_query(**params):
 
 
 def test_nearest_member_distance_matches_a_view_the_group_mean_blurs():
-    s, pose, query = _mixed_group_and_query()
+    s, pose, query = _mixed_group_and_query(group_distance="mean")
     group = s.groups[0]
     to_mean = shifted_distances(query.matrix, group.descriptor[None])[0].min()
     to_members = shifted_distances(query.matrix, group.matrices).min(axis=1)
@@ -266,7 +267,7 @@ def test_nearest_member_distance_matches_a_view_the_group_mean_blurs():
     threshold = float((to_mean + to_members[1]) / 2.0)
     (by_mean,) = feed(s, 10, pose, query)
     assert not by_mean.new_group and by_mean.distance == pytest.approx(to_mean)
-    strict, _, _ = _mixed_group_and_query(new_group_distance=threshold)
+    strict, _, _ = _mixed_group_and_query(new_group_distance=threshold, group_distance="mean")
     (opened,) = feed(strict, 10, pose, query)
     assert opened.new_group and opened.distance == pytest.approx(to_mean)
     nearest, _, _ = _mixed_group_and_query(new_group_distance=threshold, group_distance="nearest_member")
@@ -466,10 +467,83 @@ def test_a_repeated_pattern_is_aliased_and_never_joins_its_neighbour():
     assert not q2.new_group and q2.group_id == q1.group_id and not q2.ambiguous
 
 
-def _two_arrows_then_back(**params):
-    """Arrows at x = 5 and x = 25 m (identical design), then 400 m of travel and back to the first."""
-    far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
+def test_a_partial_view_of_the_same_marking_is_no_copy():
+    """A 6 m stop line seen from two places 1 m apart: the BEV cuts it differently, its centroid moves 0.7 m.
+
+    The two views cover the same paint, so the second joins the first's group; without the footprint
+    test it counted as a neighbouring copy of a repeated pattern and opened an aliased group.
+    """
+    line = GroundShape((rectangle(6.0, 0.3),), (5.0, 0.0, math.pi / 2), 5)
+    p1, p2 = seen_from(line, 3.0, 0.0), seen_from(line, 3.0, 0.0, lateral=1.0)
+    d1, d2 = desc(line, p1, 1), desc(line, p2, 2)
+    moved = np.linalg.norm((p2[:2, :2] @ d2.centroid + p2[:2, 3]) - (p1[:2, :2] @ d1.centroid + p1[:2, 3]))
+    assert 0.6 < moved < 0.8
+    s = stage()
+    (r1,) = feed(s, 1, p1, d1)
+    (r2,) = feed(s, 2, p2, d2)
+    assert not r2.new_group and r2.group_id == r1.group_id and not r2.aliased and not r2.ambiguous
+    old = stage(repeat_overlap=None)
+    feed(old, 1, p1, d1)
+    (q2,) = feed(old, 2, p2, d2)
+    assert q2.new_group and q2.aliased and all(g.aliased for g in old.groups)
+
+
+def _a_painted_row_near_an_earlier_look_alike(**params):
+    """Arrow C (x = 5 m), then a row of two arrows 63 and 62 m from it: the second arrow's gate reaches C."""
+    c = ARROW
+    r1, r2 = ARROW.placed(68.0, 0.0, 0.3, instance_id=10), ARROW.placed(67.0, 0.8, 0.3, instance_id=11)
+    s = stage(gate_radius=62.5, drift_rate=0.0, drift_quadratic=0.0, **params)
+    p1, p3, p4 = seen_from(c, 3.0, 0.0), seen_from(r1, 3.0, 0.0), seen_from(r2, 3.0, 0.0)
+    (first,) = feed(s, 1, p1, desc(c, p1, 1))
+    feed(s, 2, pose_from_xy_yaw(40.0, 0.0, 0.0))
+    (a1,) = feed(s, 3, p3, desc(r1, p3, 3))
+    (a2,) = feed(s, 4, p4, desc(r2, p4, 4))
+    assert a1.new_group  # C is outside the first arrow's gate
+    return first, a1, a2
+
+
+def test_a_copy_whose_best_match_is_its_neighbour_opens_its_own_group():
+    # with copies=apart the second arrow of the row may not join its neighbour, so it joins the earlier look-alike
+    first, a1, a2 = _a_painted_row_near_an_earlier_look_alike(copies="apart")
+    assert not a2.new_group and a2.group_id == first.group_id and a2.aliased
+    # by default (new) it opens a group of its own (aliased: no loop factors), and C's group keeps its own marking
+    first, a1, a2 = _a_painted_row_near_an_earlier_look_alike()
+    assert a2.new_group and a2.aliased and a2.group_id not in (first.group_id, a1.group_id)
+    assert a2.distance < 0.05  # it reports its eq. 10 distance to the copy it resembles
+
+
+def _back_to_a_differently_seen_arrow(**params):
+    """An arrow first seen as a wider shape (a mask that bled), a look-alike 30 m on, 400 m away and back to the first."""
+    seen_wide = GroundShape(arrow_shape(length=1.4, width=0.9), ARROW.pose, ARROW.instance_id)
+    far = ARROW.placed(35.0, 0.0, 0.3, instance_id=9)
     s = stage(**params)
+    p1, p2 = seen_from(seen_wide, 3.0, 0.0), seen_from(far, 3.0, 0.0)
+    (own,) = feed(s, 1, p1, desc(seen_wide, p1, 1))
+    (other,) = feed(s, 2, p2, desc(far, p2, 2))
+    feed(s, 3, pose_from_xy_yaw(220.0, 0.0, 0.0))
+    p4 = seen_from(ARROW, 3.0, math.pi)
+    query = desc(ARROW, p4, 4)
+    eq10 = [shifted_distances(query.matrix, g.descriptor[None], "intersection").min() for g in s.groups]
+    assert 0.06 < eq10[0] - eq10[1] < 0.1  # eq. 10 prefers the look-alike by more than the tie margin
+    (back,) = feed(s, 4, p4, query)
+    return own, other, back
+
+
+def test_the_position_weight_lets_the_map_position_outrank_a_small_eq10_difference():
+    own, other, back = _back_to_a_differently_seen_arrow(position_weight=0.0)
+    assert back.group_id == other.group_id  # eq. 10 alone: the look-alike 30 m away
+    # the look-alike lies halfway out in the 60 m gate: 0.3 x 0.5 outweighs eq. 10's 0.09 (the default weight)
+    own, other, back = _back_to_a_differently_seen_arrow()
+    assert back.group_id == own.group_id and not back.new_group
+
+
+def _two_arrows_then_back(**params):
+    """Arrows at x = 5 and x = 25 m (identical design), then 400 m of travel and back to the first.
+
+    Ranked by eq. 10 alone (``position_weight=0``), as a tie of look-alikes in a wide gate needs.
+    """
+    far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
+    s = stage(**{"position_weight": 0.0, **params})
     p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(far, 3.0, 0.0)
     (r1,) = feed(s, 1, p1, desc(ARROW, p1, 1))
     (r2,) = feed(s, 2, p2, desc(far, p2, 2))
@@ -501,7 +575,7 @@ def _back_after_a_loop(estimate_error: float, **params):
     meets it (``estimate_error`` = 0) or is ``estimate_error`` metres off it.
     """
     far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
-    s = stage(**params)
+    s = stage(**{"position_weight": 0.0, **params})  # the gate alone decides
     p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(far, 3.0, 0.0)
     feed(s, 1, p1, desc(ARROW, p1, 1))
     (first_b,) = feed(s, 2, p2, desc(far, p2, 2))
@@ -534,7 +608,7 @@ def test_a_closed_loop_the_estimate_meets_narrows_the_gate():
 
 def test_a_tie_with_an_aliased_group_has_no_alternatives():
     """When a tied look-alike is a repeated pattern, no neighbour test can resolve the tie: nothing is handed on."""
-    s = stage()
+    s = stage(position_weight=0.0)
     p1 = seen_from(ARROW, 3.0, 0.0)
     feed(s, 1, p1, desc(ARROW, p1, 1))
     far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
@@ -557,6 +631,21 @@ def test_different_markings_side_by_side_are_not_copies_of_a_pattern():
     assert r2.new_group and not r2.ambiguous and not any(g.aliased for g in s.groups)
 
 
+def _shared_cells(s: OnlineSgfGroups, a: SgfDescriptor, b: SgfDescriptor, estimate) -> float:
+    """Share of the smaller footprint's map cells that the other covers too, cell by cell."""
+    cells = []
+    for d in (a, b):
+        pose = s.pose_of(d.sgf.frame_index, d.sgf.odometry, estimate)
+        cells.append(
+            {
+                (math.floor(x / p), math.floor(y / p))
+                for x, y in (pose[:2, :2] @ d.points.T + pose[:2, 3 : 3 + 1]).T
+                for p in [s.params.footprint_cell]
+            }
+        )
+    return len(cells[0] & cells[1]) / min(len(c) for c in cells)
+
+
 def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[tuple[int, float, bool]]:
     """The spatial gate member by member, as its docstring states it (to check the vectorised one)."""
     p = s.params
@@ -573,7 +662,8 @@ def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[
                 distance = float(np.linalg.norm(s.position_of(member, estimate) - here))
                 travelled = abs(since - s._travelled[member.sgf.frame_index])
                 radius = p.gate_radius + p.drift_rate * travelled + p.drift_quadratic * travelled**2
-                repeated |= travelled <= p.repeat_window and distance > p.repeat_radius
+                if travelled <= p.repeat_window and distance > p.repeat_radius:
+                    repeated |= _shared_cells(s, query, member, estimate) < p.repeat_overlap
             nearest = min(nearest, distance)
             inside |= distance <= radius
         if inside:

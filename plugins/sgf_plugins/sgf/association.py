@@ -110,9 +110,15 @@ class OnlineGroupsParams(StageParams):
         None, gt=0.0, description="gate (m) around members of groups seeded from a saved map; null = no gate"
     )
     group_distance: Literal["mean", "nearest_member"] = Field(
-        "mean",
+        "nearest_member",
         description="a group's eq. 10 distance: to the mean of its aligned members (the paper's D^sg), or to its "
         "closest member (a view that differs from the others by a partial mask still matches its own)",
+    )
+    position_weight: float = Field(
+        0.3,
+        ge=0.0,
+        description="added to a group's eq. 10 distance times how far out in the spatial gate its nearest member lies "
+        "(0 at the query's map position, this at the gate's edge): groups are ranked by both; 0 = eq. 10 alone",
     )
     tie_margin: float = Field(
         0.05,
@@ -126,8 +132,21 @@ class OnlineGroupsParams(StageParams):
         "copy of a repeated pattern (give-way triangles, zebra bars, dashes): the query may not join it",
     )
     repeat_radius: float = Field(0.5, gt=0.0, description="...away means farther than this on the map (m)")
+    repeat_overlap: float | None = Field(
+        0.25,
+        gt=0.0,
+        le=1.0,
+        description="...and its ground footprint shares less than this share of the smaller one's cells with the "
+        "query's (a partial view of the same marking moves the centroid but overlaps it); null = no footprint test",
+    )
+    footprint_cell: float = Field(0.1, gt=0.0, description="cell size (m) of the footprints the overlap compares")
     copy_distance: float = Field(
         0.2, ge=0.0, description="...and a copy looks like the query: eq. 10 distance at most this (0 = no copies)"
+    )
+    copies: Literal["apart", "new"] = Field(
+        "new",
+        description="a query whose best match is a neighbouring copy (ties it within tie_margin): joins the best "
+        "other group (apart), or opens its own (new, aliased: no loop factors)",
     )
     prior_map: str | None = Field(
         None, description="an SGF map (sgf_map.safetensors) whose groups seed the association: localization on it"
@@ -154,6 +173,7 @@ class GatedGroup:
     group: SgfGroup
     nearest: float
     repeated: bool
+    ratio: float = 0.0
 
 
 class _MemberIndex:
@@ -173,6 +193,7 @@ class _MemberIndex:
         self.anchor = np.zeros((64, 2))
         self.positions = np.zeros((0, 2))
         self.estimate: object = _NO_ESTIMATE
+        self.members: list[SgfDescriptor] = []
 
     def add(self, group: int, member: SgfDescriptor, travelled: float | None, anchor: np.ndarray | None) -> None:
         """Append one member of the group at position ``group`` in the group list."""
@@ -189,6 +210,7 @@ class _MemberIndex:
         self.odometry[k] = np.asarray(member.sgf.odometry, dtype=np.float64)
         self.travelled[k] = math.nan if travelled is None else travelled
         self.anchor[k] = math.nan if anchor is None else anchor
+        self.members.append(member)
         self.size += 1
 
 
@@ -221,7 +243,11 @@ class OnlineSgfGroups(Stage):
     ``anchor_tolerance``) joins its two frames at no cost, so once a revisit is anchored the gate
     shrinks back to what the odometry drifts since the loop, not since the first sighting.
 
-    The query joins the candidate group of smallest eq. 10 distance if it is at most
+    Groups are ranked by eq. 10 distance, plus ``position_weight`` times the ratio of their nearest
+    member's map distance to its gate radius (0 where the estimate puts the query, 1 at the
+    gate's edge): once the gate is tens of metres wide, a small eq. 10 advantage of a look-alike
+    far away no longer outranks the group right where the query lies. The query joins the
+    candidate group ranked first if its eq. 10 distance is at most
     ``new_group_distance`` (0.7), else it opens a group (then ``distance`` is the smallest
     distance to a gated group, 1 when none was gated, and ``shift``/``yaw`` are 0). ``matched`` is
     the closest member of that group (by eq. 10 against each member's own descriptor) and
@@ -402,12 +428,22 @@ class OnlineSgfGroups(Stage):
             index.estimate = estimate
         return index.positions
 
+    def _footprint(self, descriptor: SgfDescriptor, estimate: PoseEstimate | None) -> set[int]:
+        """The map cells (``footprint_cell`` wide) that a descriptor's ground points cover, as integer keys."""
+        sgf = descriptor.sgf
+        pose = self.pose_of(sgf.frame_index, np.asarray(sgf.odometry, dtype=np.float64), estimate)
+        xy = np.asarray(descriptor.points, dtype=np.float64)[:, :2] @ pose[:2, :2].T + pose[:2, 3]
+        cells = np.floor(xy / self.params.footprint_cell).astype(np.int64)
+        return set((cells[:, 0] * 2_000_003 + cells[:, 1]).tolist())
+
     def gated(self, query: SgfDescriptor, estimate: PoseEstimate | None) -> list[GatedGroup]:
         """The groups the spatial gate lets the query meet, with their nearest member's map distance (m).
 
         ``repeated`` marks a group holding a member seen moments ago (within ``repeat_window`` of
-        travel) at another place (beyond ``repeat_radius``): if it also looks like the query, the
-        two are neighbouring copies of a repeated pattern (see :meth:`assign`).
+        travel) at another place (beyond ``repeat_radius``, and with a ground footprint that
+        overlaps the query's by less than ``repeat_overlap``): if it also looks like the query, the
+        two are neighbouring copies of a repeated pattern (see :meth:`assign`). A partial view of
+        the same marking moves its centroid by up to a metre or two but covers the same paint.
         """
         p, index = self.params, self._index
         n = index.size
@@ -424,6 +460,12 @@ class OnlineSgfGroups(Stage):
             odometry = np.asarray(query.sgf.odometry, dtype=np.float64)[:3, 3]
             travelled[unknown] = np.linalg.norm(index.odometry[:n][unknown, :3, 3] - odometry, axis=1)
         repeated = ~anchored & (travelled <= p.repeat_window) & (distance > p.repeat_radius)
+        if p.repeat_overlap is not None and repeated.any():
+            footprint = self._footprint(query, estimate)
+            for k in np.flatnonzero(repeated):
+                other = self._footprint(index.members[k], estimate)
+                shared = len(footprint & other) / max(1, min(len(footprint), len(other)))
+                repeated[k] = shared < p.repeat_overlap
         if p.anchored_gate and since is not None:
             shortcuts = self._anchoring(estimate)
             if shortcuts:
@@ -435,12 +477,16 @@ class OnlineSgfGroups(Stage):
         count = len(self._groups)
         nearest = np.full(count, math.inf)
         np.minimum.at(nearest, groups, distance)
+        ratio = np.full(count, math.inf)
+        np.minimum.at(ratio, groups, distance / radius)
         inside = np.bincount(groups, weights=distance <= radius, minlength=count) > 0
         if not p.spatial_gate:
             inside[:] = True
         repeats = np.bincount(groups, weights=repeated, minlength=count) > 0
         return [
-            GatedGroup(group, float(nearest[k]), bool(repeats[k])) for k, group in enumerate(self._groups) if inside[k]
+            GatedGroup(group, float(nearest[k]), bool(repeats[k]), float(min(ratio[k], 1.0)))
+            for k, group in enumerate(self._groups)
+            if inside[k]
         ]
 
     def _remember_loops(self, loops: LoopConstraints | None) -> None:
@@ -502,6 +548,7 @@ class OnlineSgfGroups(Stage):
         n_s = query.matrix.shape[1]
         candidates = self.gated(query, estimate)
         best: tuple[SgfGroup, float] | None = None
+        opened_distance = 1.0  # reported when the query opens a group and no group was kept
         tied: list[SgfGroup] = []
         copy_nearby = False
         if candidates:
@@ -515,18 +562,24 @@ class OnlineSgfGroups(Stage):
                 per_group = shifted_distances(query.matrix, stack, p.columns).min(axis=1)
             else:
                 per_group = self._nearest_member_distances(query, [c.group for c in candidates])
+            # Where the estimate puts the query counts too: a group at the gate's edge pays position_weight.
+            eq10 = per_group
+            per_group = eq10 + p.position_weight * np.array([c.ratio for c in candidates])
             self._rank_own_group(query, candidates, per_group)
             # A look-alike group just seen elsewhere is a neighbouring copy of a repeated pattern
             # (give-way triangles, dashes): the query may not join it, and neither gives loop factors.
-            copy = np.array([c.repeated for c in candidates]) & (per_group <= p.copy_distance)
+            copy = np.array([c.repeated for c in candidates]) & (eq10 <= p.copy_distance)
             for i in np.flatnonzero(copy):
                 candidates[i].group.aliased = True
             copy_nearby = bool(copy.any())
-            if not copy.all():
-                best_kept = per_group[~copy].min()
+            best_kept = per_group[~copy].min() if not copy.all() else math.inf
+            if p.copies == "new" and copy_nearby and per_group[copy].min() <= best_kept + p.tie_margin:
+                # The query is one more copy of the pattern here, not a revisit elsewhere: a group of its own.
+                opened_distance = float(eq10.min())
+            elif not copy.all():
                 ties = np.flatnonzero(~copy & (per_group <= best_kept + p.tie_margin))
                 i = int(min(ties, key=lambda t: candidates[t].nearest))
-                best = (candidates[i].group, float(per_group[i]))
+                best = (candidates[i].group, float(eq10[i]))
                 # Look-alike groups inside the gate (identical standard markings) cannot be told apart
                 # by eq. 10: the query joins the nearest, the match is ambiguous, and the others are
                 # handed on as alternatives (a loop stage may tell them apart by their neighbours).
@@ -539,7 +592,7 @@ class OnlineSgfGroups(Stage):
             group.refresh(p.columns, p.symmetry_threshold)
             self._slot[group.group_id] = len(self._groups)
             self._groups.append(group)
-            distance = 1.0 if best is None else best[1]
+            distance = opened_distance if best is None else best[1]
             return GroupAssignment(
                 query,
                 group.group_id,
@@ -581,10 +634,11 @@ class OnlineSgfGroups(Stage):
         )
 
     def _rank_own_group(self, query: SgfDescriptor, candidates: list[GatedGroup], per_group: np.ndarray) -> None:
-        """Count whether eq. 10 ranks the group of the query's own marking (its members' majority) above the others.
+        """Count whether the ranking ranks the group of the query's own marking (its members' majority) first.
 
-        Only labelled queries whose own group and another one are both gated count: the share
-        ranked first measures how well the descriptor tells markings apart on this run.
+        The ranking is eq. 10, plus ``position_weight`` times the gate ratio when that is set. Only
+        labelled queries whose own group and another one are both gated count: the share ranked
+        first measures how well the association tells markings apart on this run.
         """
         instance = query.sgf.instance_id
         if instance is None:
