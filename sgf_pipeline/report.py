@@ -213,7 +213,7 @@ def _purities(runs: list[RunRecord]) -> list[float | None]:
 
 
 def _ranked_first(runs: list[RunRecord]) -> tuple[int, int] | None:
-    """Decisions where eq. 10 ranked the own marking's group first, and all such decisions, over the runs."""
+    """Decisions where the association ranked the own marking's group first, and all such decisions, over the runs."""
     found = [_get(r.metrics, "sgf", "own_group_ranked_first") for r in runs]
     known = [f for f in found if isinstance(f, dict) and f.get("decisions")]
     if not known:
@@ -305,7 +305,7 @@ def render_markdown(runs: list[RunRecord], tables: dict[str, Any], figures: dict
 
     out += ["## Table 3: SGF detection, loop pairs found and loops closed", ""]
     header = ["variant", "sequence", "runs", "detection", "find loop pairs (rev.)", "loops closed (rev.)"]
-    extra = ["false loops", "group purity per seed", "eq. 10 ranks the own group first", "paper"]
+    extra = ["false loops", "group purity per seed", "own group ranked first", "paper"]
     out += ["| " + " | ".join([*header, *extra]) + " |", "|---" * (len(header) + len(extra)) + "|"]
     for r in sorted(rows, key=lambda r: (r["variant"], _ordered([r["sequence"]]))):
         paper3 = PAPER_TABLE3.get(r["sequence"])
