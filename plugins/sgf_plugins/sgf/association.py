@@ -394,10 +394,14 @@ class OnlineSgfGroups(Stage):
             return odometry
         return np.asarray(estimate.poses[ref]) @ invert(ref_odometry) @ odometry
 
+    def map_pose(self, descriptor: SgfDescriptor, estimate: PoseEstimate | None) -> np.ndarray:
+        """The map pose of the frame a descriptor was seen from (:meth:`pose_of` its frame)."""
+        sgf = descriptor.sgf
+        return self.pose_of(sgf.frame_index, np.asarray(sgf.odometry, dtype=np.float64), estimate)
+
     def position_of(self, descriptor: SgfDescriptor, estimate: PoseEstimate | None) -> np.ndarray:
         """The map position (x, y) of a descriptor's centroid."""
-        sgf = descriptor.sgf
-        pose = self.pose_of(sgf.frame_index, np.asarray(sgf.odometry, dtype=np.float64), estimate)
+        pose = self.map_pose(descriptor, estimate)
         c = descriptor.centroid
         return pose[:2, :2] @ np.asarray(c[:2], dtype=np.float64) + pose[:2, 3]
 
@@ -428,13 +432,12 @@ class OnlineSgfGroups(Stage):
             index.estimate = estimate
         return index.positions
 
-    def _footprint(self, descriptor: SgfDescriptor, estimate: PoseEstimate | None) -> set[int]:
-        """The map cells (``footprint_cell`` wide) that a descriptor's ground points cover, as integer keys."""
-        sgf = descriptor.sgf
-        pose = self.pose_of(sgf.frame_index, np.asarray(sgf.odometry, dtype=np.float64), estimate)
+    def _footprint(self, descriptor: SgfDescriptor, estimate: PoseEstimate | None) -> set[tuple[int, int]]:
+        """The map cells (``footprint_cell`` wide) that a descriptor's ground points cover."""
+        pose = self.map_pose(descriptor, estimate)
         xy = np.asarray(descriptor.points, dtype=np.float64)[:, :2] @ pose[:2, :2].T + pose[:2, 3]
         cells = np.floor(xy / self.params.footprint_cell).astype(np.int64)
-        return set((cells[:, 0] * 2_000_003 + cells[:, 1]).tolist())
+        return set(map(tuple, cells.tolist()))
 
     def gated(self, query: SgfDescriptor, estimate: PoseEstimate | None) -> list[GatedGroup]:
         """The groups the spatial gate lets the query meet, with their nearest member's map distance (m).
@@ -537,9 +540,7 @@ class OnlineSgfGroups(Stage):
         """The column shift that the pose estimate predicts between two sightings (None for map members)."""
         if self.params.yaw_tolerance <= 0.0:
             return None
-        pq = self.pose_of(query.sgf.frame_index, np.asarray(query.sgf.odometry, dtype=np.float64), estimate)
-        pm = self.pose_of(member.sgf.frame_index, np.asarray(member.sgf.odometry, dtype=np.float64), estimate)
-        yaw = xy_yaw(pq)[2] - xy_yaw(pm)[2]
+        yaw = xy_yaw(self.map_pose(query, estimate))[2] - xy_yaw(self.map_pose(member, estimate))[2]
         return yaw_to_shift(yaw, query.matrix.shape[1])
 
     def assign(self, query: SgfDescriptor, estimate: PoseEstimate | None = None) -> GroupAssignment:
@@ -559,25 +560,24 @@ class OnlineSgfGroups(Stage):
                     "all SGF descriptors of a run (and of a seeded map) need the same N_r and N_s"
                 )
             if p.group_distance == "mean":
-                per_group = shifted_distances(query.matrix, stack, p.columns).min(axis=1)
+                eq10 = shifted_distances(query.matrix, stack, p.columns).min(axis=1)
             else:
-                per_group = self._nearest_member_distances(query, [c.group for c in candidates])
+                eq10 = self._nearest_member_distances(query, [c.group for c in candidates])
             # Where the estimate puts the query counts too: a group at the gate's edge pays position_weight.
-            eq10 = per_group
-            per_group = eq10 + p.position_weight * np.array([c.ratio for c in candidates])
-            self._rank_own_group(query, candidates, per_group)
+            score = eq10 + p.position_weight * np.array([c.ratio for c in candidates])
+            self._rank_own_group(query, candidates, score)
             # A look-alike group just seen elsewhere is a neighbouring copy of a repeated pattern
             # (give-way triangles, dashes): the query may not join it, and neither gives loop factors.
             copy = np.array([c.repeated for c in candidates]) & (eq10 <= p.copy_distance)
             for i in np.flatnonzero(copy):
                 candidates[i].group.aliased = True
             copy_nearby = bool(copy.any())
-            best_kept = per_group[~copy].min() if not copy.all() else math.inf
-            if p.copies == "new" and copy_nearby and per_group[copy].min() <= best_kept + p.tie_margin:
+            best_kept = score[~copy].min() if not copy.all() else math.inf
+            if p.copies == "new" and copy_nearby and score[copy].min() <= best_kept + p.tie_margin:
                 # The query is one more copy of the pattern here, not a revisit elsewhere: a group of its own.
                 opened_distance = float(eq10.min())
             elif not copy.all():
-                ties = np.flatnonzero(~copy & (per_group <= best_kept + p.tie_margin))
+                ties = np.flatnonzero(~copy & (score <= best_kept + p.tie_margin))
                 i = int(min(ties, key=lambda t: candidates[t].nearest))
                 best = (candidates[i].group, float(eq10[i]))
                 # Look-alike groups inside the gate (identical standard markings) cannot be told apart
@@ -633,7 +633,7 @@ class OnlineSgfGroups(Stage):
             alternatives=alternatives,
         )
 
-    def _rank_own_group(self, query: SgfDescriptor, candidates: list[GatedGroup], per_group: np.ndarray) -> None:
+    def _rank_own_group(self, query: SgfDescriptor, candidates: list[GatedGroup], score: np.ndarray) -> None:
         """Count whether the ranking ranks the group of the query's own marking (its members' majority) first.
 
         The ranking is eq. 10, plus ``position_weight`` times the gate ratio when that is set. Only
@@ -646,7 +646,7 @@ class OnlineSgfGroups(Stage):
         own = np.array([_majority_instance(c.group) == instance for c in candidates])
         if own.any() and not own.all():
             self._ranked[0] += 1
-            self._ranked[1] += int(per_group[own].min() < per_group[~own].min())
+            self._ranked[1] += int(score[own].min() < score[~own].min())
 
     def _nearest_member_distances(self, query: SgfDescriptor, groups: list[SgfGroup]) -> np.ndarray:
         """Eq. 10 distance (best shift) from the query to each group's closest member, in one pass over all members."""
