@@ -16,6 +16,8 @@ from sgf_plugins.saliency.data import (
     make_splits,
     normalize_image,
     resize_mask,
+    rotate_hue,
+    salient_crop,
     samples_from_bevs,
     write_sod_folder,
 )
@@ -114,6 +116,54 @@ def test_augmentation_is_reproducible_and_keeps_masks_aligned() -> None:
     img, m = Augmentation()(rgb, mask, np.random.default_rng(0))
     assert img.shape == rgb.shape and img.dtype == np.uint8 and m.dtype == np.float32
     assert m.min() >= 0.0 and m.max() <= 1.0
+
+
+def test_hue_rotation_turns_paint_colours_and_keeps_grey() -> None:
+    rgb = np.zeros((4, 6, 3), np.uint8)
+    rgb[:, :2] = (255, 0, 0)  # red paint
+    rgb[:, 2:4] = (0, 200, 0)  # green paint
+    rgb[:, 4:] = (90, 90, 90)  # grey ground
+    turned = rotate_hue(rgb, 120.0)
+    assert tuple(turned[0, 0]) == (0, 255, 0)  # red -> green
+    assert tuple(turned[0, 2]) == (0, 0, 200)  # green -> blue
+    assert tuple(turned[0, 4]) == (90, 90, 90)  # no hue, no change
+    assert np.array_equal(rotate_hue(rgb, 360.0), rgb)
+    big = np.zeros((40, 60, 3), np.uint8)
+    big[:, :30] = (255, 0, 0)
+    big[:, 30:] = (90, 90, 90)
+    always = Augmentation(brightness=0, contrast=0, saturation=0, gamma=0, noise=0, blur_probability=0,
+                          shadow_probability=0, hue_probability=1.0)  # fmt: skip
+    hues = set()
+    for seed in range(20):
+        img, _ = always(big, np.zeros((40, 60), np.float32), np.random.default_rng(seed))
+        spread = img.max(axis=2).astype(int) - img.min(axis=2)
+        paint = spread > 200
+        hsv = cv2.cvtColor(img, cv2.COLOR_RGB2HSV)
+        hues.add(int(np.median(hsv[..., 0][paint])) // 10)
+    assert len(hues) >= 8  # the red paint came out in many colours
+
+
+def test_salient_crop_holds_a_marking_at_full_resolution() -> None:
+    rng = np.random.default_rng(0)
+    mask = np.zeros((256, 256), np.float32)
+    mask[200:210, 30:40] = 1.0
+    rgb = np.zeros((256, 256, 3), np.uint8)
+    rgb[..., 0] = np.arange(256)[:, None]  # rows and columns encoded in the image
+    rgb[..., 1] = np.arange(256)[None, :]
+    held = 0
+    for _ in range(50):
+        img, m = salient_crop(rgb, mask, 64, 1.0, rng)
+        assert img.shape == (64, 64, 3) and m.shape == (64, 64)
+        y0, x0 = int(img[0, 0, 0]), int(img[0, 0, 1])  # where the window lies
+        assert np.array_equal(m, mask[y0 : y0 + 64, x0 : x0 + 64])  # image and mask cut alike, not resized
+        held += m.sum() > 0
+    assert held == 50
+    anywhere = [salient_crop(rgb, mask, 64, 0.0, rng)[1].sum() > 0 for _ in range(200)]
+    assert 0 < sum(anywhere) < 100  # uniform windows rarely meet the small marking
+    blank = np.zeros_like(mask)
+    assert salient_crop(rgb, blank, 64, 1.0, rng)[1].sum() == 0
+    with pytest.raises(ValueError, match="does not fit"):
+        salient_crop(rgb, mask, 512, 1.0, rng)
 
 
 def test_network_input_normalisation() -> None:

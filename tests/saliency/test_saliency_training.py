@@ -138,3 +138,53 @@ def test_config_errors(toy_folder: Path, tmp_path: Path) -> None:
         train_run(_compose([f"data.root={toy_folder}", "train.input_size=48", "train.progress=false"]), tmp_path, "")
     with pytest.raises(DataError, match="images/ and masks/"):
         train_run(_compose([f"data.root={tmp_path}"]), tmp_path, "")
+
+
+def test_crops_and_fine_tuning_from_weights(toy_folder: Path, tmp_path: Path) -> None:
+    arch = default_architecture("ldf")
+    data = DataOptions(root=str(toy_folder), max_train=8, max_val=4)
+    # crops: full-resolution windows of the input, the validation on whole images
+    crops = training.SodTrainingSet(
+        training.SodFolder(str(toy_folder)), data_names(toy_folder)[:4], 64, None, 0, None, 32, 1.0
+    )
+    x, targets = crops[0]
+    assert x.shape == (3, 32, 32) and targets["mask"].shape == (1, 32, 32) and float(targets["mask"].sum()) > 0
+    opts = TrainOptions(epochs=1, input_size=64, crop=32, hue=0.5, **QUICK)
+    first = train_model("ldf", arch, 64, data, opts, tmp_path / "first")
+    assert first["training"]["options"]["crop"] == 32 and first["training"]["init_weights_sha256"] is None
+    # fine-tuning starts from the given weights: at a learning rate of 1e-12 they stay as they were
+    start = tmp_path / "first" / "best.safetensors"
+    tuned = train_model(
+        "ldf", arch, 64, data, opts.model_copy(update={"init_weights": str(start), "lr": 1e-12}), tmp_path / "tuned"
+    )
+    assert tuned["training"]["init_weights_sha256"] == training.file_sha256(start)
+    a, _ = read_weights(start)
+    b, _ = read_weights(tmp_path / "tuned" / "best.safetensors")
+    learned = [k for k in a if a[k].is_floating_point() and "running" not in k]  # batch-norm statistics move
+    assert len(learned) > 20 and max(float((a[k] - b[k]).abs().max()) for k in learned) < 1e-6
+    with pytest.raises(DataError, match="not found"):
+        train_model(
+            "ldf",
+            arch,
+            64,
+            data,
+            opts.model_copy(update={"init_weights": str(tmp_path / "none.safetensors")}),
+            tmp_path / "x",
+        )
+    with pytest.raises(ConfigError, match="exclude each other"):
+        train_model(
+            "ldf",
+            arch,
+            64,
+            data,
+            opts.model_copy(update={"init_weights": str(start), "resume": str(tmp_path / "first")}),
+            tmp_path / "y",
+        )
+    with pytest.raises(ConfigError, match="larger than the input size"):
+        train_model("ldf", arch, 64, data, opts.model_copy(update={"crop": 96}), tmp_path / "z")
+
+
+def data_names(root: Path) -> list[str]:
+    """The training names of a SOD folder whose masks hold a salient pixel."""
+    folder = training.SodFolder(str(root))
+    return [n for n in folder.splits()["train"] if folder.mask(n).max() > 128]

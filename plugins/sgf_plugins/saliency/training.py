@@ -25,11 +25,19 @@ from torch import nn
 
 from sgf_pipeline.errors import ConfigError, DataError
 from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text
-from sgf_plugins.saliency.data import Augmentation, SodFolder, SplitSpec, make_splits, normalize_image, resize_mask
+from sgf_plugins.saliency.data import (
+    Augmentation,
+    SodFolder,
+    SplitSpec,
+    make_splits,
+    normalize_image,
+    resize_mask,
+    salient_crop,
+)
 from sgf_plugins.saliency.inference import probability_module
 from sgf_plugins.saliency.metrics import SodMetrics
 from sgf_plugins.saliency.models import build_model
-from sgf_plugins.saliency.weights import describe_arch, file_sha256, save_weights
+from sgf_plugins.saliency.weights import describe_arch, file_sha256, load_weights, save_weights
 
 CHECKPOINT = "checkpoint.safetensors"
 CHECKPOINT_STATE = "checkpoint.json"
@@ -67,6 +75,16 @@ class TrainOptions(BaseModel):
     grad_clip: float | None = Field(1.0, gt=0.0, description="clip the gradient norm to this; null = no clipping")
     input_size: int | None = Field(None, ge=32, description="training input side; null = saliency.input_size")
     augment: bool = Field(True, description="random rotation, zoom, flip, photometry, shadows, blur and noise")
+    hue: float = Field(
+        0.0, ge=0.0, le=1.0, description="probability of turning all hues by a random angle (paint of any colour)"
+    )
+    crop: int | None = Field(
+        None, ge=32, description="train on crops of this side at the input resolution; null = whole images"
+    )
+    crop_on_marking: float = Field(0.8, ge=0.0, le=1.0, description="share of crops that hold a salient pixel")
+    init_weights: str | None = Field(
+        None, description="start from this weights file (fine-tuning: new optimizer and schedule); null = fresh"
+    )
     seed: int = Field(0, description="seed of initialisation, shuffling and augmentation")
     monitor: Literal["mae", "maxF", "meanF", "sm"] = Field("mae", description="validation metric for best/early stop")
     patience: int = Field(8, ge=1, description="stop after this many epochs without improvement")
@@ -95,8 +113,12 @@ class SodTrainingSet(torch.utils.data.Dataset[tuple[torch.Tensor, dict[str, torc
         augment: Augmentation | None,
         seed: int,
         extra_targets: Callable[[np.ndarray], dict[str, np.ndarray]] | None = None,
+        crop: int | None = None,
+        crop_on_marking: float = 0.8,
     ) -> None:
         self.folder = folder
+        self.crop = crop
+        self.crop_on_marking = crop_on_marking
         self.names = list(names)
         self.size = size
         self.augment = augment
@@ -115,14 +137,16 @@ class SodTrainingSet(torch.utils.data.Dataset[tuple[torch.Tensor, dict[str, torc
         mask = resize_mask(self.folder.mask(name), self.size)
         if rgb.shape[:2] != (self.size, self.size):
             rgb = cv2.resize(rgb, (self.size, self.size), interpolation=cv2.INTER_AREA)
+        rng = np.random.default_rng([self.seed, self.epoch, index])
         if self.augment is not None:
-            rng = np.random.default_rng([self.seed, self.epoch, index])
             rgb, mask = self.augment(rgb, mask, rng)
+        if self.crop is not None and self.crop < self.size:
+            rgb, mask = salient_crop(rgb, mask, self.crop, self.crop_on_marking, rng)
         targets = {"mask": torch.from_numpy(mask[None].copy())}
         if self.extra_targets is not None:
             for key, value in self.extra_targets(mask).items():
                 targets[key] = torch.from_numpy(value[None].copy())
-        return torch.from_numpy(normalize_image(rgb, self.size)), targets
+        return torch.from_numpy(normalize_image(rgb, rgb.shape[0])), targets
 
 
 def _collate(batch: list[tuple[torch.Tensor, dict[str, torch.Tensor]]]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
@@ -236,6 +260,12 @@ def train_model(
     size = opts.input_size or default_input_size
     if model == "selfreformer" and size % 32:
         raise ConfigError(f"selfreformer needs an input size divisible by 32, got {size}")
+    if opts.crop is not None and opts.crop > size:
+        raise ConfigError(f"train.crop={opts.crop} is larger than the input size {size}; choose at most {size}")
+    if model == "selfreformer" and opts.crop is not None and opts.crop % 32:
+        raise ConfigError(f"selfreformer needs crops divisible by 32, got train.crop={opts.crop}")
+    if opts.resume and opts.init_weights:
+        raise ConfigError("train.resume and train.init_weights exclude each other: resume continues, init starts anew")
 
     # 1. data and splits
     folder = SodFolder(data.root)
@@ -253,7 +283,8 @@ def train_model(
     net = build_model(model, arch)
     parameters = sum(p.numel() for p in net.parameters())
     extra = getattr(net, "targets_from_mask", None)
-    dataset = SodTrainingSet(folder, train_names, size, Augmentation() if opts.augment else None, opts.seed, extra)
+    augment = Augmentation(hue_probability=opts.hue) if opts.augment else None
+    dataset = SodTrainingSet(folder, train_names, size, augment, opts.seed, extra, opts.crop, opts.crop_on_marking)
     steps_per_epoch = math.ceil(len(dataset) / opts.batch_size)
     total_steps = opts.epochs * steps_per_epoch
     if opts.max_steps:
@@ -270,6 +301,8 @@ def train_model(
         "train_seconds": 0.0,
         "train_images": 0,
     }
+    if opts.init_weights:
+        load_weights(net, opts.init_weights, model, arch)
     if opts.resume:
         progress = _load_checkpoint(Path(opts.resume), net, optimizer, model, arch)
         best_file = Path(opts.resume) / BEST
@@ -341,8 +374,6 @@ def train_model(
     wall = time.perf_counter() - start
 
     # 5. best weights, test metrics, model card
-    from sgf_plugins.saliency.weights import load_weights
-
     load_weights(net, out / BEST, model, arch)
     net.eval()
     tests = {}
@@ -384,6 +415,7 @@ def train_model(
             "lr": opts.lr,
             "threads": torch.get_num_threads(),
             "options": opts.model_dump(),
+            "init_weights_sha256": file_sha256(Path(opts.init_weights)) if opts.init_weights else None,
             "history": progress["history"],
         },
         "metrics": tests,
