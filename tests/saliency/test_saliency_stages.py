@@ -137,6 +137,25 @@ def test_selfreformer_input_size_must_divide_by_32(untrained_weights: Callable[[
         SelfReformerSaliency(SelfReformerParams(weights=str(untrained_weights("selfreformer")), input_size=100))
 
 
+def test_weights_run_at_another_input_size_than_trained_warn(tmp_path: Path) -> None:
+    import warnings
+
+    import torch
+    from sgf_plugins.saliency.models import build_model
+    from sgf_plugins.saliency.stages import LdfParams, LdfSaliency
+
+    arch = default_architecture("ldf")
+    torch.manual_seed(0)
+    weights = save_weights(
+        build_model("ldf", arch), tmp_path / "ldf.safetensors", "ldf", arch, extra={"input_size": 64}
+    )
+    with pytest.warns(UserWarning, match=r"trained at input size 64, run at 96.*saliency.input_size=64"):
+        LdfSaliency(LdfParams(weights=str(weights), input_size=96))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        LdfSaliency(LdfParams(weights=str(weights), input_size=64))  # as trained: silent
+
+
 # -- classical detector -------------------------------------------------------------------------
 
 

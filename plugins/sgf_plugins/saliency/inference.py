@@ -31,13 +31,27 @@ def onnx_cache_dir() -> Path:
     return Path(root) / "onnx"
 
 
-def load_network(model: str, arch: Mapping[str, Any], weights: str | Path) -> nn.Module:
-    """The network of ``model`` with weights loaded, in eval mode."""
+def load_network(model: str, arch: Mapping[str, Any], weights: str | Path, input_size: int | None = None) -> nn.Module:
+    """The network of ``model`` with weights loaded, in eval mode.
+
+    Weights that record the input size they were trained at warn when ``input_size`` differs: the
+    network then sees the ground at another scale (metres per input pixel) than it learned.
+    """
     from sgf_plugins.saliency.models import build_model
     from sgf_plugins.saliency.weights import load_weights
 
     net = build_model(model, arch)
-    load_weights(net, weights, model, arch)
+    metadata = load_weights(net, weights, model, arch)
+    try:
+        trained = json.loads(metadata.get("extra", "{}")).get("input_size")
+    except (ValueError, AttributeError):  # a file from elsewhere: no training record to compare
+        trained = None
+    if input_size is not None and trained is not None and int(trained) != input_size:
+        warnings.warn(
+            f"saliency={model}: {weights} was trained at input size {trained}, run at {input_size}; "
+            f"set saliency.input_size={trained} unless the BEV's resolution differs as much",
+            stacklevel=2,
+        )
     return net.eval()
 
 
@@ -117,7 +131,7 @@ class SaliencyPredictor:
         self.runtime = runtime
         self.threads = threads
         self.weights = Path(weights)
-        net = load_network(model, arch, weights)
+        net = load_network(model, arch, weights, input_size)
         self._torch: nn.Module | None = None
         self._session: Any = None
         self.onnx_path: Path | None = None

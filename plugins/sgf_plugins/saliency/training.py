@@ -359,7 +359,7 @@ def train_model(
             value = metrics[opts.monitor]
             if _better(value, progress["best"], opts.monitor):
                 progress.update(best=value, best_epoch=epoch + 1, since_best=0)
-                save_weights(net, out / BEST, model, arch)
+                save_weights(net, out / BEST, model, arch, extra={"input_size": size})
             else:
                 progress["since_best"] += opts.val_every
         progress["history"].append(record)
@@ -381,7 +381,9 @@ def train_model(
         names = val_names if split == "val" else splits.get(split, [])
         if names:
             tests[split] = evaluate_network(net, folder, names, size)
-    weights_path = save_weights(net, out / f"{model}.safetensors", model, arch, half=opts.half_weights)
+    weights_path = save_weights(
+        net, out / f"{model}.safetensors", model, arch, half=opts.half_weights, extra={"input_size": size}
+    )
     card = {
         "model": model,
         "architecture": dict(arch),
