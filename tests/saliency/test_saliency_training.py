@@ -158,6 +158,10 @@ def test_crops_and_fine_tuning_from_weights(toy_folder: Path, tmp_path: Path) ->
         "ldf", arch, 64, data, opts.model_copy(update={"init_weights": str(start), "lr": 1e-12}), tmp_path / "tuned"
     )
     assert tuned["training"]["init_weights_sha256"] == training.file_sha256(start)
+    # the card keeps the first run's record: its command, epochs and history
+    init = tuned["training"]["init_from"]
+    assert init["epochs_run"] == 1 and init["options"]["crop"] == 32 and len(init["history"]) == 1
+    assert "- fine-tuned from: `` (1 epochs at input 64" in (tmp_path / "tuned" / "ldf.md").read_text()
     a, _ = read_weights(start)
     b, _ = read_weights(tmp_path / "tuned" / "best.safetensors")
     learned = [k for k in a if a[k].is_floating_point() and "running" not in k]  # batch-norm statistics move

@@ -236,6 +236,27 @@ def _load_checkpoint(
     return saved
 
 
+def _init_provenance(init_weights: str | None, model: str) -> dict[str, Any] | None:
+    """The training record of the run that made ``init_weights`` (its model card beside it), for the new card."""
+    if not init_weights:
+        return None
+    card_path = Path(init_weights).with_name(f"{model}.json")
+    try:
+        card = json.loads(card_path.read_text())
+        training = card["training"]
+        return {
+            "command": card.get("command", ""),
+            "data": card.get("data", {}).get("root"),
+            "input_size": card.get("input_size"),
+            **{
+                k: training.get(k) for k in ("epochs_run", "steps", "best_epoch", "train_seconds", "options", "history")
+            },
+            **({"init_from": training["init_from"]} if training.get("init_from") else {}),
+        }
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return {"card": None, "note": f"no readable model card {card_path.name} beside the weights"}
+
+
 def _better(value: float, best: float | None, metric: str) -> bool:
     if best is None:
         return True
@@ -418,6 +439,7 @@ def train_model(
             "threads": torch.get_num_threads(),
             "options": opts.model_dump(),
             "init_weights_sha256": file_sha256(Path(opts.init_weights)) if opts.init_weights else None,
+            "init_from": _init_provenance(opts.init_weights, model),
             "history": progress["history"],
         },
         "metrics": tests,
@@ -449,6 +471,21 @@ def _cpu_name() -> str:
     return platform.processor()
 
 
+def _init_lines(init: Mapping[str, Any] | None) -> list[str]:
+    """Model-card lines for the runs the weights were fine-tuned from, earliest last."""
+    lines = []
+    while init:
+        if init.get("command") is None:
+            lines.append(f"- fine-tuned from weights without a readable model card ({init.get('note', '')})")
+            break
+        lines.append(
+            f"- fine-tuned from: `{init['command']}` ({init.get('epochs_run')} epochs at input "
+            f"{init.get('input_size')}, {float(init.get('train_seconds') or 0):.0f} s)"
+        )
+        init = init.get("init_from")
+    return lines
+
+
 def model_card_markdown(card: Mapping[str, Any]) -> str:
     """A human-readable model card."""
     lines = [
@@ -463,6 +500,7 @@ def model_card_markdown(card: Mapping[str, Any]) -> str:
         f"{card['training']['best_epoch']} by val {card['training']['monitor']}, "
         f"{card['training']['train_seconds']:.0f} s, {card['training']['images_per_second']:.1f} images/s on "
         f"{card['training']['threads']} threads ({card['environment']['processor']})",
+        *_init_lines(card["training"].get("init_from")),
         f"- date: {card['date']}",
         "",
         "| split | maxF | meanF | adpF | MAE | S-measure | mean E |",
