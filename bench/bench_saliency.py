@@ -4,11 +4,12 @@
     .venv/bin/python bench/bench_saliency.py --write         # and replace `## saliency` in bench/RESULTS.md
 
 Inference runs each variant's `process(bev)` on 256x256 BEVs (0.02 m/px, the default grid) with its
-default parameters (learned networks at input_size 128, the probability resized back to 256), in
-PyTorch and in onnxruntime, with 1 and 2 threads. Weights are freshly initialised (speed does not
-depend on their values). Training runs forward, loss, backward and an AdamW step on in-memory
-batches of 8 at 128x128; data loading (PNG decoding, augmentation) is timed apart, per image.
-All figures come from one run; the ratios compare them with the 20 frames/s target.
+default parameters (each network at its default input_size: selfreformer 256, the BEV's own
+2 cm/px; the others 128, the probability resized back to 256), in PyTorch and in onnxruntime, with
+1 and 2 threads. Weights are freshly initialised (speed does not depend on their values). Training
+runs forward, loss, backward and an AdamW step on in-memory batches of 8 at 128x128 (selfreformer
+trains on 128 crops of the 256 BEV); data loading (PNG decoding, augmentation) is timed apart, per
+image. All figures come from one run; the ratios compare them with the 20 frames/s target.
 """
 
 from __future__ import annotations
@@ -78,7 +79,9 @@ def inference(frames: int, cache: Path) -> list[dict]:
         torch.set_num_threads(threads)
         classical = ClassicalSaliency(ClassicalParams())
         s, c = time_calls(lambda stage=classical: run(stage), frames, 2)
-        rows.append({"model": "classical", "runtime": "numpy/cv2", "threads": threads, "seconds": s, "cpu": c})
+        rows.append(
+            {"model": "classical", "input": 256, "runtime": "numpy/cv2", "threads": threads, "seconds": s, "cpu": c}
+        )
     for cls in LEARNED_VARIANTS:
         arch = default_architecture(cls.name)
         torch.manual_seed(0)
@@ -91,7 +94,16 @@ def inference(frames: int, cache: Path) -> list[dict]:
                 )
                 stage = cls(params)
                 s, c = time_calls(lambda stage=stage: run(stage), frames, 3)
-                rows.append({"model": cls.name, "runtime": runtime, "threads": threads, "seconds": s, "cpu": c})
+                rows.append(
+                    {
+                        "model": cls.name,
+                        "input": params.input_size,  # type: ignore[attr-defined]
+                        "runtime": runtime,
+                        "threads": threads,
+                        "seconds": s,
+                        "cpu": c,
+                    }
+                )
     return rows
 
 
@@ -150,21 +162,21 @@ def render(inf: list[dict], train: list[dict], args: argparse.Namespace) -> str:
         "",
         "### Inference: `process(bev)` on a 256x256 BEV (0.02 m/px)",
         "",
-        "Networks at their default input 128 (the probability is resized to 256).",
+        "Each network at its default input size (column `input`; the probability is resized to 256).",
         "",
         "Wall time is what the pipeline sees on this shared machine; CPU time (all threads of the process) is",
         "the work itself: with 1 thread, 1000 / CPU ms is the frame rate on one otherwise idle core.",
         "",
-        "| model | runtime | threads | wall ms/frame | frames/s (wall) | x 20 fps | CPU ms/frame "
+        "| model | input | runtime | threads | wall ms/frame | frames/s (wall) | x 20 fps | CPU ms/frame "
         "| frames/s (1 core, CPU) |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in inf:
         fps = 1.0 / r["seconds"]
         core = f"{1.0 / r['cpu']:.1f}" if r["threads"] == 1 else "-"
         lines.append(
-            f"| {r['model']} | {r['runtime']} | {r['threads']} | {1000 * r['seconds']:.1f} | {fps:.1f} | "
-            f"{fps / TARGET_FPS:.2f} | {1000 * r['cpu']:.1f} | {core} |"
+            f"| {r['model']} | {r['input']} | {r['runtime']} | {r['threads']} | {1000 * r['seconds']:.1f} "
+            f"| {fps:.1f} | {fps / TARGET_FPS:.2f} | {1000 * r['cpu']:.1f} | {core} |"
         )
     lines += [
         "",

@@ -166,6 +166,20 @@ def test_crops_and_fine_tuning_from_weights(toy_folder: Path, tmp_path: Path) ->
     b, _ = read_weights(tmp_path / "tuned" / "best.safetensors")
     learned = [k for k in a if a[k].is_floating_point() and "running" not in k]  # batch-norm statistics move
     assert len(learned) > 20 and max(float((a[k] - b[k]).abs().max()) for k in learned) < 1e-6
+    # weights of a run that did not finish (no card beside them): its checkpoint keeps the record
+    (tmp_path / "first" / "ldf.json").unlink()
+    again = train_model(
+        "ldf", arch, 64, data, opts.model_copy(update={"init_weights": str(start), "lr": 1e-12}), tmp_path / "again"
+    )
+    init = again["training"]["init_from"]
+    assert init["epochs_run"] == 1 and init["input_size"] == 64 and len(init["history"]) == 1
+    assert "did not finish" in init["note"]
+    (tmp_path / "first" / "checkpoint.json").unlink()
+    lost = train_model(
+        "ldf", arch, 64, data, opts.model_copy(update={"init_weights": str(start), "lr": 1e-12}), tmp_path / "lost"
+    )
+    assert lost["training"]["init_from"]["card"] is None
+    assert "without a readable model card" in (tmp_path / "lost" / "ldf.md").read_text()
     with pytest.raises(DataError, match="not found"):
         train_model(
             "ldf",

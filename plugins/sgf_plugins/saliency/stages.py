@@ -148,6 +148,12 @@ class LearnedSaliency(Stage):
 class SelfReformerParams(LearnedParams):
     """SelfReformer* (the paper's model): PVT-v2 encoder, global context, CRM refinement, fusers."""
 
+    input_size: int = Field(
+        256,
+        ge=32,
+        description="network input side (px): 256 = the default BEV at its 2 cm/px; the BEV is resized to it and back",
+    )
+
     size: Literal["t", "b0", "b1", "b2"] = Field(
         "t", description="PVT-v2 encoder size: b0, b1, b2 as published, t = reduced for CPU (16-32-64-64 wide)"
     )

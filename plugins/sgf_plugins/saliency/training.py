@@ -37,7 +37,7 @@ from sgf_plugins.saliency.data import (
 from sgf_plugins.saliency.inference import probability_module
 from sgf_plugins.saliency.metrics import SodMetrics
 from sgf_plugins.saliency.models import build_model
-from sgf_plugins.saliency.weights import describe_arch, file_sha256, load_weights, save_weights
+from sgf_plugins.saliency.weights import describe_arch, file_sha256, load_weights, read_weights, save_weights
 
 CHECKPOINT = "checkpoint.safetensors"
 CHECKPOINT_STATE = "checkpoint.json"
@@ -237,7 +237,11 @@ def _load_checkpoint(
 
 
 def _init_provenance(init_weights: str | None, model: str) -> dict[str, Any] | None:
-    """The training record of the run that made ``init_weights`` (its model card beside it), for the new card."""
+    """The training record of the run that made ``init_weights``, for the new card.
+
+    The model card beside the weights when there is one; otherwise, for the ``best.safetensors`` of
+    a run that was stopped or is still going, that run's checkpoint progress and Hydra overrides.
+    """
     if not init_weights:
         return None
     card_path = Path(init_weights).with_name(f"{model}.json")
@@ -254,7 +258,41 @@ def _init_provenance(init_weights: str | None, model: str) -> dict[str, Any] | N
             **({"init_from": training["init_from"]} if training.get("init_from") else {}),
         }
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return {"card": None, "note": f"no readable model card {card_path.name} beside the weights"}
+        pass
+    return _unfinished_run_provenance(Path(init_weights)) or {
+        "card": None,
+        "note": f"no readable model card {card_path.name} (nor a run's {CHECKPOINT_STATE}) beside the weights",
+    }
+
+
+def _unfinished_run_provenance(weights: Path) -> dict[str, Any] | None:
+    """The record of a run directory holding ``weights`` without a card: its checkpoint and Hydra files."""
+    from omegaconf import OmegaConf
+
+    run = weights.parent
+    try:
+        state = json.loads((run / CHECKPOINT_STATE).read_text())
+        record: dict[str, Any] = {
+            "command": "",
+            "note": f"from the {CHECKPOINT_STATE} of a run that did not finish (no model card)",
+            "epochs_run": int(state["epoch"]),
+            "steps": int(state["step"]),
+            "best_epoch": state.get("best_epoch"),
+            "train_seconds": state.get("train_seconds"),
+            "history": state.get("history", []),
+            "input_size": json.loads(read_weights(weights)[1].get("extra", "{}")).get("input_size"),
+        }
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    hydra = run / ".hydra"
+    try:
+        record["command"] = " ".join(["sgf-train", *map(str, OmegaConf.load(hydra / "overrides.yaml"))])
+        config = OmegaConf.load(hydra / "config.yaml")
+        record["data"] = OmegaConf.select(config, "data.root")
+        record["input_size"] = record["input_size"] or OmegaConf.select(config, "saliency.input_size")
+    except (OSError, ValueError, TypeError):
+        pass
+    return record
 
 
 def _better(value: float, best: float | None, metric: str) -> bool:
@@ -478,9 +516,10 @@ def _init_lines(init: Mapping[str, Any] | None) -> list[str]:
         if init.get("command") is None:
             lines.append(f"- fine-tuned from weights without a readable model card ({init.get('note', '')})")
             break
+        note = f"; {init['note']}" if init.get("note") else ""
         lines.append(
             f"- fine-tuned from: `{init['command']}` ({init.get('epochs_run')} epochs at input "
-            f"{init.get('input_size')}, {float(init.get('train_seconds') or 0):.0f} s)"
+            f"{init.get('input_size')}, {float(init.get('train_seconds') or 0):.0f} s{note})"
         )
         init = init.get("init_from")
     return lines
