@@ -38,15 +38,11 @@ def load_network(model: str, arch: Mapping[str, Any], weights: str | Path, input
     network then sees the ground at another scale (metres per input pixel) than it learned.
     """
     from sgf_plugins.saliency.models import build_model
-    from sgf_plugins.saliency.weights import load_weights
+    from sgf_plugins.saliency.weights import load_weights, trained_input_size
 
     net = build_model(model, arch)
-    metadata = load_weights(net, weights, model, arch)
-    try:
-        trained = json.loads(metadata.get("extra", "{}")).get("input_size")
-    except (ValueError, AttributeError):  # a file from elsewhere: no training record to compare
-        trained = None
-    if input_size is not None and trained is not None and int(trained) != input_size:
+    trained = trained_input_size(load_weights(net, weights, model, arch))
+    if input_size is not None and trained is not None and trained != input_size:
         warnings.warn(
             f"saliency={model}: {weights} was trained at input size {trained}, run at {input_size}; "
             f"set saliency.input_size={trained} unless the BEV's resolution differs as much",

@@ -37,7 +37,14 @@ from sgf_plugins.saliency.data import (
 from sgf_plugins.saliency.inference import probability_module
 from sgf_plugins.saliency.metrics import SodMetrics
 from sgf_plugins.saliency.models import build_model
-from sgf_plugins.saliency.weights import describe_arch, file_sha256, load_weights, read_weights, save_weights
+from sgf_plugins.saliency.weights import (
+    describe_arch,
+    file_sha256,
+    load_weights,
+    read_metadata,
+    save_weights,
+    trained_input_size,
+)
 
 CHECKPOINT = "checkpoint.safetensors"
 CHECKPOINT_STATE = "checkpoint.json"
@@ -280,7 +287,7 @@ def _unfinished_run_provenance(weights: Path) -> dict[str, Any] | None:
             "best_epoch": state.get("best_epoch"),
             "train_seconds": state.get("train_seconds"),
             "history": state.get("history", []),
-            "input_size": json.loads(read_weights(weights)[1].get("extra", "{}")).get("input_size"),
+            "input_size": trained_input_size(read_metadata(weights)),
         }
     except (OSError, ValueError, KeyError, TypeError):
         return None

@@ -111,6 +111,29 @@ def read_weights(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, s
     return tensors, metadata
 
 
+def read_metadata(path: str | Path) -> dict[str, str]:
+    """The metadata of a weights file, without reading its tensors."""
+    from safetensors import safe_open
+
+    p = Path(path)
+    if not p.is_file():
+        raise DataError(f"weights file {p} not found")
+    try:
+        with safe_open(str(p), framework="pt") as fh:
+            return dict(fh.metadata() or {})
+    except Exception as exc:
+        raise DataError(f"weights file {p} is not a readable safetensors file: {exc}") from None
+
+
+def trained_input_size(metadata: Mapping[str, str]) -> int | None:
+    """The input size the weights were trained at (``sgf-train`` records it), or None for files without it."""
+    try:
+        size = json.loads(metadata.get("extra", "{}")).get("input_size")
+    except (ValueError, AttributeError):  # a file from elsewhere: no training record
+        return None
+    return None if size is None else int(size)
+
+
 def load_weights(model: nn.Module, path: str | Path, name: str, arch: Mapping[str, Any]) -> dict[str, str]:
     """Load a weights file into ``model`` after checking that it was saved for this network and architecture."""
     p = Path(path)
