@@ -22,6 +22,12 @@ def shared_data() -> Path:
     return path
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _onnx_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
+    """One ONNX export cache for the session (the default runtime exports each network once), not the user's."""
+    os.environ["SGF_PIPELINE_CACHE"] = str(tmp_path_factory.mktemp("sgf_cache"))
+
+
 @pytest.fixture(autouse=True)
 def _isolated_home(tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch) -> None:
     """evo writes ~/.evo: keep it inside the test's temporary folder (ray's folder is set per test)."""

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from backend_world import CALIBRATION, Marking, OracleAssociation, descriptor, make_world, run_stages
 from sgf_plugins.backend import GtsamLmBackend, LmParams
+from sgf_plugins.icp import IcpResult, se2
 from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, drift_covariance
 
 from sgf_pipeline import RunContext
@@ -48,17 +49,19 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
     assert len(run.context.artifacts["loops"]) == 8
     assert all(entry["true"] is True for entry in run.context.artifacts["loops"])
     assert len(run.context.artifacts["group_assignments"]) == sum(len(v) for v in world.sgfs.values())
-    # by default a loop also needs a neighbouring marking that agrees: the toy world's first two revisits of a
-    # stretch have none behind them, and lose their loops when only earlier SGFs may vouch for them, but keep
-    # them when they wait for the markings seen after them
-    for wait, expected in ((False, (6, 0, 2)), (True, (8, 0, 0))):
+    # a loop also needs a neighbouring marking that agrees: the toy world's first two revisits of a stretch
+    # have none behind them, and lose their loops when only earlier SGFs may vouch for them, but keep them
+    # when they wait for the markings seen after them; by default a distinct marking (like nothing else
+    # seen) vouches for itself: one of the two is (five matches in all are judged distinct)
+    for wait, distinct, expected in ((False, None, (6, 0, 2, 0)), (True, None, (8, 0, 0, 0)), (False, 0, (7, 0, 1, 5))):
         consensus = run_stages(
             world,
-            loop=IcpLoopClosing(IcpLoopParams(consensus_wait=wait)),
+            loop=IcpLoopClosing(IcpLoopParams(consensus_wait=wait, distinct_support=distinct)),
             association=OracleAssociation(world, by="instance"),
         )
         metrics = consensus.context.metrics["loops"]
-        assert (metrics["closed"], metrics["false_closed"], metrics["rejected"]["consensus"]) == expected
+        got = (metrics["closed"], metrics["false_closed"], metrics["rejected"]["consensus"], metrics["distinct"])
+        assert got == expected
 
 
 def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> None:  # type: ignore[no-untyped-def]
@@ -73,14 +76,22 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     assert ungated.context.metrics["loops"]["false_closed"] == 4
     # look-alikes take the place of true loops in the arrow group: fewer pairs closed
     assert ungated.context.metrics["loops"]["closed"] < 8
-    # the neighbour consensus alone (the default min_support = 1) also keeps the look-alikes out
-    consensus = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False)))
+    # the neighbour consensus alone (min_support = 1, asked of every match) also keeps the look-alikes out
+    consensus = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None)))
     assert consensus.context.metrics["loops"]["false_closed"] == 0
     assert consensus.context.metrics["loops"]["rejected"]["consensus"] == 4
     assert consensus.context.metrics["loops"]["closed"] == 5
+    # ...but not when a distinct marking vouches for itself: the two arrows share their group, so nothing in
+    # another group looks like them; that default leans on the gate, which keeps them out (above)
+    lenient = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False)))
+    assert lenient.context.metrics["loops"]["false_closed"] == 3
+    default = run_stages(world, loop=IcpLoopClosing(IcpLoopParams()))
+    assert default.context.metrics["loops"]["false_closed"] == 0 and default.context.metrics["loops"]["closed"] == 5
     # with the heading test and a manhole worth half a marking, the tee's revisit (only the manhole behind it)
     # is refused too
-    headed = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False, consensus_heading_deg=15.0)))
+    headed = run_stages(
+        world, loop=IcpLoopClosing(IcpLoopParams(gate=False, consensus_heading_deg=15.0, distinct_support=None))
+    )
     assert headed.context.metrics["loops"]["false_closed"] == 0
     assert headed.context.metrics["loops"]["rejected"]["consensus"] == 5
     assert headed.context.metrics["loops"]["closed"] == 4
@@ -340,10 +351,26 @@ def _revisit_with_neighbours(first: list[Marking], second: list[Marking]):  # ty
     return frames, by_frame
 
 
+def test_a_distinct_marking_vouches_for_itself_unless_another_group_looks_like_it() -> None:
+    # one revisit and nothing seen on both passes (campus_delivery's single reverse pair): no neighbour can agree
+    ell = Marking(3, "ell", (22.0, -1.0, 0.0))
+    frames, by_frame = _revisit_with_neighbours([ell], [])
+    lone = IcpLoopClosing(IcpLoopParams(gate=False))
+    (loop,) = _run_loop(lone, frames, by_frame)  # the arrow looks like its match and like nothing else seen
+    assert loop.instance_ids == (1, 1) and lone.distinct == 1 and lone.counts["consensus"] == 0
+    strict = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None))  # min_support for every match
+    assert _run_loop(strict, frames, by_frame) == [] and strict.counts["consensus"] == 1 and strict.distinct == 0
+    # an arrow in another group (a copy elsewhere): the marking is common, and the consensus decides again
+    other = Marking(4, "arrow", (12.0, 1.5, 0.0))
+    frames, by_frame = _revisit_with_neighbours([other], [])
+    common = IcpLoopClosing(IcpLoopParams(gate=False))
+    assert _run_loop(common, frames, by_frame) == [] and common.counts["consensus"] == 1 and common.distinct == 0
+
+
 def test_a_neighbour_agrees_only_at_the_heading_the_match_predicts() -> None:
     ell = Marking(3, "ell", (22.0, -1.0, 0.0))
     turned = Marking(3, "ell", (22.0, -1.0, math.pi / 2))  # the same shape, lying a quarter turn round
-    headed = IcpLoopParams(gate=False, consensus_heading_deg=15.0)
+    headed = IcpLoopParams(gate=False, distinct_support=None, consensus_heading_deg=15.0)
     frames, by_frame = _revisit_with_neighbours([ell], [ell])
     (loop,) = _run_loop(IcpLoopClosing(headed), frames, by_frame)
     assert loop.instance_ids == (1, 1)
@@ -352,7 +379,7 @@ def test_a_neighbour_agrees_only_at_the_heading_the_match_predicts() -> None:
     frames, by_frame = _revisit_with_neighbours([ell], [turned])
     stage = IcpLoopClosing(headed)
     assert _run_loop(stage, frames, by_frame) == [] and stage.counts["consensus"] == 1
-    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False)), frames, by_frame)
+    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None)), frames, by_frame)
     assert loop.instance_ids == (1, 1)
 
 
@@ -361,18 +388,23 @@ def test_a_neighbour_that_fixes_no_heading_counts_half() -> None:
         Marking(3, "disc", (22.0, -1.0, 0.0), symmetric=True),
         Marking(4, "disc", (16.0, 1.0, 0.0), symmetric=True),
     ]
-    headed = IcpLoopParams(gate=False, consensus_heading_deg=15.0)
+    headed = IcpLoopParams(gate=False, distinct_support=None, consensus_heading_deg=15.0)
     frames, by_frame = _revisit_with_neighbours(discs[:1], discs[:1])
     stage = IcpLoopClosing(headed)
     assert _run_loop(stage, frames, by_frame) == [] and stage.counts["consensus"] == 1
-    for params in (headed.model_copy(update={"consensus_unoriented_weight": 1.0}), IcpLoopParams(gate=False)):
+    for params in (
+        headed.model_copy(update={"consensus_unoriented_weight": 1.0}),
+        IcpLoopParams(gate=False, distinct_support=None),
+    ):
         (loop,) = _run_loop(IcpLoopClosing(params), frames, by_frame)
         assert loop.instance_ids == (1, 1)
     frames, by_frame = _revisit_with_neighbours(discs, discs)  # two manholes: one marking's worth
     stage = IcpLoopClosing(headed)
     (loop,) = _run_loop(stage, frames, by_frame)
     assert stage._support(by_frame[68].items[0], loop) == pytest.approx(1.0)
-    stage = IcpLoopClosing(IcpLoopParams(gate=False))  # at any heading each manhole is a whole marking
+    stage = IcpLoopClosing(
+        IcpLoopParams(gate=False, distinct_support=None)
+    )  # at any heading each manhole is a whole marking
     (loop,) = _run_loop(stage, frames, by_frame)
     assert stage._support(by_frame[68].items[0], loop) == pytest.approx(2.0)
 
@@ -443,15 +475,17 @@ def test_a_match_waits_for_the_neighbours_seen_after_it() -> None:
     by_frame[n + 8] = GroupAssignments((match,))
     again = _view(frames[n + 22], ell)
     by_frame[n + 22] = GroupAssignments((GroupAssignment(again, 12, True, 1.0, 0, 0.0, None, False),))  # type: ignore[arg-type]
-    at_once = IcpLoopClosing(IcpLoopParams(gate=False))  # the default: decide on the SGFs seen before
+    at_once = IcpLoopClosing(
+        IcpLoopParams(gate=False, distinct_support=None)
+    )  # the default: decide on the SGFs seen before
     assert _run_loop(at_once, frames, by_frame) == [] and at_once.counts["consensus"] == 1
-    waits = IcpLoopClosing(IcpLoopParams(gate=False, consensus_wait=True))
+    waits = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None, consensus_wait=True))
     emitted = {f.index: waits.process(frame=f, assignments=by_frame.get(f.index), estimate=None).items for f in frames}
     (loop,) = [c for items in emitted.values() for c in items]
     assert (loop.frame_from, loop.frame_to) == (8, n + 8) and loop.instance_ids == (1, 1)
     assert emitted[n + 22] == (loop,)  # emitted when the L lands on its first-pass view, 14 m later
     # nothing agrees within consensus_window (10 m): the match expires, refused, once the robot has driven past
-    short = IcpLoopClosing(IcpLoopParams(gate=False, consensus_window=10.0, consensus_wait=True))
+    short = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None, consensus_window=10.0, consensus_wait=True))
     assert _run_loop(short, frames, by_frame) == [] and short.counts["consensus"] == 1 and short.waiting == []
 
 
@@ -475,7 +509,7 @@ def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
     for f in frames[:50]:
         loose.process(frame=f, assignments=None, estimate=None)
         tight.process(frame=f, assignments=None, estimate=None)
-    fits = loose._fits(loose._align(match))
+    fits = loose._fits(loose._align(match), np.asarray(match.descriptor.points))
     assert len(fits) == 2 and abs(abs(wrap_angle(fits[0].pose[2] - fits[1].pose[2])) - math.pi) < 0.02
     assert loose._evaluate(match, None) == "not_unique"
     c = tight._evaluate(match, None)
@@ -483,4 +517,29 @@ def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
     # an arrow has one fit
     arrow = Marking(1, "arrow", (12.0, 0.3, 0.2))
     single = GroupAssignment(_view(frames[49], arrow), 1, False, 0.01, 0, 0.0, _view(frames[9], arrow), False)  # type: ignore[arg-type]
-    assert len(tight._fits(tight._align(single))) == 1
+    assert len(tight._fits(tight._align(single), np.asarray(single.descriptor.points))) == 1
+
+
+def test_fits_are_told_apart_on_the_marking_not_at_the_robot() -> None:
+    # a marking 3 m ahead of the robot: ICP's yaw wanders by 5 degrees about it (campus_delivery's reverse
+    # pair did), which moves the robot's pose by 0.27 m but the marking's points by 4 cm: one fit
+    rng = np.random.default_rng(2)
+    points = rng.uniform(-0.4, 0.4, (200, 2)) + np.array([3.0, 0.0])
+
+    def about_marking(yaw: float, shift: float = 0.0) -> np.ndarray:
+        turn = se2(0.0, 0.0, yaw)
+        t = se2(3.0 + shift, 0.0, 0.0) @ turn @ se2(-3.0, 0.0, 0.0)
+        return t
+
+    def result(transform: np.ndarray, fitness: float) -> IcpResult:
+        return IcpResult(transform, True, 10, fitness, 1.0, np.eye(3) * 1e-4, len(points))
+
+    loop = IcpLoopClosing(IcpLoopParams())
+    best, wobble = result(about_marking(0.0), 0.0096), result(about_marking(math.radians(5.2)), 0.0100)
+    assert math.hypot(*(wobble.transform[:2, 2] - best.transform[:2, 2])) > 0.25  # apart at the robot
+    assert loop._fits([wobble, best], points) == [best]
+    # a period on (0.5 m) and half a turn about the marking: distinct fits of a row, of a twofold shape
+    period, turned = result(about_marking(0.0, 0.5), 0.0098), result(about_marking(math.pi), 0.0099)
+    assert loop._fits([turned, best, period, wobble], points) == [best, period, turned]
+    # a fit much worse than the best is no alternative
+    assert loop._fits([best, result(about_marking(math.pi), 0.02)], points) == [best]

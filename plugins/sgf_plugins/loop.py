@@ -32,7 +32,13 @@ set, look-alike at the heading the match predicts for them, and a neighbour that
 turned half a turn too, a bar or a disc, fixes no heading and counts
 ``consensus_unoriented_weight``; off by default, see docs/results.md). The one option with at
 least ``tie_support`` agreeing markings wins; none or several, and the match gives no factor.
-``min_support`` asks the same of every loop. With ``consensus_wait``, a match that has too few
+``min_support`` asks the same of every loop, except a match into a distinct marking: one the
+query looks like (eq. 10 within ``consensus_distance``) while no SGF of any other group comes within
+``distinct_distance`` of it. Such a marking (a custom one, painted once) vouches for itself and
+needs ``distinct_support`` agreeing neighbours (0 by default: ICP and the gate decide), so a route
+that revisits one marking only (campus_delivery) can close its loop. The risk it takes is the
+second copy of a repeated design met before any third copy made it look common; the gate is what
+stands against that. With ``consensus_wait``, a match that has too few
 agreeing neighbours so far waits while the robot drives ``consensus_window`` metres on, and the
 SGFs seen after it count too: the first marking of a revisit (a reverse one above all, entered
 from a stretch never driven before) has no neighbour behind it that both passes saw.
@@ -80,9 +86,8 @@ from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2_pa
 from sgf_plugins.sgf.polar import shifted_distances, yaw_to_shift
 
 _MAP = -1  # the prior map as one node of the anchoring graph
-#: Two ICP fits further apart than this are distinct fits of one match.
+#: Two ICP fits that put the query's points further apart than this (RMS, m) are distinct fits of one match.
 FIT_TOLERANCE_M = 0.25
-FIT_TOLERANCE_DEG = 5.0
 
 
 class IcpLoopParams(StageParams):
@@ -168,6 +173,16 @@ class IcpLoopParams(StageParams):
         "wins (0 = tied matches never give loop factors)",
     )
     min_support: int = Field(1, ge=0, description="agreeing neighbours every loop needs (0 = ICP and the gate only)")
+    distinct_support: int | None = Field(
+        0,
+        ge=0,
+        description="agreeing neighbours a loop into a distinct marking needs: one the query looks like (eq. 10 at "
+        "most consensus_distance) and that no SGF of another group looks like (all farther than distinct_distance); "
+        "null = min_support",
+    )
+    distinct_distance: float = Field(
+        0.15, ge=0.0, le=1.0, description="eq. 10: an SGF of another group this close makes a marking not distinct"
+    )
     consensus_wait: bool = Field(
         False,
         description="a match short of agreeing neighbours waits while the robot drives consensus_window metres on: "
@@ -292,6 +307,8 @@ class IcpLoopClosing(Stage):
         }
         self.ties_resolved = 0
         self.aliases_resolved = 0
+        self.distinct = 0
+        self._sgf_group: list[int] = []
         self._sgf_xy: list[np.ndarray] = []
         self._sgf_distance: list[float] = []
         self._sgf_matrix: list[np.ndarray] = []
@@ -350,9 +367,31 @@ class IcpLoopClosing(Stage):
         if isinstance(candidate, str):
             self.counts[candidate] += 1
             return []
-        if self.p.min_support > 0 and candidate.map_pose is None:
-            return self._consensus(((a, candidate),), self.p.min_support, False, "consensus", None, estimate)
+        need = self.p.min_support
+        if self.p.distinct_support is not None and need > self.p.distinct_support and self._distinct(a):
+            need = self.p.distinct_support
+            self.distinct += 1
+        if need > 0 and candidate.map_pose is None:
+            return self._consensus(((a, candidate),), need, False, "consensus", None, estimate)
         return self._accept(candidate, estimate)
+
+    def _distinct(self, a: GroupAssignment) -> bool:
+        """Whether the query looks like its match (eq. 10) and like no SGF of any other group seen so far.
+
+        The campus repeats standard markings; a marking whose copies have been seen elsewhere has
+        them in other groups (the spatial gate keeps them apart), so its matches need neighbours
+        that agree. A marking that looks like nothing else seen (a custom one, painted once) is
+        its own evidence. The first copy of a repeated design met twice is the risk this takes.
+        """
+        assert a.matched is not None
+        query = np.asarray(a.descriptor.matrix)
+        if shifted_distances(query, np.asarray(a.matched.matrix)).min() > self.p.consensus_distance:
+            return False
+        others = [k for k, g in enumerate(self._sgf_group) if g != a.group_id]
+        if not others:
+            return False
+        alike = shifted_distances(query, np.stack([self._sgf_matrix[k] for k in others])).min()
+        return bool(alike > self.p.distinct_distance)
 
     def _resolve_tie(self, a: GroupAssignment, estimate: PoseEstimate | None) -> list[LoopConstraint]:
         """A match among look-alike groups: the one option whose neighbouring SGFs agree, else nothing."""
@@ -474,7 +513,7 @@ class IcpLoopClosing(Stage):
         elif anchored:
             assert map_pose is not None
             predicted = (invert(map_pose) @ self._pose(j, estimate), self._anchored_distance(_MAP, j, estimate))
-        fits = self._fits(results)
+        fits = self._fits(results, np.asarray(query.points, dtype=np.float64))
         if predicted is None or not self.p.gate:
             best = self._select(fits, predicted)
         else:
@@ -507,6 +546,7 @@ class IcpLoopClosing(Stage):
         self._sgf_distance.append(self.distance[d.sgf.frame_index])
         self._sgf_matrix.append(np.asarray(d.matrix))
         self._sgf_yaw.append(_odometry_yaw(d))
+        self._sgf_group.append(a.group_id)
 
     def _support(self, a: GroupAssignment, c: LoopConstraint, unlike: bool = False) -> float:
         """How many other markings near the query agree with the match: seen where it puts them, and alike.
@@ -606,24 +646,20 @@ class IcpLoopClosing(Stage):
                 good.append(r)
         return good
 
-    def _fits(self, results: list[IcpResult]) -> list[IcpResult]:
+    def _fits(self, results: list[IcpResult], points: np.ndarray) -> list[IcpResult]:
         """The distinct near-equal fits of a match (RMS within ``ambiguity_ratio`` of the best), best first.
 
         Several come from a twofold symmetric shape turned by 180 degrees, or from a row of
-        triangles or bars laid on itself one period on. Fits closer than ``FIT_TOLERANCE_M`` and
-        ``FIT_TOLERANCE_DEG`` are one.
+        triangles or bars laid on itself one period on. Two fits are one when they lay the query's
+        ``points`` within ``FIT_TOLERANCE_M`` (RMS) of each other: measured on the marking, not at
+        the robot, where a few degrees of yaw about the marking move the pose by its lever arm.
         """
         best = min(r.fitness for r in results)
         distinct: list[IcpResult] = []
         for r in sorted(results, key=lambda r: r.fitness):
             if r.fitness > best * self.p.ambiguity_ratio:
                 break
-            x, y, yaw = r.pose
-            if all(
-                math.hypot(x - d.pose[0], y - d.pose[1]) > FIT_TOLERANCE_M
-                or abs(wrap_angle(yaw - d.pose[2])) > math.radians(FIT_TOLERANCE_DEG)
-                for d in distinct
-            ):
+            if all(_displacement(r.transform, d.transform, points) > FIT_TOLERANCE_M for d in distinct):
                 distinct.append(r)
         return distinct
 
@@ -774,6 +810,7 @@ class IcpLoopClosing(Stage):
             "candidates": self.counts["candidates"],
             "ties_resolved": self.ties_resolved,
             "aliases_resolved": self.aliases_resolved,
+            "distinct": self.distinct,
         }
         truth = context.truth if context.truth is not None else self.truth
         if not self.accepted and (truth is not None or self.ground_truth):
@@ -860,6 +897,12 @@ def _agreement(
     opposite = lowest(predicted + math.pi)
     weights = np.where(at <= distance, np.where(opposite <= distance, unoriented, 1.0), 0.0)
     return float(weights.max())
+
+
+def _displacement(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
+    """RMS distance (m) between ``points`` moved by the 2-D transforms ``a`` and ``b`` (3x3)."""
+    delta = points @ (a[:2, :2] - b[:2, :2]).T + (a[:2, 2] - b[:2, 2])
+    return float(np.sqrt(np.mean(np.sum(delta**2, axis=1))))
 
 
 def _pose4(r: IcpResult) -> np.ndarray:

@@ -18,7 +18,7 @@ from sgf_plugins.saliency.metrics import SodMetrics
 from sgf_plugins.saliency.stages import LEARNED_VARIANTS, VARIANTS, default_architecture
 from sgf_plugins.saliency.weights import default_weights_path, save_weights
 
-from sgf_pipeline import Dataset, Pipeline, Stage, hookimpl, load_plugins
+from sgf_pipeline import Dataset, Pipeline, RunContext, Stage, hookimpl, load_plugins
 from sgf_pipeline.config import config_dir
 from sgf_pipeline.errors import ConfigError, DataError
 from sgf_pipeline.types import Bev, BevGrid, Frame, SaliencyMap
@@ -104,7 +104,7 @@ def test_onnx_runtime_matches_torch(model: str, tmp_path: Path, untrained_weight
     cls = {c.name: c for c in LEARNED_VARIANTS}[model]
     weights = str(untrained_weights(model))
     bev, _ = _bev()
-    torch_map = cls(cls.Params(weights=weights)).process(bev)
+    torch_map = cls(cls.Params(weights=weights, runtime="torch")).process(bev)
     onnx_stage = cls(cls.Params(weights=weights, runtime="onnx", onnx_path=str(tmp_path / "m.onnx"), threads=1))
     onnx_map = onnx_stage.process(bev)
     assert (tmp_path / "m.onnx").is_file()
@@ -128,6 +128,30 @@ def test_onnx_cache_is_keyed_by_the_weights(
     assert again.predictor.onnx_path == first
     other = LdfSaliency(LdfParams(weights=str(untrained_weights("ldf")), runtime="onnx", input_size=64))
     assert other.predictor.onnx_path != first
+
+
+def test_onnx_threads_follow_torch_unless_set(
+    tmp_path: Path, untrained_weights: Callable[[str], Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # onnx is the default runtime; with threads=null its session takes torch's thread count, which the
+    # runner sets from run.torch_threads after the stages are built (1 inside parallel sweeps)
+    import torch
+    from sgf_plugins.saliency.stages import U2NetPParams, U2NetPSaliency
+
+    monkeypatch.setenv("SGF_PIPELINE_CACHE", str(tmp_path / "cache"))
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        stage = U2NetPSaliency(U2NetPParams(weights=str(untrained_weights("u2netp"))))
+        assert stage.predictor.runtime == "onnx" and stage.predictor._session_threads == 2
+        torch.set_num_threads(1)
+        stage.begin(RunContext(None))
+        assert stage.predictor._session_threads == 1
+        fixed = U2NetPSaliency(U2NetPParams(weights=str(untrained_weights("u2netp")), threads=2))
+        fixed.begin(RunContext(None))
+        assert fixed.predictor._session_threads == 2
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_selfreformer_input_size_must_divide_by_32(untrained_weights: Callable[[str], Path]) -> None:

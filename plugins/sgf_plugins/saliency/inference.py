@@ -141,10 +141,25 @@ class SaliencyPredictor:
             path = Path(onnx_path) if onnx_path else onnx_cache_path(model, arch, self.weights, input_size)
             if not path.is_file():
                 export_onnx(net, path, input_size)
-            self._session = _ort_session(path, threads)
             self.onnx_path = path
+            self._session = _ort_session(path, self.session_threads())
         else:
             raise ValueError(f"unknown runtime {runtime!r}; use torch or onnx")
+
+    def session_threads(self) -> int:
+        """The intra-op threads of onnxruntime: ``threads``, else torch's (which ``run.torch_threads`` sets)."""
+        import torch
+
+        return self.threads or torch.get_num_threads()
+
+    def follow_torch_threads(self) -> None:
+        """Rebuild the onnxruntime session when torch's thread count changed since it was made (threads=null)."""
+        if self._session is not None and self.onnx_path is not None and self._session_threads != self.session_threads():
+            self._session = _ort_session(self.onnx_path, self.session_threads())
+
+    @property
+    def _session_threads(self) -> int:
+        return int(self._session.get_session_options().intra_op_num_threads)
 
     def network_input(self, rgb: np.ndarray) -> np.ndarray:
         """The normalised network input ``(1, 3, S, S)`` of an RGB image."""
@@ -171,16 +186,15 @@ class SaliencyPredictor:
         return np.clip(prob, 0.0, 1.0).astype(np.float32)
 
 
-def _ort_session(path: Path, threads: int | None) -> Any:
-    """An onnxruntime CPU session."""
+def _ort_session(path: Path, threads: int) -> Any:
+    """An onnxruntime CPU session with ``threads`` intra-op threads."""
     try:
         import onnxruntime as ort
     except ImportError as exc:  # pragma: no cover - a declared dependency
         raise DataError(f"runtime=onnx needs onnxruntime: {exc}") from None
     options = ort.SessionOptions()
-    if threads:
-        options.intra_op_num_threads = threads
-        options.inter_op_num_threads = 1
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
     options.log_severity_level = 3
     try:
         return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])

@@ -13,7 +13,7 @@ from typing import ClassVar, Literal
 import numpy as np
 from pydantic import Field
 
-from sgf_pipeline import Stage, StageParams
+from sgf_pipeline import RunContext, Stage, StageParams
 from sgf_pipeline.types import Bev, SaliencyMap
 from sgf_plugins.saliency.classical import marking_saliency
 from sgf_plugins.saliency.models import ARCHITECTURES
@@ -94,9 +94,13 @@ class LearnedParams(StageParams):
     """Parameters shared by the learned saliency networks."""
 
     weights: str | None = Field(None, description="safetensors weights file; null = the weights shipped in the package")
-    runtime: Literal["torch", "onnx"] = Field("torch", description="inference engine: PyTorch or onnxruntime")
+    runtime: Literal["torch", "onnx"] = Field(
+        "onnx", description="inference engine: onnxruntime (exported once and cached; faster on CPU) or PyTorch"
+    )
     input_size: int = Field(128, ge=32, description="network input side (px): the BEV is resized to it and back")
-    threads: int | None = Field(None, ge=1, description="intra-op threads of the runtime; null = its default")
+    threads: int | None = Field(
+        None, ge=1, description="intra-op threads of the runtime; null = torch's (run.torch_threads sets it)"
+    )
     onnx_path: str | None = Field(
         None, description="ONNX file to use or create for runtime=onnx; null = a cache file keyed by the weights"
     )
@@ -136,6 +140,11 @@ class LearnedSaliency(Stage):
     def architecture(self) -> dict[str, object]:
         """The architecture parameters of this instance."""
         return {k: getattr(self.params, k) for k in self.arch_fields}
+
+    def begin(self, context: RunContext) -> None:
+        """Match onnxruntime's threads to torch's, which the runner has set from ``run.torch_threads``."""
+        super().begin(context)
+        self.predictor.follow_torch_threads()
 
     def process(self, bev: Bev) -> SaliencyMap:
         """Saliency probability of the BEV at its own resolution."""
