@@ -537,9 +537,15 @@ def test_fits_are_told_apart_on_the_marking_not_at_the_robot() -> None:
     loop = IcpLoopClosing(IcpLoopParams())
     best, wobble = result(about_marking(0.0), 0.0096), result(about_marking(math.radians(5.2)), 0.0100)
     assert math.hypot(*(wobble.transform[:2, 2] - best.transform[:2, 2])) > 0.25  # apart at the robot
-    assert loop._fits([wobble, best], points) == [best]
+    (one,) = loop._fits([wobble, best], points)
+    # ...whose pose is their mean (ICP stops on either side of a shallow valley) and whose covariance
+    # widens by their spread (2.6 degrees each side), far beyond ICP's own
+    assert np.allclose(one.transform, about_marking(math.radians(2.6)), atol=0.005)
+    assert one.fitness == best.fitness and one.covariance[2, 2] == pytest.approx(1e-4 + math.radians(2.6) ** 2)
     # a period on (0.5 m) and half a turn about the marking: distinct fits of a row, of a twofold shape
     period, turned = result(about_marking(0.0, 0.5), 0.0098), result(about_marking(math.pi), 0.0099)
-    assert loop._fits([turned, best, period, wobble], points) == [best, period, turned]
+    fits = loop._fits([turned, best, period, wobble], points)
+    assert [f.fitness for f in fits] == [best.fitness, period.fitness, turned.fitness]
+    assert fits[1] is period and fits[2] is turned
     # a fit much worse than the best is no alternative
     assert loop._fits([best, result(about_marking(math.pi), 0.02)], points) == [best]

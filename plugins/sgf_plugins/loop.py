@@ -82,7 +82,7 @@ from sgf_pipeline.types import (
     SgfDescriptor,
 )
 from sgf_plugins.anchoring import anchored_distances
-from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2_params
+from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2, se2_params
 from sgf_plugins.sgf.polar import shifted_distances, yaw_to_shift
 
 _MAP = -1  # the prior map as one node of the anchoring graph
@@ -650,18 +650,24 @@ class IcpLoopClosing(Stage):
         """The distinct near-equal fits of a match (RMS within ``ambiguity_ratio`` of the best), best first.
 
         Several come from a twofold symmetric shape turned by 180 degrees, or from a row of
-        triangles or bars laid on itself one period on. Two fits are one when they lay the query's
-        ``points`` within ``FIT_TOLERANCE_M`` (RMS) of each other: measured on the marking, not at
-        the robot, where a few degrees of yaw about the marking move the pose by its lever arm.
+        triangles or bars laid on itself one period on. Fits that lay the query's ``points`` within
+        ``FIT_TOLERANCE_M`` (RMS) of each other are one (measured on the marking, not at the
+        robot, where a few degrees of yaw about the marking move the pose by its lever arm): ICP
+        seeded from either side of a shallow valley (an elongated marking turned a little) stops
+        on both sides of the truth, so one fit is their mean, its covariance widened by their spread.
         """
         best = min(r.fitness for r in results)
-        distinct: list[IcpResult] = []
+        clusters: list[list[IcpResult]] = []
         for r in sorted(results, key=lambda r: r.fitness):
             if r.fitness > best * self.p.ambiguity_ratio:
                 break
-            if all(_displacement(r.transform, d.transform, points) > FIT_TOLERANCE_M for d in distinct):
-                distinct.append(r)
-        return distinct
+            for cluster in clusters:
+                if _displacement(r.transform, cluster[0].transform, points) <= FIT_TOLERANCE_M:
+                    cluster.append(r)
+                    break
+            else:
+                clusters.append([r])
+        return [_merged(cluster) for cluster in clusters]
 
     def _select(self, results: list[IcpResult], predicted: tuple[np.ndarray, float] | None) -> IcpResult:
         """The first fit; among several (a twofold symmetric shape), the one nearest the prediction (gate off)."""
@@ -897,6 +903,26 @@ def _agreement(
     opposite = lowest(predicted + math.pi)
     weights = np.where(at <= distance, np.where(opposite <= distance, unoriented, 1.0), 0.0)
     return float(weights.max())
+
+
+def _merged(fits: list[IcpResult]) -> IcpResult:
+    """One fit from ICP results of the same alignment: their mean pose, the best's covariance plus their spread."""
+    if len(fits) == 1:
+        return fits[0]
+    first = fits[0].transform
+    offsets = np.array([se2_params(_invert2(first) @ r.transform) for r in fits])
+    mean = first @ se2(*offsets.mean(axis=0))
+    spread = np.array([se2_params(_invert2(mean) @ r.transform) for r in fits])
+    covariance = fits[0].covariance + spread.T @ spread / len(fits)
+    return replace(fits[0], transform=mean, covariance=covariance)
+
+
+def _invert2(transform: np.ndarray) -> np.ndarray:
+    """Inverse of a 3x3 planar rigid transform."""
+    out = np.eye(3)
+    out[:2, :2] = transform[:2, :2].T
+    out[:2, 2] = -transform[:2, :2].T @ transform[:2, 2]
+    return out
 
 
 def _displacement(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
