@@ -48,11 +48,12 @@ def xy_yaw(pose: np.ndarray) -> tuple[float, float, float]:
 
 
 def invert(pose: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform."""
-    inv = np.eye(4)
-    rot = pose[:3, :3]
-    inv[:3, :3] = rot.T
-    inv[:3, 3] = -rot.T @ pose[:3, 3]
+    """Inverse of a rigid homogeneous transform: 4x4 (3-D) or 3x3 (planar)."""
+    n = pose.shape[0] - 1
+    inv = np.eye(n + 1)
+    rot = pose[:n, :n]
+    inv[:n, :n] = rot.T
+    inv[:n, n] = -rot.T @ pose[:n, n]
     return inv
 
 

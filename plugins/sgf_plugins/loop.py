@@ -387,8 +387,8 @@ class IcpLoopClosing(Stage):
         query = np.asarray(a.descriptor.matrix)
         if shifted_distances(query, np.asarray(a.matched.matrix)).min() > self.p.consensus_distance:
             return False
-        others = [k for k, g in enumerate(self._sgf_group) if g != a.group_id]
-        if not others:
+        others = np.flatnonzero(np.asarray(self._sgf_group) != a.group_id)
+        if not len(others):
             return False
         alike = shifted_distances(query, np.stack([self._sgf_matrix[k] for k in others])).min()
         return bool(alike > self.p.distinct_distance)
@@ -910,19 +910,11 @@ def _merged(fits: list[IcpResult]) -> IcpResult:
     if len(fits) == 1:
         return fits[0]
     first = fits[0].transform
-    offsets = np.array([se2_params(_invert2(first) @ r.transform) for r in fits])
+    offsets = np.array([se2_params(invert(first) @ r.transform) for r in fits])
     mean = first @ se2(*offsets.mean(axis=0))
-    spread = np.array([se2_params(_invert2(mean) @ r.transform) for r in fits])
+    spread = np.array([se2_params(invert(mean) @ r.transform) for r in fits])
     covariance = fits[0].covariance + spread.T @ spread / len(fits)
     return replace(fits[0], transform=mean, covariance=covariance)
-
-
-def _invert2(transform: np.ndarray) -> np.ndarray:
-    """Inverse of a 3x3 planar rigid transform."""
-    out = np.eye(3)
-    out[:2, :2] = transform[:2, :2].T
-    out[:2, 2] = -transform[:2, :2].T @ transform[:2, 2]
-    return out
 
 
 def _displacement(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
