@@ -3,6 +3,7 @@
     .venv/bin/python bench/bench_backend.py            # both benchmarks
     .venv/bin/python bench/bench_backend.py --quick    # smaller sizes (a smoke run)
     .venv/bin/python bench/bench_backend.py --growth 16000   # update time per window as the graph grows
+    .venv/bin/python bench/bench_backend.py --replay rec.npz # a recorded soak's back-end input (bench_soak --record)
 
 Budgets (issue #8): iSAM2 median update under 10 ms at 10,000 poses with loop closures; batch
 Levenberg-Marquardt over ~9,000 Pose2 keyframes (2.7 km) with a few dozen loops under 1 s.
@@ -212,6 +213,88 @@ def bench_lm(n: int, seed: int, every: float) -> dict[str, float]:
     return result
 
 
+class _TimedSolver:
+    """An iSAM2 wrapper that adds the CPU time of its updates and full estimates to ``seconds``."""
+
+    def __init__(self, solver: object, seconds: dict[str, float]) -> None:
+        self._solver = solver
+        self._seconds = seconds
+
+    def _timed(self, name: str, *args: object) -> object:
+        c0 = time.process_time()
+        out = getattr(self._solver, name)(*args)
+        self._seconds[name] = self._seconds.get(name, 0.0) + time.process_time() - c0
+        return out
+
+    def update(self, *args: object) -> object:
+        return self._timed("update", *args)
+
+    def calculateEstimate(self) -> object:
+        return self._timed("calculateEstimate")
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._solver, name)
+
+
+def bench_replay(path: str, window: int = 2000, **overrides: object) -> list[dict[str, float]]:
+    """Replay a recorded soak's back-end input into backend=isam2: per window of ``window`` frames, the
+    mean CPU ms per frame, split into iSAM2 updates, full estimates and the rest, and the loops added."""
+    rec = np.load(path)
+    params = Isam2Params(save_map=False, **overrides)
+    backend = Isam2Backend(params)
+    backend.begin(RunContext(run_dir=None))
+    seconds: dict[str, float] = {}
+    by_frame: dict[int, list[LoopConstraint]] = {}
+    for k in range(len(rec["loop_at"])):
+        by_frame.setdefault(int(rec["loop_at"][k]), []).append(
+            LoopConstraint(
+                int(rec["loop_from"][k]),
+                int(rec["loop_to"][k]),
+                rec["loop_relative"][k],
+                rec["loop_covariance"][k],
+                int(rec["loop_group"][k]),
+                bool(rec["loop_reverse"][k]),
+                1.0,
+                1.0,
+            )
+        )
+    rows: list[dict[str, float]] = []
+    total, loops_in_window = 0.0, 0
+    for i, index in enumerate(rec["frames"]):
+        imu = rec["imu"][i]
+        frame = Frame(
+            int(index),
+            float(rec["timestamps"][i]),
+            np.zeros((1, 1), np.uint8),
+            rec["odometry"][i],
+            CALIBRATION,
+            None if np.isnan(imu).any() else (float(imu[0]), float(imu[1])),
+        )
+        items = by_frame.get(int(index))
+        if not isinstance(backend.isam, _TimedSolver):
+            backend.isam = _TimedSolver(backend.isam, seconds)
+        c0 = time.process_time()
+        backend.process(frame=frame, loops=LoopConstraints(tuple(items)) if items else None)
+        total += time.process_time() - c0
+        loops_in_window += len(items) if items else 0
+        if (i + 1) % window == 0 or i + 1 == len(rec["frames"]):
+            count = (i % window) + 1
+            update, estimate = seconds.get("update", 0.0), seconds.get("calculateEstimate", 0.0)
+            rows.append(
+                {
+                    "frames": i + 1,
+                    "ms": 1e3 * total / count,
+                    "update_ms": 1e3 * update / count,
+                    "estimate_ms": 1e3 * estimate / count,
+                    "rest_ms": 1e3 * (total - update - estimate) / count,
+                    "loops": loops_in_window,
+                }
+            )
+            seconds.clear()
+            total, loops_in_window = 0.0, 0
+    return rows
+
+
 def rss_mb() -> float:
     """Current resident memory (MiB)."""
     with open("/proc/self/statm") as fh:
@@ -257,6 +340,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--memory", action="store_true", help="only the memory per keyframe")
     parser.add_argument("--growth", type=int, metavar="N", help="only the update time per window over N keyframes")
+    parser.add_argument("--replay", metavar="FILE", help="only a recorded soak's back-end input (bench_soak --record)")
     args = parser.parse_args()
     isam_n, lm_n = (3000, 5000) if args.quick else (10_000, 9_000)
     from importlib.metadata import version
@@ -264,6 +348,14 @@ def main() -> None:
     print(
         f"machine: {cpu_model()}, {os.cpu_count()} CPUs, python {platform.python_version()}, gtsam {version('gtsam')}"
     )
+    if args.replay:
+        print(f"backend=isam2 on {args.replay}: mean CPU ms per frame per window (update, estimate, rest), loops")
+        for row in bench_replay(args.replay):
+            print(
+                f"  {row['frames']:6.0f} {row['ms']:7.2f} ({row['update_ms']:6.2f} {row['estimate_ms']:6.2f} "
+                f"{row['rest_ms']:6.2f}) {row['loops']:4.0f}"
+            )
+        return
     if args.growth:
         growth = bench_growth(args.growth, args.seed)
         print(

@@ -1,6 +1,6 @@
 """Soak: the default pipeline over a synthetic route of 10 km or more; memory and time per frame as it goes.
 
-Usage: ``.venv/bin/python bench/bench_soak.py [--laps 4] [hydra overrides...]``
+Usage: ``.venv/bin/python bench/bench_soak.py [--laps 4] [--record FILE.npz] [hydra overrides...]``
 
 The route is ``campus_large_loop`` (2.8 km) driven ``--laps`` times in a row: a bench-only dataset
 replays the preset's frames lap after lap. The route ends 55 m from its start, facing the other
@@ -12,6 +12,9 @@ per window of 1000 processed frames, the distance driven, the peak and current r
 and the wall and CPU time per frame; the script then prints per lap the median time per frame and
 the memory, the memory growth per kilometre after the first lap (when the caches are warm), and
 the ratio of the CPU time per frame over the last quarter of the route to the first quarter's.
+
+With ``--record``, what the back-end received (every processed frame's odometry and the loop
+constraints) is saved, so that ``bench_backend.py --replay FILE`` times the back-end alone on it.
 """
 
 from __future__ import annotations
@@ -135,6 +138,47 @@ class SoakObserver:
             self._wall, self._cpu = wall, cpu
 
 
+class BackendRecorder:
+    """What the back-end receives on each processed frame: odometry, IMU attitude and loop constraints."""
+
+    def __init__(self) -> None:
+        self.frames: list[tuple[int, float]] = []
+        self.odometry: list[np.ndarray] = []
+        self.imu: list[tuple[float, float]] = []
+        self.loops: list[tuple[Any, ...]] = []
+
+    @hookimpl
+    def sgf_after_stage(self, run: Any, stage: Any, frame: Frame, output: Any, seconds: float) -> None:
+        if stage.kind != "loop" or output is None:
+            return
+        for c in output.items:
+            self.loops.append((frame.index, c.frame_from, c.frame_to, c.relative, c.covariance, c.group_id, c.reverse))
+
+    @hookimpl
+    def sgf_frame_end(self, run: Any, frame: Frame, seconds: float) -> None:
+        self.frames.append((frame.index, float(frame.timestamp)))
+        self.odometry.append(np.asarray(frame.odometry, dtype=np.float64))
+        imu = frame.imu_roll_pitch
+        self.imu.append((float(imu[0]), float(imu[1])) if imu is not None else (np.nan, np.nan))
+
+    def save(self, path: str) -> None:
+        loops = self.loops
+        np.savez_compressed(
+            path,
+            frames=np.asarray([f[0] for f in self.frames], dtype=np.int64),
+            timestamps=np.asarray([f[1] for f in self.frames]),
+            odometry=np.asarray(self.odometry).reshape(-1, 4, 4),
+            imu=np.asarray(self.imu, dtype=np.float64).reshape(-1, 2),
+            loop_at=np.asarray([c[0] for c in loops], dtype=np.int64),
+            loop_from=np.asarray([c[1] for c in loops], dtype=np.int64),
+            loop_to=np.asarray([c[2] for c in loops], dtype=np.int64),
+            loop_relative=np.asarray([c[3] for c in loops]).reshape(-1, 4, 4),
+            loop_covariance=np.asarray([c[4] for c in loops]).reshape(-1, 3, 3),
+            loop_group=np.asarray([c[5] for c in loops], dtype=np.int64),
+            loop_reverse=np.asarray([c[6] for c in loops], dtype=bool),
+        )
+
+
 class SoakPlugin:
     @hookimpl
     def sgf_register_stages(self, registry: Any) -> None:
@@ -144,16 +188,22 @@ class SoakPlugin:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--laps", type=int, default=4)
+    ap.add_argument("--preset", default="campus_large_loop", help="the synthetic route driven lap after lap")
+    ap.add_argument("--record", metavar="FILE", help="save the back-end input (.npz) for bench_backend --replay")
     args, overrides = ap.parse_known_args()
     observer = SoakObserver()
-    plugins = load_plugins(extra=[("soak", SoakPlugin()), ("soak_observer", observer)])
+    extra: list[tuple[str, Any]] = [("soak", SoakPlugin()), ("soak_observer", observer)]
+    recorder = BackendRecorder() if args.record else None
+    if recorder is not None:
+        extra.append(("soak_recorder", recorder))
+    plugins = load_plugins(extra=extra)
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("config", overrides=[*overrides, "run.progress=false", "run.plots=false"])
     from omegaconf import OmegaConf
 
     plain = OmegaConf.to_container(cfg, resolve=True)
     assert isinstance(plain, dict)
-    plain["dataset"] = {"name": "soak_laps", "laps": args.laps}
+    plain["dataset"] = {"name": "soak_laps", "laps": args.laps, "preset": args.preset}
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average {os.getloadavg()}")
     print(
         f"{'frames':>7} {'km':>6} {'peak MiB':>9} {'RSS MiB':>9} {'wall ms':>9} {'CPU ms':>9}  (per frame)",
@@ -162,6 +212,9 @@ def main() -> None:
     t0 = time.perf_counter()
     metrics = Pipeline.from_config(plain, plugins=plugins).run()
     wall = time.perf_counter() - t0
+    if recorder is not None:
+        recorder.save(args.record)
+        print(f"recorded {len(recorder.frames)} frames and {len(recorder.loops)} loops to {args.record}")
     rows = observer.rows
     if len(rows) >= 4:
         lap_km = rows[-1][1] / args.laps

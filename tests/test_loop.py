@@ -367,6 +367,22 @@ def test_a_distinct_marking_vouches_for_itself_unless_another_group_looks_like_i
     assert _run_loop(common, frames, by_frame) == [] and common.counts["consensus"] == 1 and common.distinct == 0
 
 
+@pytest.mark.parametrize(("copies", "common_groups", "closed"), [(2, 3, True), (5, 3, False), (5, None, True)])
+def test_a_neighbour_of_a_common_design_counts_less(copies: int, common_groups: int | None, closed: bool) -> None:
+    # the L seen on both passes agrees with the match; copies of its design elsewhere (groups of their own)
+    # make it common: with more look-alike groups than consensus_common_groups it counts limit / their number
+    ell = Marking(3, "ell", (22.0, -1.0, 0.0))
+    elsewhere = [Marking(5 + i, "ell", (5.0 + 4.0 * i, 1.5, 0.4 * i)) for i in range(copies)]
+    frames, by_frame = _revisit_with_neighbours([ell, *elsewhere], [ell])
+    stage = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None, consensus_common_groups=common_groups))
+    loops = _run_loop(stage, frames, by_frame)
+    assert [c.instance_ids for c in loops] == ([(1, 1)] if closed else [])
+    assert stage.counts["consensus"] == (0 if closed else 1)
+    second_ell = len(stage._sgf_group) - 2  # the second pass's L, remembered just before the query
+    expected = 1.0 if common_groups is None or copies + 1 <= common_groups else common_groups / (copies + 1)
+    assert stage._rarity(second_ell) == pytest.approx(expected)
+
+
 def test_a_neighbour_agrees_only_at_the_heading_the_match_predicts() -> None:
     ell = Marking(3, "ell", (22.0, -1.0, 0.0))
     turned = Marking(3, "ell", (22.0, -1.0, math.pi / 2))  # the same shape, lying a quarter turn round
@@ -452,7 +468,12 @@ def test_a_match_into_a_repeated_pattern_needs_neighbours_unlike_it() -> None:
     c = stage._evaluate(wrong, None)
     # frame 66 stands where frame 22 stood, says ICP: truly it stands 4 m further on, where frame 26 stood
     assert not isinstance(c, str) and np.allclose(xy_yaw(c.constraint.relative), (0.0, 0.0, 0.0), atol=0.05)
-    assert stage._support(wrong, c.constraint) >= 2 and stage._support(wrong, c.constraint, unlike=True) == 0
+    assert stage._support(wrong, c.constraint, unlike=True) == 0
+    # the arrows one period on agree (two of them); a common design (look-alikes in 6 other groups) counts half
+    assert stage._support(wrong, c.constraint) == pytest.approx(1.0)
+    full = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2, consensus_common_groups=None))
+    _run_loop(full, frames, by_frame)
+    assert full._support(wrong, c.constraint) == pytest.approx(2.0)
     # aliased_support = 0 (the default): a repeated pattern never gives loop factors
     frames, by_frame = _repeated_arrows(28.0)
     strict = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=0))

@@ -30,7 +30,10 @@ through the neighbour consensus (:meth:`IcpLoopClosing._support`): the SGFs seen
 into the earlier pass, must land on look-alike SGFs of that pass (with ``consensus_heading_deg``
 set, look-alike at the heading the match predicts for them, and a neighbour that looks alike
 turned half a turn too, a bar or a disc, fixes no heading and counts
-``consensus_unoriented_weight``; off by default, see docs/results.md). The one option with at
+``consensus_unoriented_weight``; off by default, see docs/results.md). A neighbour of a common
+design (look-alikes in more than ``consensus_common_groups`` other groups) counts that limit over
+their number: a wrong match finds copies of a common design where it predicts them by chance, and
+at a crossing laid out like another one, several at once. The one option with at
 least ``tie_support`` agreeing markings wins; none or several, and the match gives no factor.
 ``min_support`` asks the same of every loop, except a match into a distinct marking: one the
 query looks like (eq. 10 within ``consensus_distance``) while no SGF of any other group comes within
@@ -165,6 +168,13 @@ class IcpLoopParams(StageParams):
         le=1.0,
         description="a neighbour that looks alike at the opposite heading too (a bar, a disc) fixes no heading: it "
         "counts this much of an agreeing marking",
+    )
+    consensus_common_groups: int | None = Field(
+        3,
+        ge=1,
+        description="a neighbour whose design has look-alikes (eq. 10 at most consensus_distance) in more than this "
+        "many other groups is common: it counts this many over their number, since a wrong match finds one of its "
+        "copies where it predicts by chance (null = every neighbour counts fully)",
     )
     tie_support: int = Field(
         1,
@@ -565,7 +575,7 @@ class IcpLoopClosing(Stage):
         markings. A look-alike marking elsewhere on campus has other neighbours, so its match finds
         none. With ``unlike``, neighbours that look like the query (eq. 10 distance at most
         ``consensus_distance``) do not count: in a repeated pattern they are its other copies, which
-        agree with a match shifted by a period.
+        agree with a match shifted by a period. A neighbour's weight is scaled by :meth:`_rarity`.
         """
         p = self.p
         assert a.matched is not None
@@ -609,12 +619,31 @@ class IcpLoopClosing(Stage):
             )
             if weight <= 0.0:
                 continue
+            weight *= self._rarity(int(k))
             same = [n for n, (g, _) in enumerate(agreeing) if np.hypot(*(xy[k] - g)) <= p.consensus_exclude]
             if same:
                 agreeing[same[0]] = (agreeing[same[0]][0], max(agreeing[same[0]][1], weight))
             else:
                 agreeing.append((xy[k], weight))
         return float(sum(w for _, w in agreeing))
+
+    def _rarity(self, k: int) -> float:
+        """How much an agreeing neighbour (SGF ``k``) counts for its design's commonness (``consensus_common_groups``).
+
+        A design with copies in many groups (a standard arrow, a crossing) is found near any place a
+        wrong match predicts with some chance; a rare one is evidence. Counted by groups, not SGFs,
+        since one marking seen from several frames is one group.
+        """
+        limit = self.p.consensus_common_groups
+        if limit is None:
+            return 1.0
+        groups = np.asarray(self._sgf_group)
+        others = np.flatnonzero(groups != groups[k])
+        if len(others) <= limit:
+            return 1.0
+        alike = shifted_distances(self._sgf_matrix[k], np.stack([self._sgf_matrix[m] for m in others])).min(axis=1)
+        common = len(set(groups[others[alike <= self.p.consensus_distance]].tolist()))
+        return min(1.0, limit / common) if common else 1.0
 
     # -- ICP --------------------------------------------------------------------------------
 
