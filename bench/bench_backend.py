@@ -236,10 +236,14 @@ class _TimedSolver:
         return getattr(self._solver, name)
 
 
-def bench_replay(path: str, window: int = 2000, **overrides: object) -> list[dict[str, float]]:
-    """Replay a recorded soak's back-end input into backend=isam2: per window of ``window`` frames, the
-    mean CPU ms per frame, split into iSAM2 updates, full estimates and the rest, and the loops added."""
-    rec = np.load(path)
+def bench_replay(path: str, window: int = 2000, **overrides: object) -> tuple[list[dict[str, float]], np.ndarray]:
+    """Replay a recorded soak's back-end input into backend=isam2 (``overrides`` of its parameters).
+
+    Returns, per window of ``window`` frames, the mean CPU ms per frame, split into iSAM2 updates,
+    full estimates and the rest, and the loops added; and the final trajectory.
+    """
+    with np.load(path) as data:
+        rec = {name: data[name] for name in data.files}
     params = Isam2Params(save_map=False, **overrides)
     backend = Isam2Backend(params)
     backend.begin(RunContext(run_dir=None))
@@ -292,7 +296,24 @@ def bench_replay(path: str, window: int = 2000, **overrides: object) -> list[dic
             )
             seconds.clear()
             total, loops_in_window = 0.0, 0
-    return rows
+    context = RunContext(run_dir=None)
+    backend.finalize(context)
+    return rows, context.trajectories["sgf"].poses
+
+
+def _setting(item: str) -> tuple[str, object]:
+    """``key=value`` of an iSAM2 parameter, the value parsed as a number or bool when it is one."""
+    key, _, text = item.partition("=")
+    value: object = text
+    for parse in (int, float):
+        try:
+            value = parse(text)
+            break
+        except ValueError:
+            continue
+    if text in ("true", "false"):
+        value = text == "true"
+    return key.strip(), value
 
 
 def rss_mb() -> float:
@@ -341,6 +362,9 @@ def main() -> None:
     parser.add_argument("--memory", action="store_true", help="only the memory per keyframe")
     parser.add_argument("--growth", type=int, metavar="N", help="only the update time per window over N keyframes")
     parser.add_argument("--replay", metavar="FILE", help="only a recorded soak's back-end input (bench_soak --record)")
+    parser.add_argument(
+        "--set", action="append", default=[], metavar="K=V[,K=V]", help="with --replay: also replay with these settings"
+    )
     args = parser.parse_args()
     isam_n, lm_n = (3000, 5000) if args.quick else (10_000, 9_000)
     from importlib.metadata import version
@@ -349,12 +373,26 @@ def main() -> None:
         f"machine: {cpu_model()}, {os.cpu_count()} CPUs, python {platform.python_version()}, gtsam {version('gtsam')}"
     )
     if args.replay:
-        print(f"backend=isam2 on {args.replay}: mean CPU ms per frame per window (update, estimate, rest), loops")
-        for row in bench_replay(args.replay):
+        reference = None
+        for setting in ["", *args.set]:
+            overrides = dict(_setting(item) for item in setting.split(",") if item)
+            rows, poses = bench_replay(args.replay, **overrides)
             print(
-                f"  {row['frames']:6.0f} {row['ms']:7.2f} ({row['update_ms']:6.2f} {row['estimate_ms']:6.2f} "
-                f"{row['rest_ms']:6.2f}) {row['loops']:4.0f}"
+                f"backend=isam2 {setting or '(defaults)'} on {args.replay}: mean CPU ms per frame per window "
+                "(update, estimate, rest), loops"
             )
+            for row in rows:
+                print(
+                    f"  {row['frames']:6.0f} {row['ms']:7.2f} ({row['update_ms']:6.2f} {row['estimate_ms']:6.2f} "
+                    f"{row['rest_ms']:6.2f}) {row['loops']:4.0f}"
+                )
+            total = sum(r["ms"] * (r["frames"] - (rows[i - 1]["frames"] if i else 0)) for i, r in enumerate(rows))
+            print(f"  whole replay {total / 1e3:.1f} s CPU")
+            if reference is None:
+                reference = poses
+            else:
+                gap = np.linalg.norm(poses[:, :2, 3] - reference[:, :2, 3], axis=1)
+                print(f"  final trajectory against the defaults': mean {gap.mean():.3f} m, max {gap.max():.3f} m")
         return
     if args.growth:
         growth = bench_growth(args.growth, args.seed)

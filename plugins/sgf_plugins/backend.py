@@ -114,7 +114,14 @@ class Isam2Params(GraphParams):
     factorization: Literal["qr", "cholesky"] = Field(
         "qr", description="QR: robust on long loop-free drives, where Cholesky finds the system indeterminate"
     )
-    relinearize_threshold: float = Field(0.1, gt=0.0, description="relinearize a variable whose delta exceeds this")
+    relinearize_threshold: float = Field(
+        0.1, gt=0.0, description="relinearize a pose whose delta exceeds this (rad; also m unless set below)"
+    )
+    relinearize_threshold_translation: float | None = Field(
+        None,
+        gt=0.0,
+        description="relinearize a pose whose translation delta exceeds this (m); null = relinearize_threshold",
+    )
     relinearize_skip: int = Field(
         1, ge=1, description="check relinearization every this many updates (with the partial check keep 1)"
     )
@@ -345,7 +352,20 @@ class Isam2Backend(_GraphBackend):
         params = self.params
         assert isinstance(params, Isam2Params)
         settings = gtsam.ISAM2Params()
-        settings.setRelinearizeThreshold(params.relinearize_threshold)
+        rotation = params.relinearize_threshold
+        translation = params.relinearize_threshold_translation
+        if translation is None:
+            settings.setRelinearizeThreshold(rotation)
+        else:
+            # per pose type, in GTSAM's tangent order: Pose2 (x, y, yaw), Pose3 (rotation, translation)
+            if self.graph.pose3:
+                threshold = np.array([rotation] * 3 + [translation] * 3)
+            else:
+                threshold = np.array([translation, translation, rotation])
+            per_key = gtsam.ISAM2ThresholdMap()
+            for symbol in ("x", "m"):  # the run's frames, a prior map's frames
+                per_key.insert((symbol, threshold))
+            settings.setRelinearizeThreshold(per_key)
         settings.relinearizeSkip = params.relinearize_skip
         settings.enablePartialRelinearizationCheck = params.partial_relinearization_check
         settings.setFactorization(params.factorization.upper())
