@@ -1,6 +1,6 @@
 """Soak: the default pipeline over a synthetic route of 10 km or more; memory and time per frame as it goes.
 
-Usage: ``.venv/bin/python bench/bench_soak.py [--laps 4] [--record FILE.npz] [hydra overrides...]``
+Usage: ``.venv/bin/python bench/bench_soak.py [--laps 4] [--preset NAME] [--record FILE.npz] [hydra overrides...]``
 
 The route is ``campus_large_loop`` (2.8 km) driven ``--laps`` times in a row: a bench-only dataset
 replays the preset's frames lap after lap. The route ends 55 m from its start, facing the other
