@@ -22,6 +22,7 @@ import statistics
 import time
 
 import numpy as np
+from omegaconf import OmegaConf
 from sgf_plugins.backend import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
 
 from sgf_pipeline.calibration import Calibration, Intrinsics
@@ -240,7 +241,7 @@ def bench_replay(path: str, window: int = 2000, **overrides: object) -> tuple[li
     """Replay a recorded soak's back-end input into backend=isam2 (``overrides`` of its parameters).
 
     Returns, per window of ``window`` frames, the mean CPU ms per frame, split into iSAM2 updates,
-    full estimates and the rest, and the loops added; and the final trajectory.
+    full estimates and the rest (and the window's CPU seconds), and the loops added; and the final trajectory.
     """
     with np.load(path) as data:
         rec = {name: data[name] for name in data.files}
@@ -275,7 +276,7 @@ def bench_replay(path: str, window: int = 2000, **overrides: object) -> tuple[li
             None if np.isnan(imu).any() else (float(imu[0]), float(imu[1])),
         )
         items = by_frame.get(int(index))
-        if not isinstance(backend.isam, _TimedSolver):
+        if not isinstance(backend.isam, _TimedSolver):  # a new solver (the run anchored in a map) is wrapped too
             backend.isam = _TimedSolver(backend.isam, seconds)
         c0 = time.process_time()
         backend.process(frame=frame, loops=LoopConstraints(tuple(items)) if items else None)
@@ -287,6 +288,7 @@ def bench_replay(path: str, window: int = 2000, **overrides: object) -> tuple[li
             rows.append(
                 {
                     "frames": i + 1,
+                    "seconds": total,
                     "ms": 1e3 * total / count,
                     "update_ms": 1e3 * update / count,
                     "estimate_ms": 1e3 * estimate / count,
@@ -299,21 +301,6 @@ def bench_replay(path: str, window: int = 2000, **overrides: object) -> tuple[li
     context = RunContext(run_dir=None)
     backend.finalize(context)
     return rows, context.trajectories["sgf"].poses
-
-
-def _setting(item: str) -> tuple[str, object]:
-    """``key=value`` of an iSAM2 parameter, the value parsed as a number or bool when it is one."""
-    key, _, text = item.partition("=")
-    value: object = text
-    for parse in (int, float):
-        try:
-            value = parse(text)
-            break
-        except ValueError:
-            continue
-    if text in ("true", "false"):
-        value = text == "true"
-    return key.strip(), value
 
 
 def rss_mb() -> float:
@@ -375,8 +362,9 @@ def main() -> None:
     if args.replay:
         reference = None
         for setting in ["", *args.set]:
-            overrides = dict(_setting(item) for item in setting.split(",") if item)
-            rows, poses = bench_replay(args.replay, **overrides)
+            overrides = OmegaConf.to_container(OmegaConf.from_dotlist([i for i in setting.split(",") if i]))
+            assert isinstance(overrides, dict)
+            rows, poses = bench_replay(args.replay, **{str(k): v for k, v in overrides.items()})
             print(
                 f"backend=isam2 {setting or '(defaults)'} on {args.replay}: mean CPU ms per frame per window "
                 "(update, estimate, rest), loops"
@@ -386,8 +374,7 @@ def main() -> None:
                     f"  {row['frames']:6.0f} {row['ms']:7.2f} ({row['update_ms']:6.2f} {row['estimate_ms']:6.2f} "
                     f"{row['rest_ms']:6.2f}) {row['loops']:4.0f}"
                 )
-            total = sum(r["ms"] * (r["frames"] - (rows[i - 1]["frames"] if i else 0)) for i, r in enumerate(rows))
-            print(f"  whole replay {total / 1e3:.1f} s CPU")
+            print(f"  whole replay {sum(r['seconds'] for r in rows):.1f} s CPU")
             if reference is None:
                 reference = poses
             else:

@@ -28,7 +28,7 @@ from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.sgf_map import SgfMap, build_map, load_map, save_map
 from sgf_pipeline.trajectory import Trajectory
 from sgf_pipeline.types import Frame, LoopConstraints, PoseEstimate
-from sgf_plugins.pose_graph import NoiseSettings, PoseGraph, PoseStore, X
+from sgf_plugins.pose_graph import FRAME_SYMBOL, MAP_SYMBOL, NoiseSettings, PoseGraph, PoseStore, X
 
 log = logging.getLogger("sgf_pipeline")
 
@@ -363,7 +363,7 @@ class Isam2Backend(_GraphBackend):
             else:
                 threshold = np.array([translation, translation, rotation])
             per_key = gtsam.ISAM2ThresholdMap()
-            for symbol in ("x", "m"):  # the run's frames, a prior map's frames
+            for symbol in (FRAME_SYMBOL, MAP_SYMBOL):
                 per_key.insert((symbol, threshold))
             settings.setRelinearizeThreshold(per_key)
         settings.relinearizeSkip = params.relinearize_skip

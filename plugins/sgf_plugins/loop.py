@@ -398,11 +398,17 @@ class IcpLoopClosing(Stage):
         query = np.asarray(a.descriptor.matrix)
         if shifted_distances(query, np.asarray(a.matched.matrix)).min() > self.p.consensus_distance:
             return False
-        others = np.flatnonzero(np.asarray(self._sgf_group) != a.group_id)
+        _, alike = self._other_groups_distances(query, a.group_id)
+        return bool(len(alike) and alike.min() > self.p.distinct_distance)
+
+    def _other_groups_distances(self, matrix: np.ndarray, group_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """The group of every SGF seen so far outside ``group_id``, and eq. 10 of ``matrix`` to it (best shift)."""
+        groups = np.asarray(self._sgf_group, dtype=np.int64)
+        others = np.flatnonzero(groups != group_id)
         if not len(others):
-            return False
-        alike = shifted_distances(query, np.stack([self._sgf_matrix[k] for k in others])).min()
-        return bool(alike > self.p.distinct_distance)
+            return groups[others], np.zeros(0)
+        distances = shifted_distances(matrix, np.stack([self._sgf_matrix[m] for m in others])).min(axis=1)
+        return groups[others], distances
 
     def _resolve_tie(self, a: GroupAssignment, estimate: PoseEstimate | None) -> list[LoopConstraint]:
         """A match among look-alike groups: the one option whose neighbouring SGFs agree, else nothing."""
@@ -638,12 +644,8 @@ class IcpLoopClosing(Stage):
         limit = self.p.consensus_common_groups
         if limit is None:
             return 1.0
-        groups = np.asarray(self._sgf_group)
-        others = np.flatnonzero(groups != groups[k])
-        if len(others) <= limit:
-            return 1.0
-        alike = shifted_distances(self._sgf_matrix[k], np.stack([self._sgf_matrix[m] for m in others])).min(axis=1)
-        common = len(set(groups[others[alike <= self.p.consensus_distance]].tolist()))
+        groups, distances = self._other_groups_distances(self._sgf_matrix[k], self._sgf_group[k])
+        common = len(set(groups[distances <= self.p.consensus_distance].tolist()))
         return min(1.0, limit / common) if common else 1.0
 
     # -- ICP --------------------------------------------------------------------------------

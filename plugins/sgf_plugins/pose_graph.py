@@ -156,18 +156,22 @@ class NoiseSettings:
     map_sigma_yaw: float = math.radians(0.5)
 
 
+FRAME_SYMBOL = "x"  # GTSAM key character of a processed frame's pose
+MAP_SYMBOL = "m"  # ...and of a prior map frame's pose
+
+
 def X(frame_index: int) -> int:
     """GTSAM key of a processed frame's pose."""
     import gtsam
 
-    return int(gtsam.symbol("x", frame_index))
+    return int(gtsam.symbol(FRAME_SYMBOL, frame_index))
 
 
 def M(map_frame: int) -> int:
     """GTSAM key of a prior map frame's pose."""
     import gtsam
 
-    return int(gtsam.symbol("m", map_frame))
+    return int(gtsam.symbol(MAP_SYMBOL, map_frame))
 
 
 def planar(pose: np.ndarray) -> np.ndarray:
