@@ -20,11 +20,16 @@ constraints) is saved, so that ``bench_backend.py --replay FILE`` times the back
 from __future__ import annotations
 
 import argparse
+import contextlib
+import ctypes
+import gc
 import os
 import platform
 import resource
 import statistics
+import sys
 import time
+import types
 from collections.abc import Iterator
 from typing import Any
 
@@ -86,7 +91,7 @@ class Laps(Dataset):
                     frame.calibration,
                     frame.imu_roll_pitch,
                     None,
-                    None,
+                    frame.truth_ids,  # saliency=ground_truth still works; the ground-truth pose is not passed on
                 )
             assert last is not None
             # carried back to the start between laps: the odometry moves by the true pose of the route's
@@ -100,11 +105,72 @@ def rss_mb() -> float:
         return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [
+        (name, ctypes.c_size_t)
+        for name in (
+            *("arena", "ordblks", "smblks", "hblks", "hblkhd"),
+            *("usmblks", "fsmblks", "uordblks", "fordblks", "keepcost"),
+        )
+    ]
+
+
+def _libc() -> Any:
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallinfo2.restype = _MallInfo2
+        return libc
+    except (OSError, AttributeError):  # not glibc, or glibc before 2.33
+        return None
+
+
+LIBC = _libc()
+
+
+def native_heap_mb() -> tuple[float, float]:
+    """glibc malloc's bytes in use (all arenas and mmapped blocks) and free bytes it holds (MiB); NaN off glibc."""
+    if LIBC is None:
+        return float("nan"), float("nan")
+    info = LIBC.mallinfo2()
+    return (info.uordblks + info.hblkhd) / 2**20, info.fordblks / 2**20
+
+
+_NOT_STATE = (types.ModuleType, type, types.FunctionType, types.BuiltinFunctionType, types.MethodType)
+
+
+def state_mb(root: object, seen: set[int]) -> float:
+    """What an object holds (MiB): every object reachable from it not in ``seen``, numpy arrays by their data.
+
+    Modules, classes and functions are not followed; objects counted once go into ``seen``, so
+    stages measured one after the other do not count shared state twice. GTSAM's C++ objects count
+    only their Python wrapper (``bench_backend.py --replay`` measures the pose graph's native memory).
+    """
+    total = 0
+    stack = [root]
+    while stack:
+        obj = stack.pop()
+        if id(obj) in seen or isinstance(obj, _NOT_STATE):
+            continue
+        seen.add(id(obj))
+        if isinstance(obj, np.ndarray):
+            total += sys.getsizeof(obj)  # the header, and the data when the array owns it
+            if isinstance(obj.base, np.ndarray):
+                stack.append(obj.base)
+            continue
+        with contextlib.suppress(TypeError):
+            total += sys.getsizeof(obj)
+        stack.extend(gc.get_referents(obj))
+    return total / 2**20
+
+
 class SoakObserver:
     """Per window of 1000 processed frames: distance, peak and current RSS, wall and CPU time per frame."""
 
-    def __init__(self) -> None:
-        self.rows: list[tuple[int, float, float, float, float, float]] = []
+    def __init__(self, trim: bool = False, state: bool = False) -> None:
+        self.rows: list[tuple[float, ...]] = []
+        self.trim = trim
+        self.state = state
+        self.states: list[dict[str, float]] = []
         self._wall = time.perf_counter()
         self._cpu = time.process_time()
         self._count = 0
@@ -127,12 +193,31 @@ class SoakObserver:
         if self._count % 1000 == 0:
             wall, cpu = time.perf_counter(), time.process_time()
             peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
-            row = (self._count, self._distance / 1000.0, peak, rss_mb(), wall - self._wall, cpu - self._cpu)
+            used, free = native_heap_mb()
+            row: tuple[float, ...] = (
+                self._count,
+                self._distance / 1000.0,
+                peak,
+                rss_mb(),
+                wall - self._wall,
+                cpu - self._cpu,
+                used,
+                free,
+            )
+            if self.trim and LIBC is not None:
+                LIBC.malloc_trim(0)
+                row = (*row, rss_mb())
+            if self.state:
+                seen: set[int] = {id(node.stage) for node in run.stages if node.kind == "dataset"}
+                sizes = {node.kind: state_mb(node.stage, seen) for node in run.stages if node.kind != "dataset"}
+                self.states.append(sizes)
+                print("  state MiB: " + ", ".join(f"{k} {v:.2f}" for k, v in sizes.items() if v >= 0.01), flush=True)
             self.rows.append(row)
             self.stages.append({k: v for k, v in self._stage.items()})
             self._stage = {}
             print(
-                f"{row[0]:7d} {row[1]:6.2f} {row[2]:9.0f} {row[3]:9.0f} {row[4]:9.1f} {row[5]:9.1f}",
+                f"{row[0]:7.0f} {row[1]:6.2f} {row[2]:9.0f} {row[3]:9.0f} {row[4]:9.1f} {row[5]:9.1f}"
+                f" {used:9.1f} {free:9.1f}" + (f" {row[8]:9.0f}" if len(row) > 8 else ""),
                 flush=True,
             )
             self._wall, self._cpu = wall, cpu
@@ -190,8 +275,10 @@ def main() -> None:
     ap.add_argument("--laps", type=int, default=4)
     ap.add_argument("--preset", default="campus_large_loop", help="the synthetic route driven lap after lap")
     ap.add_argument("--record", metavar="FILE", help="save the back-end input (.npz) for bench_backend --replay")
+    ap.add_argument("--trim", action="store_true", help="malloc_trim(0) after each window; RSS after it is printed")
+    ap.add_argument("--state", action="store_true", help="print what each stage holds after each window (MiB)")
     args, overrides = ap.parse_known_args()
-    observer = SoakObserver()
+    observer = SoakObserver(trim=args.trim, state=args.state)
     extra: list[tuple[str, Any]] = [("soak", SoakPlugin()), ("soak_observer", observer)]
     recorder = BackendRecorder() if args.record else None
     if recorder is not None:
@@ -206,7 +293,10 @@ def main() -> None:
     plain["dataset"] = {"name": "soak_laps", "laps": args.laps, "preset": args.preset}
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average {os.getloadavg()}")
     print(
-        f"{'frames':>7} {'km':>6} {'peak MiB':>9} {'RSS MiB':>9} {'wall ms':>9} {'CPU ms':>9}  (per frame)",
+        f"{'frames':>7} {'km':>6} {'peak MiB':>9} {'RSS MiB':>9} {'wall ms':>9} {'CPU ms':>9} {'heap MiB':>9}"
+        f" {'free MiB':>9}"
+        + (f" {'trimmed':>9}" if args.trim else "")
+        + "  (ms per frame; heap: glibc malloc's in use / free)",
         flush=True,
     )
     t0 = time.perf_counter()
@@ -234,10 +324,29 @@ def main() -> None:
             if idx:
                 cells = [statistics.median(observer.stages[i].get(k, 0.0) for i in idx) for k in kinds]
                 print(f"  {lap + 1:3d} " + " ".join(f"{c:11.2f}" for c in cells))
-        after = [r for r in rows if r[1] >= lap_km]
-        if len(after) >= 2:
-            a, b = after[0], after[-1]
-            print(f"memory growth after the first lap: {(b[3] - a[3]) / max(b[1] - a[1], 1e-9):.1f} MiB/km (RSS)")
+        after = [k for k, r in enumerate(rows) if r[1] >= lap_km]
+        if len(after) >= 3:
+            # least-squares slopes over the windows after the first lap: the endpoints alone move by
+            # the tens of MiB that malloc holds free from one window to the next
+            km = np.array([rows[k][1] for k in after])
+
+            def slope(values: list[float]) -> float:
+                return float(np.polyfit(km, np.asarray(values, dtype=np.float64), 1)[0])
+
+            a, b = rows[after[0]], rows[after[-1]]
+            endpoints = (b[3] - a[3]) / max(b[1] - a[1], 1e-9)
+            print(
+                f"memory growth after the first lap (MiB/km): RSS {slope([rows[k][3] for k in after]):.1f} "
+                f"(endpoints {endpoints:.1f}), peak RSS {slope([rows[k][2] for k in after]):.1f}, "
+                f"malloc in use {slope([rows[k][6] for k in after]):.1f}"
+                + (f", RSS after malloc_trim {slope([rows[k][8] for k in after]):.1f}" if args.trim else "")
+            )
+            if observer.states:
+                held = list(observer.states[0])
+                print(
+                    "  what the stages hold (MiB/km): "
+                    + ", ".join(f"{k} {slope([observer.states[i].get(k, 0.0) for i in after]):.2f}" for k in held)
+                )
         first = statistics.median(r[5] for r in rows[: max(1, len(rows) // 4)])
         last = statistics.median(r[5] for r in rows[-max(1, len(rows) // 4) :])
         print(f"CPU time per frame, last quarter / first quarter of the route: {last / first:.2f}")

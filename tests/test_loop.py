@@ -158,7 +158,7 @@ def test_anchored_distance_shrinks_once_the_estimate_has_absorbed_a_loop(world) 
     estimate = run.estimates[-1]
     first = min(run.loops, key=lambda c: c.frame_to)
     a, b = first.frame_from + 3, first.frame_to + 4  # next to the loop's two frames
-    path = stage.distance[b] - stage.distance[a]
+    path = stage.frames.distance(b) - stage.frames.distance(a)
     assert stage._anchored_distance(a, b, None) == pytest.approx(path)
     assert path > 150.0
     assert stage._anchored_distance(a, b, estimate) == pytest.approx(7.0, abs=0.5)

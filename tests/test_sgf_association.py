@@ -650,7 +650,7 @@ def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[
     """The spatial gate member by member, as its docstring states it (to check the vectorised one)."""
     p = s.params
     here = s.position_of(query, estimate)
-    since = s._travelled[query.sgf.frame_index]
+    since = s._frames.distance(query.sgf.frame_index)
     out = []
     for group in s.groups:
         nearest, inside, repeated = math.inf, not p.spatial_gate, False
@@ -660,7 +660,7 @@ def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[
                 radius = math.inf if p.prior_gate_radius is None else p.prior_gate_radius
             else:
                 distance = float(np.linalg.norm(s.position_of(member, estimate) - here))
-                travelled = abs(since - s._travelled[member.sgf.frame_index])
+                travelled = abs(since - s._frames.distance(member.sgf.frame_index))
                 radius = p.gate_radius + p.drift_rate * travelled + p.drift_quadratic * travelled**2
                 if travelled <= p.repeat_window and distance > p.repeat_radius:
                     repeated |= _shared_cells(s, query, member, estimate) < p.repeat_overlap

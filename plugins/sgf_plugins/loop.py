@@ -86,6 +86,7 @@ from sgf_pipeline.types import (
     SgfDescriptor,
 )
 from sgf_plugins.anchoring import anchored_distances
+from sgf_plugins.frame_log import FrameLog
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2, se2_params
 from sgf_plugins.sgf.polar import shifted_distances, yaw_to_shift
 
@@ -296,10 +297,7 @@ class IcpLoopClosing(Stage):
     def begin(self, context: RunContext) -> None:
         """Forget the previous sequence."""
         self.truth: SequenceTruth | None = context.truth
-        self.odometry: dict[int, np.ndarray] = {}
-        self.distance: dict[int, float] = {}
-        self.time: dict[int, float] = {}
-        self.ground_truth: dict[int, np.ndarray] = {}
+        self.frames = FrameLog(truth=True)  # every processed frame: loops may reach any earlier place
         self.accepted: list[_Candidate] = []
         self.pending: list[_Candidate] = []
         self.waiting: list[_Waiting] = []
@@ -339,26 +337,18 @@ class IcpLoopClosing(Stage):
         out: list[LoopConstraint] = []
         for a in assignments.items:
             self.assignments.append(replace(a, descriptor=a.descriptor.without_pixels()))  # for the map: no pixels
-            if a.descriptor.sgf.frame_index in self.distance:
+            if a.descriptor.sgf.frame_index in self.frames:
                 self._remember(a)
             out.extend(self._close(a, estimate))
         out.extend(self._settle_waiting(estimate, new_sgfs=bool(assignments.items), waiting=earlier))
         return LoopConstraints(tuple(out))
 
     def _record(self, frame: Frame) -> None:
-        odometry = np.asarray(frame.odometry, dtype=np.float64)
-        step = 0.0
-        if self._last is not None:
-            step = float(np.linalg.norm(odometry[:3, 3] - self.odometry[self._last][:3, 3]))
-        self.distance[frame.index] = (self.distance[self._last] if self._last is not None else 0.0) + step
-        self.odometry[frame.index] = odometry
-        self.time[frame.index] = float(frame.timestamp)
-        if frame.ground_truth is not None:
-            self.ground_truth[frame.index] = np.asarray(frame.ground_truth, dtype=np.float64)
+        self.frames.append(frame)
         self._last = frame.index
 
     def _known(self, frame_index: int) -> None:
-        if frame_index not in self.distance:
+        if frame_index not in self.frames:
             raise ValueError(
                 f"an SGF of frame {frame_index} reached the loop stage, which never saw that frame; "
                 "SGFs must come from frames processed earlier in this run"
@@ -452,7 +442,7 @@ class IcpLoopClosing(Stage):
         estimate: PoseEstimate | None,
     ) -> list[LoopConstraint]:
         """Settle a match by its neighbours now, or let it wait for the SGFs of the next ``consensus_window`` metres."""
-        distance = self.distance[options[0][0].descriptor.sgf.frame_index]
+        distance = self.frames.distance(options[0][0].descriptor.sgf.frame_index)
         waiting = _Waiting(options, need, unlike, refused, resolved, distance)
         out = self._settle(waiting, estimate, final=not self.p.consensus_wait)
         if out is None:
@@ -484,7 +474,7 @@ class IcpLoopClosing(Stage):
         if waiting is None:
             waiting, self.waiting = self.waiting, []
         assert self._last is not None
-        here = self.distance[self._last]
+        here = self.frames.travelled
         out: list[LoopConstraint] = []
         for w in waiting:
             expired = here - w.distance > self.p.consensus_window
@@ -509,8 +499,8 @@ class IcpLoopClosing(Stage):
             if (
                 i >= j
                 or j - i < p.min_separation_frames
-                or self.time[j] - self.time[i] < p.min_separation_time
-                or self.distance[j] - self.distance[i] < p.min_separation_distance
+                or self.frames.time(j) - self.frames.time(i) < p.min_separation_time
+                or self.frames.distance(j) - self.frames.distance(i) < p.min_separation_distance
             ):
                 return "separation"
         if min(len(query.points), len(matched.points)) < self.p.min_points:
@@ -560,7 +550,7 @@ class IcpLoopClosing(Stage):
         """Keep an SGF's odometry-frame position, path distance and descriptor for the consensus test."""
         d = a.descriptor
         self._sgf_xy.append(_odometry_xy(d))
-        self._sgf_distance.append(self.distance[d.sgf.frame_index])
+        self._sgf_distance.append(self.frames.distance(d.sgf.frame_index))
         self._sgf_matrix.append(np.asarray(d.matrix))
         self._sgf_yaw.append(_odometry_yaw(d))
         self._sgf_group.append(a.group_id)
@@ -594,7 +584,7 @@ class IcpLoopClosing(Stage):
         xy = np.asarray(self._sgf_xy)
         dist = np.asarray(self._sgf_distance)
         headings = np.asarray(self._sgf_yaw)
-        d_j, d_i = self.distance[query.sgf.frame_index], self.distance[matched.sgf.frame_index]
+        d_j, d_i = self.frames.distance(query.sgf.frame_index), self.frames.distance(matched.sgf.frame_index)
         q_xy, m_xy = _odometry_xy(query), _odometry_xy(matched)
         near_query = (dist >= d_j - p.consensus_window) & (
             dist <= d_j + (p.consensus_window if p.consensus_wait else 0.0)
@@ -738,11 +728,11 @@ class IcpLoopClosing(Stage):
     def _pose(self, k: int, estimate: PoseEstimate | None) -> np.ndarray:
         """Frame ``k``'s pose in the estimate (dead-reckoned past its newest frame), or its odometry."""
         if estimate is None:
-            return self.odometry[k]
+            return self.frames.odometry(k)
         if k in estimate.poses:
             return np.asarray(estimate.poses[k])
         last = estimate.frame_index
-        return np.asarray(estimate.poses[last]) @ invert(self.odometry[last]) @ self.odometry[k]
+        return np.asarray(estimate.poses[last]) @ invert(self.frames.odometry(last)) @ self.frames.odometry(k)
 
     def _absorbed(self, c: _Candidate, estimate: PoseEstimate | None) -> bool:
         """Whether the estimate satisfies an accepted constraint (so it anchors its two frames)."""
@@ -767,9 +757,9 @@ class IcpLoopClosing(Stage):
             if self._absorbed(c, estimate):
                 k = c.constraint
                 if k.from_map:
-                    on_map.append(self.distance[k.frame_to])
+                    on_map.append(self.frames.distance(k.frame_to))
                 else:
-                    shortcuts.append((self.distance[k.frame_from], self.distance[k.frame_to]))
+                    shortcuts.append((self.frames.distance(k.frame_from), self.frames.distance(k.frame_to)))
         on_map.sort()
         shortcuts.extend(itertools.pairwise(on_map))
         if a == _MAP:
@@ -777,8 +767,8 @@ class IcpLoopClosing(Stage):
                 return math.inf
             start = on_map[0]
         else:
-            start = self.distance[a]
-        return float(anchored_distances(start, np.array([self.distance[b]]), shortcuts)[0])
+            start = self.frames.distance(a)
+        return float(anchored_distances(start, np.array([self.frames.distance(b)]), shortcuts)[0])
 
     def _confirm_map(self, candidate: _Candidate, estimate: PoseEstimate | None) -> list[LoopConstraint]:
         """Hold map matches until enough of them (different groups) agree on where the run is in the map."""
@@ -808,8 +798,8 @@ class IcpLoopClosing(Stage):
     def _truth_error(self, c: _Candidate) -> tuple[float, float] | None:
         """How far (m, rad) an accepted constraint's relative pose is from the ground truth's (None: unknown)."""
         k = c.constraint
-        start = c.map_truth if k.from_map else self.ground_truth.get(k.frame_from)
-        end = self.ground_truth.get(k.frame_to)
+        start = c.map_truth if k.from_map else self.frames.ground_truth(k.frame_from)
+        end = self.frames.ground_truth(k.frame_to)
         if start is None or end is None:
             return None
         x, y, yaw = pose_error(invert(start) @ end, k.relative)
@@ -851,7 +841,7 @@ class IcpLoopClosing(Stage):
             "distinct": self.distinct,
         }
         truth = context.truth if context.truth is not None else self.truth
-        if not self.accepted and (truth is not None or self.ground_truth):
+        if not self.accepted and (truth is not None or self.frames.has_truth()):
             loops["false_closed"] = 0  # nothing accepted, and the truth to judge it by is known
         if truth is not None:
             closed = [r for r in truth.revisits if self._closes(r, truths)]
@@ -870,8 +860,8 @@ class IcpLoopClosing(Stage):
         return {
             "frame_from": k.frame_from,
             "frame_to": k.frame_to,
-            "time_from": None if k.from_map else self.time.get(k.frame_from),
-            "time_to": self.time.get(k.frame_to),
+            "time_from": None if k.from_map else self.frames.get_time(k.frame_from),
+            "time_to": self.frames.get_time(k.frame_to),
             "relative_xy_yaw": [x, y, yaw],
             "group_id": c.group_id,
             "reverse": k.reverse,

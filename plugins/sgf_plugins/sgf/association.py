@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import copy
 import math
-from collections import deque
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -26,6 +25,7 @@ from sgf_pipeline.types import (
     SgfDescriptors,
 )
 from sgf_plugins.anchoring import anchored_distances
+from sgf_plugins.frame_log import FrameLog
 from sgf_plugins.sgf.polar import (
     ColumnSet,
     align,
@@ -36,7 +36,7 @@ from sgf_plugins.sgf.polar import (
     yaw_to_shift,
 )
 
-#: Frames whose odometry and travelled distance are remembered (older ones only for group members).
+#: Frames whose odometry and travelled distance are remembered at least (older ones only for group members).
 HISTORY_FRAMES = 20_000
 
 
@@ -284,11 +284,7 @@ class OnlineSgfGroups(Stage):
         self.params: OnlineGroupsParams = params
         self._prior: list[SgfGroup] = []
         self._groups: list[SgfGroup] = []
-        self._odometry: dict[int, np.ndarray] = {}
-        self._travelled: dict[int, float] = {}
-        self._history: deque[int] = deque()
-        self._last_position: np.ndarray | None = None
-        self._distance = 0.0
+        self._frames = FrameLog(keep=HISTORY_FRAMES)
         self._next_id = 0
         self._index = _MemberIndex()
         self._slot: dict[int, int] = {}
@@ -331,11 +327,7 @@ class OnlineSgfGroups(Stage):
         for g, p in zip(self._groups, self._prior, strict=True):
             g.members, g.offsets, g.anchors = list(p.members), list(p.offsets), list(p.anchors)
         self._next_id = max((g.group_id for g in self._prior), default=-1) + 1
-        self._odometry = {}
-        self._travelled = {}
-        self._history = deque()
-        self._last_position = None
-        self._distance = 0.0
+        self._frames = FrameLog(keep=HISTORY_FRAMES)
         self._index = _MemberIndex()
         self._slot = {g.group_id: k for k, g in enumerate(self._groups)}
         self._closures = []
@@ -368,18 +360,7 @@ class OnlineSgfGroups(Stage):
 
     def _record(self, frame: Frame) -> None:
         """Remember the frame's odometry and the distance travelled up to it (the last HISTORY_FRAMES frames)."""
-        odometry = np.asarray(frame.odometry, dtype=np.float64)
-        position = odometry[:3, 3]
-        if self._last_position is not None:
-            self._distance += float(np.linalg.norm(position - self._last_position))
-        self._last_position = position
-        self._odometry[frame.index] = odometry
-        self._travelled[frame.index] = self._distance
-        self._history.append(frame.index)
-        while len(self._history) > HISTORY_FRAMES:  # bounded memory over hours; members keep theirs
-            oldest = self._history.popleft()
-            self._travelled.pop(oldest, None)
-            self._odometry.pop(oldest, None)
+        self._frames.append(frame)  # bounded over hours: the oldest frames go, members keep theirs
 
     def pose_of(self, frame_index: int, odometry: np.ndarray, estimate: PoseEstimate | None) -> np.ndarray:
         """The map pose of a frame: the estimate's, else its odometry corrected like the estimate's newest frame."""
@@ -389,7 +370,7 @@ class OnlineSgfGroups(Stage):
         if pose is not None:
             return np.asarray(pose, dtype=np.float64)
         ref = estimate.frame_index
-        ref_odometry = self._odometry.get(ref)
+        ref_odometry = self._frames.get_odometry(ref)
         if ref_odometry is None or ref not in estimate.poses:
             return odometry
         return np.asarray(estimate.poses[ref]) @ invert(ref_odometry) @ odometry
@@ -418,7 +399,7 @@ class OnlineSgfGroups(Stage):
                 poses, found = estimate.stack(index.frame[fresh])
                 if not found.all():
                     ref = estimate.frame_index
-                    ref_odometry = self._odometry.get(ref)
+                    ref_odometry = self._frames.get_odometry(ref)
                     if ref_odometry is None or ref not in estimate.poses:
                         poses[~found] = odometry[~found]
                     else:
@@ -456,7 +437,7 @@ class OnlineSgfGroups(Stage):
         distance = np.hypot(*(self._member_positions(estimate) - here).T)
         anchored = ~np.isnan(index.anchor[:n, 0])
         # Distance travelled between the two sightings; straight-line odometry distance where unknown.
-        since = self._travelled.get(query.sgf.frame_index)
+        since = self._frames.get_distance(query.sgf.frame_index)
         travelled = np.abs(index.travelled[:n] - since) if since is not None else np.full(n, np.nan)
         unknown = np.isnan(travelled)
         if unknown.any():
@@ -503,7 +484,7 @@ class OnlineSgfGroups(Stage):
 
     def _travelled_at(self, frame_index: int) -> float | None:
         """Distance travelled up to a frame: remembered for recent frames and for group members."""
-        known = self._travelled.get(frame_index)
+        known = self._frames.get_distance(frame_index)
         if known is not None:
             return known
         index = self._index
@@ -588,7 +569,7 @@ class OnlineSgfGroups(Stage):
             group = SgfGroup(self._next_id, aliased=copy_nearby)
             self._next_id += 1
             group.add(query, 0)
-            self._index.add(len(self._groups), query, self._travelled.get(query.sgf.frame_index), None)
+            self._index.add(len(self._groups), query, self._frames.get_distance(query.sgf.frame_index), None)
             group.refresh(p.columns, p.symmetry_threshold)
             self._slot[group.group_id] = len(self._groups)
             self._groups.append(group)
@@ -611,7 +592,7 @@ class OnlineSgfGroups(Stage):
         # An aliased look-alike (a repeated pattern) could be the true one: then nothing resolves the tie.
         alternatives = () if any(g.aliased for g in tied) else tuple(self._look_alike(query, g, estimate) for g in tied)
         group.add(query, shift + group.offsets[m])
-        self._index.add(self._slot[group.group_id], query, self._travelled.get(query.sgf.frame_index), None)
+        self._index.add(self._slot[group.group_id], query, self._frames.get_distance(query.sgf.frame_index), None)
         group.refresh(p.columns, p.symmetry_threshold)
         # A flat group mean may only be a smear of members from different markings: the match is
         # symmetric when one of its two own views is flat too.
