@@ -1,10 +1,10 @@
 """Each processed frame's odometry, distance travelled and time, in flat arrays.
 
 The association and the loop stage look up the odometry and the distance travelled of any
-earlier frame (the frames their SGFs came from). Kept as a dict entry and a small array per
-frame and per quantity they cost about 650 bytes per frame, some 2 MiB per km at a frame every
-0.3 m; here a frame is one row of 18 floats and an index (152 bytes, 128 more with a
-ground-truth pose), in arrays that grow by doubling.
+earlier frame (the frames their SGFs came from). Here a frame is one row of 18 floats and an
+index (152 bytes, 128 more with a ground-truth pose), in arrays that grow by doubling; the dicts
+of small arrays and floats they replace held 0.6 MiB per km more over the two stages
+(``bench/bench_soak.py --state``).
 """
 
 from __future__ import annotations
