@@ -54,7 +54,7 @@ def write_bag(path: Path, frames: int, version: str, compressed: bool) -> None:
     store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
     t = store.types
 
-    def header(ns: int, frame_id: str):  # type: ignore[no-untyped-def]
+    def header(ns: int, frame_id: str):
         stamp = t["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
         return (
             t["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id=frame_id)
@@ -183,7 +183,7 @@ def main() -> None:
             if kind.startswith("folder"):
                 write_folder(path, args.frames, kind.split("_")[1])
 
-                def make(path: Path = path) -> object:
+                def make(path: Path = path, compressed: bool = False) -> object:
                     return FolderDataset(FolderParams(path=str(path)))
 
             else:

@@ -30,7 +30,12 @@ from sgf_plugins.saliency import procedural
 from sgf_plugins.saliency.cli_sod_eval import bev_of
 from sgf_plugins.saliency.data import Augmentation, normalize_image, resize_mask
 from sgf_plugins.saliency.models import ARCHITECTURES, build_model
-from sgf_plugins.saliency.stages import LEARNED_VARIANTS, ClassicalParams, ClassicalSaliency, default_architecture
+from sgf_plugins.saliency.stages import (
+    LEARNED_VARIANTS,
+    ClassicalParams,
+    ClassicalSaliency,
+    default_architecture,
+)
 from sgf_plugins.saliency.weights import save_weights
 
 TARGET_FPS = 20.0
@@ -89,8 +94,13 @@ def inference(frames: int, cache: Path) -> list[dict]:
         for runtime in ("torch", "onnx"):
             for threads in (1, 2):
                 torch.set_num_threads(threads)
-                params = cls.Params(
-                    weights=str(weights), runtime=runtime, threads=threads, onnx_path=str(cache / f"{cls.name}.onnx")
+                params = cls.Params.model_validate(
+                    {
+                        "weights": str(weights),
+                        "runtime": runtime,
+                        "threads": threads,
+                        "onnx_path": str(cache / f"{cls.name}.onnx"),
+                    }
                 )
                 stage = cls(params)
                 s, c = time_calls(lambda stage=stage: run(stage), frames, 3)

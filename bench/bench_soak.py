@@ -31,7 +31,7 @@ import sys
 import time
 import types
 from collections.abc import Iterator
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from hydra import compose, initialize_config_dir
@@ -54,6 +54,7 @@ class Laps(Dataset):
 
     name = "soak_laps"
     Params = LapsParams
+    params: LapsParams
 
     def __init__(self, params: LapsParams) -> None:
         super().__init__(params)
@@ -65,7 +66,7 @@ class Laps(Dataset):
         self.carry_back = invert(end.ground_truth) @ start.ground_truth
 
     def __len__(self) -> int:
-        return len(self.world) * self.params.laps  # type: ignore[attr-defined]
+        return len(self.world) * self.params.laps
 
     def begin(self, context: RunContext) -> None:
         context.calibration = self.world.calibration
@@ -300,7 +301,7 @@ def main() -> None:
         flush=True,
     )
     t0 = time.perf_counter()
-    metrics = Pipeline.from_config(plain, plugins=plugins).run()
+    metrics = Pipeline.from_config(cast(dict[str, Any], plain), plugins=plugins).run()
     wall = time.perf_counter() - t0
     if recorder is not None:
         recorder.save(args.record)

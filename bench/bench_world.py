@@ -9,6 +9,8 @@ other jobs on a shared machine. Medians over repeats.
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from functools import partial
 
 for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
     os.environ[var] = "1"  # before numpy is imported: one core
@@ -37,8 +39,9 @@ def rss_mb() -> float:
         return int(fh.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def timed(fn, repeats: int) -> tuple[float, float]:
-    cpu, wall = [], []
+def timed(fn: Callable[[], object], repeats: int) -> tuple[float, float]:
+    cpu: list[float] = []
+    wall: list[float] = []
     for _ in range(repeats):
         c0, w0 = time.process_time(), time.perf_counter()
         fn()
@@ -53,8 +56,8 @@ def main() -> None:
     ap.add_argument("--stream-frames", type=int, default=0, help="frames of campus_delivery to stream (0 = all)")
     ap.add_argument("--memory-frames", type=int, default=3000)
     args = ap.parse_args()
-    cpu = platform.processor() or platform.machine()
-    print(f"machine: {cpu}, {os.cpu_count()} cores, python {platform.python_version()}")
+    processor = platform.processor() or platform.machine()
+    print(f"machine: {processor}, {os.cpu_count()} cores, python {platform.python_version()}")
     print(f"load average: {os.getloadavg()}")
 
     # 1. one frame (warm tiles): the renderer alone, day and night, with and without the far field
@@ -69,7 +72,7 @@ def main() -> None:
         ("day, no far field", world.conditions(far_field=False, time=float(world.drive.timestamps[k]))),
     ):
         world.render_layers(pose, cond)
-        cpu, wall = timed(lambda cond=cond: world.render_layers(pose, cond), args.repeats)
+        cpu, wall = timed(partial(world.render_layers, pose, cond), args.repeats)
         print(f"render one 640x480 frame ({label}): {cpu:.1f} ms CPU, {wall:.1f} ms wall (median of {args.repeats})")
 
     # 2. stream the whole campus_delivery preset (fresh world: cold tiles, every frame rendered)
