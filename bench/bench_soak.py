@@ -1,17 +1,23 @@
 """Soak: the default pipeline over a synthetic route of 10 km or more; memory and time per frame as it goes.
 
-Usage: ``.venv/bin/python bench/bench_soak.py [--laps 4] [--preset NAME] [--record FILE.npz] [hydra overrides...]``
+Usage: ``.venv/bin/python bench/bench_soak.py [--laps 4] [--preset NAME] [--record FILE.npz] [--state] [--trim]
+[hydra overrides...]``
 
 The route is ``campus_large_loop`` (2.8 km) driven ``--laps`` times in a row: a bench-only dataset
 replays the preset's frames lap after lap. The route ends 55 m from its start, facing the other
 way; between laps the robot is carried back, and the odometry moves by the true pose of the
 start seen from the end, so that loops between laps agree with it (before the eleventh session
 the odometry went on from the end as if the start were there, and every loop between laps
-pulled against it). The ground truth is not passed on; the ATE of a soak is not its point. An observer records,
+pulled against it). The ground-truth pose is not passed on (the ATE of a soak is not its point); the
+marking instances are, so that ``saliency=ground_truth`` soaks the pipeline without the network. An observer records,
 per window of 1000 processed frames, the distance driven, the peak and current resident memory,
 and the wall and CPU time per frame; the script then prints per lap the median time per frame and
 the memory, the memory growth per kilometre after the first lap (when the caches are warm), and
 the ratio of the CPU time per frame over the last quarter of the route to the first quarter's.
+
+Memory per window: the RSS and its peak, and glibc malloc's bytes in use and held free; with
+``--state``, what each stage holds (:func:`state_mb`); with ``--trim``, the RSS after
+``malloc_trim(0)``. Growth per km is the least-squares slope over the windows after the first lap.
 
 With ``--record``, what the back-end received (every processed frame's odometry and the loop
 constraints) is saved, so that ``bench_backend.py --replay FILE`` times the back-end alone on it.
