@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from backend_world import CALIBRATION, Marking, OracleAssociation, descriptor, make_world, run_stages
 from sgf_plugins.backend import GtsamLmBackend, LmParams
-from sgf_plugins.icp import IcpResult, se2
+from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, se2
 from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, drift_covariance
 
 from sgf_pipeline import RunContext
@@ -138,6 +138,26 @@ def test_an_sgf_matched_within_the_same_pass_is_not_a_loop() -> None:
             found += stage.process(frame=f, assignments=items, estimate=None).items
         assert len(found) == expected
         assert stage.counts["separation"] == 1 - expected
+
+
+def test_sgfs_with_fewer_points_than_icp_needs_are_counted_and_give_no_factor() -> None:
+    frames = _straight_run(20, 0.0)
+    marking = Marking(1, "arrow", (2.5, 0.0, 0.0))
+    a, b = _view(frames[0], marking), _view(frames[-1], marking)
+    two = replace(b, points=b.points[:2])  # type: ignore[type-var]
+    for query, expected in ((two, 0), (b, 1)):
+        stage = IcpLoopClosing(IcpLoopParams(min_separation_distance=5.0, min_support=0))
+        for f in frames[:-1]:
+            stage.process(frame=f, assignments=None, estimate=None)
+        assignment = GroupAssignment(query, 0, False, 0.1, 0, 0.0, a, False)  # type: ignore[arg-type]
+        found = stage.process(frame=frames[-1], assignments=GroupAssignments((assignment,)), estimate=None).items
+        assert len(found) == expected
+        assert stage.counts["too_few_points"] == 1 - expected
+    # ICP itself refuses fewer than 3 points with a message, never a numpy error deep inside
+    with pytest.raises(ValueError, match=r"N>=3"):
+        Icp2d(b.points[:2], IcpSettings())
+    with pytest.raises(ValueError, match=r"N>=3"):
+        Icp2d(b.points, IcpSettings()).align(b.points[:2], np.eye(3))
 
 
 def test_symmetric_groups_never_give_loop_factors() -> None:
