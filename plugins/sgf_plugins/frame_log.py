@@ -30,7 +30,7 @@ class FrameLog:
         if keep is not None and keep < 1:
             raise ValueError(f"keep must be at least 1, got {keep}")
         self.keep = keep
-        self.truth = truth
+        self._keep_truth = truth
         self._index = np.zeros(64, dtype=np.int64)
         self._rows = np.zeros((64, _COLUMNS))
         self._truth: np.ndarray | None = None
@@ -68,7 +68,7 @@ class FrameLog:
         self._rows[k, :16] = odometry.reshape(16)
         self._rows[k, 16] = self.travelled + step
         self._rows[k, 17] = float(frame.timestamp)
-        truth = _valid_pose(frame.ground_truth) if self.truth else None
+        truth = _valid_pose(frame.ground_truth) if self._keep_truth else None
         if truth is not None and self._truth is None:
             self._truth = np.full((len(self._index), 4, 4), np.nan)
         if self._truth is not None:

@@ -322,7 +322,6 @@ class IcpLoopClosing(Stage):
         self._sgf_distance: list[float] = []
         self._sgf_matrix: list[np.ndarray] = []
         self._sgf_yaw: list[float] = []
-        self._last: int | None = None
 
     # -- per frame --------------------------------------------------------------------------
 
@@ -330,7 +329,7 @@ class IcpLoopClosing(Stage):
         self, frame: Frame, assignments: GroupAssignments | None, estimate: Previous[PoseEstimate]
     ) -> LoopConstraints:
         """Loop constraints of the SGFs assigned to groups on this frame."""
-        self._record(frame)
+        self.frames.append(frame)
         if assignments is None:
             return LoopConstraints(tuple(self._settle_waiting(estimate, new_sgfs=False)))
         earlier, self.waiting = self.waiting, []  # this frame's matches were just decided: they wait untested
@@ -342,10 +341,6 @@ class IcpLoopClosing(Stage):
             out.extend(self._close(a, estimate))
         out.extend(self._settle_waiting(estimate, new_sgfs=bool(assignments.items), waiting=earlier))
         return LoopConstraints(tuple(out))
-
-    def _record(self, frame: Frame) -> None:
-        self.frames.append(frame)
-        self._last = frame.index
 
     def _known(self, frame_index: int) -> None:
         if frame_index not in self.frames:
@@ -473,7 +468,6 @@ class IcpLoopClosing(Stage):
         """
         if waiting is None:
             waiting, self.waiting = self.waiting, []
-        assert self._last is not None
         here = self.frames.travelled
         out: list[LoopConstraint] = []
         for w in waiting:
