@@ -278,7 +278,7 @@ def bench_stages(quick: bool) -> None:
         t0 = time.perf_counter()
         sgfs = detector.process(frame, bev, saliency)
         t1 = time.perf_counter()
-        descriptors = descriptor.process(sgfs)
+        descriptors = descriptor.process(frame, sgfs)
         t2 = time.perf_counter()
         association.process(frame, descriptors, None)
         t3 = time.perf_counter()

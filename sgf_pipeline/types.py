@@ -140,6 +140,7 @@ class Bev:
     instance_ids: np.ndarray | None = None
     roll: float = 0.0
     pitch: float = 0.0
+    homography: np.ndarray | None = None  # 3x3: BEV index (u, v, 1) -> the image pixel it was resampled from
 
 
 @dataclass(frozen=True)
@@ -164,12 +165,13 @@ class SalientGroundFeature:
     hu: np.ndarray
     views: int
     instance_id: int | None = None
+    homography: np.ndarray | None = None  # the view's BEV -> image homography (``Bev.homography``)
 
     def without_pixels(self) -> SalientGroundFeature:
         """A copy without the BEV pixels: what a long-lived record keeps (a descriptor's points hold the shape)."""
-        if np.asarray(self.pixels).size == 0:
+        if np.asarray(self.pixels).size == 0 and self.homography is None:
             return self
-        return replace(self, pixels=np.zeros((0, 2), dtype=np.int32))
+        return replace(self, pixels=np.zeros((0, 2), dtype=np.int32), homography=None)
 
 
 @dataclass(frozen=True)

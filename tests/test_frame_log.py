@@ -40,6 +40,12 @@ def test_the_log_answers_as_the_frames_were_recorded() -> None:
     # the returned pose is a copy: changing it changes nothing in the log
     log.odometry(2)[0, 3] = 99.0
     assert log.odometry(2)[0, 3] == pytest.approx(0.3)
+    # the poses from a frame on (from the next remembered one when it is not remembered)
+    np.testing.assert_allclose(log.odometry_since(5)[:, 0, 3], [0.3, 1.0, 4.0])
+    np.testing.assert_allclose(log.odometry_since(3)[:, 0, 3], [0.3, 1.0, 4.0])
+    assert log.odometry_since(41).shape == (0, 4, 4)
+    log.odometry_since(40)[0, 0, 3] = 99.0
+    assert log.odometry(40)[0, 3] == pytest.approx(4.0)
 
 
 def test_frames_must_come_in_order_and_the_same_index_replaces_the_last() -> None:

@@ -174,6 +174,9 @@ def test_mc_compensates_a_pitched_frame(scene: GroundScene) -> None:
     assert stage.last_reference is not None
     assert (stage.last_reference.inliers, stage.last_reference.queued) == (10, 11)  # the bump pose is left out
     assert (bev.roll, bev.pitch) == (0.0, 0.05)
+    assert bev.homography is not None  # the mapping it warped with, for lifting SGF pixels later
+    assert np.allclose(bev.homography, stage.homography(calibration, 0.0, 0.05))
+    assert not np.allclose(bev.homography, plain.homography(calibration))
     truth = truth_mask(scene, stage.grid, 0.0) > 0
     for out, low, high in ((bev, 0.9, 1.0), (plain.process(frame, CameraImage(image, 10)), 0.0, 0.5)):
         paint = (out.image[:, :, 0] > 165) & out.valid

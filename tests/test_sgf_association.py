@@ -105,7 +105,8 @@ def test_descriptor_lifts_pixels_with_eq9():
     stage_ = PolarContext(PolarContextParams())
     context = RunContext(None)
     stage_.begin(context)
-    out = stage_.process(SgfDetections((one, sgf)))
+    frame = Frame(1, 0.1, np.zeros((2, 2), np.uint8), np.eye(4), toy_calibration())
+    out = stage_.process(frame, SgfDetections((one, sgf)))
     assert [x.sgf for x in out.items] == [sgf]
     stage_.finalize(context)
     assert context.metrics["sgf"]["too_few_points"] == 1

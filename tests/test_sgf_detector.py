@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -92,6 +93,21 @@ def test_one_sgf_per_pass_at_the_most_salient_frame(diamond_passes):
     ]
     assert all(s.pixels.shape == (0, 2) for s in kept)  # the run keeps them without their BEV pixels
     assert all(len(s.pixels) > 0 for _, s in out)  # the stage's outputs keep theirs
+
+
+def test_an_sgf_carries_the_homography_of_its_own_view(diamond_passes):
+    shapes, poses, _ = diamond_passes
+    detector = HuMomentDetector(HuWindowParams())
+    detector.begin(RunContext(None))
+    out = []
+    for frame, bev, saliency in SaliencyStream(shapes, poses, supersample=2):
+        mapping = np.diag([1.0, 1.0, 1.0 + frame.index])  # a different BEV -> image mapping per frame
+        bev = replace(bev, homography=mapping)
+        out += detector.process(frame, bev, replace(saliency, bev=bev)).items
+    assert len(out) == 2
+    for sgf in out:
+        assert sgf.homography is not None and sgf.homography[2, 2] == 1.0 + sgf.frame_index
+        assert sgf.without_pixels().homography is None  # long-lived records drop it with the pixels
 
 
 def test_selected_views_never_touch_the_border():

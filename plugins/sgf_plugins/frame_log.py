@@ -136,6 +136,11 @@ class FrameLog:
         k = self._row(frame_index)
         return None if k < 0 else float(self._rows[k, 17])
 
+    def odometry_since(self, frame_index: int) -> np.ndarray:
+        """Odometry poses (N, 4, 4) of the remembered frames from ``frame_index`` on (a copy; empty if none)."""
+        k = int(np.searchsorted(self._index[: self._size], frame_index))
+        return self._rows[k : self._size, :16].reshape(-1, 4, 4).copy()
+
     def ground_truth(self, frame_index: int) -> np.ndarray | None:
         """The frame's ground-truth pose, or None when it is unknown or not remembered."""
         k = self._row(frame_index)

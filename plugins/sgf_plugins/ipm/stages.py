@@ -103,7 +103,9 @@ class InversePerspectiveMapping(Stage):
         bev, valid = self.warp(pixels, h)
         ids = frame.truth_ids()
         instance_ids = None if ids is None else self.warp_ids(ids, h, valid, pixels.shape[:2])
-        return Bev(bev, valid, self.grid, frame.index, frame.timestamp, instance_ids, roll=-psi, pitch=theta)
+        return Bev(
+            bev, valid, self.grid, frame.index, frame.timestamp, instance_ids, roll=-psi, pitch=theta, homography=h
+        )
 
     def warp(self, pixels: np.ndarray, homography: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Resample an image into the BEV; pixels outside the visible ground are zero."""

@@ -8,8 +8,15 @@ import numpy as np
 from pydantic import Field
 
 from sgf_pipeline import RunContext, Stage, StageParams, StageRegistry, hookimpl
-from sgf_pipeline.types import SalientGroundFeature, SgfDescriptor, SgfDescriptors, SgfDetections
+from sgf_pipeline.calibration import Calibration
+from sgf_pipeline.geometry import invert
+from sgf_pipeline.types import Frame, SalientGroundFeature, SgfDescriptor, SgfDescriptors, SgfDetections
+from sgf_plugins.frame_log import FrameLog
 from sgf_plugins.sgf.polar import polar_context, ring_key, voxel_downsample
+from sgf_plugins.sgf.terrain import driven_ground, intersect_ground, pixel_rays
+
+#: Frames of odometry the driven-ground lift remembers (a feature's valid range is far shorter).
+TERRAIN_FRAMES = 2_000
 
 
 class PolarContextParams(StageParams):
@@ -23,16 +30,55 @@ class PolarContextParams(StageParams):
         "count", description="bin value: ground points in the bin, points per square metre, or 0/1 occupancy"
     )
     min_points: int = Field(3, ge=1, description="SGFs with fewer ground points after downsampling are dropped")
+    ground: Literal["plane", "driven"] = Field(
+        "plane",
+        description="where eq. 9 puts the SGF pixels: on the BEV's plane (the paper), or where their camera rays meet "
+        "the ground the robot drove over since the view (3-D odometry: heights and the IMU's attitude)",
+    )
+    ground_ahead: float = Field(
+        3.0, ge=0.0, description="driven: metres the newest pose's tangent plane is extended ahead (the far paint)"
+    )
+    ground_radius: float = Field(
+        1.5, gt=0.0, description="driven: an SGF with a pixel farther (m) from every ground sample stays on the plane"
+    )
+
+
+def lift(sgf: SalientGroundFeature) -> np.ndarray:
+    """Eq. 9: the SGF's pixels as metric ground points (M, 2) in its frame's base frame, on the BEV's plane."""
+    pixels = np.asarray(sgf.pixels).reshape(-1, 2)
+    x, y = sgf.grid.pixel_to_ground(pixels[:, 0], pixels[:, 1])
+    return np.stack([x, y], axis=1)
+
+
+def lift_driven(
+    sgf: SalientGroundFeature, calibration: Calibration, driven: np.ndarray, ahead: float, radius: float
+) -> np.ndarray | None:
+    """The SGF's pixels where their camera rays meet the driven ground (M, 2), or None where it does not cover them.
+
+    ``driven``: odometry poses (N, 4, 4) from the SGF's frame on (the first is its frame's).
+    """
+    if sgf.homography is None or len(driven) == 0:
+        return None
+    view = np.asarray(driven[0], dtype=np.float64)
+    local = invert(view) @ np.asarray(driven, dtype=np.float64)  # poses in the view's base frame
+    points, normals = driven_ground(local, ahead, step=0.25)
+    origin, directions = pixel_rays(np.asarray(sgf.pixels), sgf.homography, calibration, np.eye(4))
+    hit, covered = intersect_ground(origin, directions, points, normals, radius)
+    if not covered.all():
+        return None
+    return hit[:, :2]
 
 
 def describe(
     sgf: SalientGroundFeature,
     params: PolarContextParams,
+    ground: np.ndarray | None = None,
 ) -> SgfDescriptor | None:
-    """The descriptor of one SGF, or None when fewer than ``min_points`` ground points lie within L_max."""
-    pixels = np.asarray(sgf.pixels).reshape(-1, 2)
-    x, y = sgf.grid.pixel_to_ground(pixels[:, 0], pixels[:, 1])  # eq. 9
-    points = voxel_downsample(np.stack([x, y], axis=1), params.voxel_size)
+    """The descriptor of one SGF, or None when fewer than ``min_points`` ground points lie within L_max.
+
+    ``ground``: the SGF pixels' metric points (M, 2) when lifted otherwise than by eq. 9 on the BEV's plane.
+    """
+    points = voxel_downsample(lift(sgf) if ground is None else ground, params.voxel_size)
     if len(points) < params.min_points:
         return None
     centroid = points.mean(axis=0)
@@ -68,17 +114,30 @@ class PolarContext(Stage):
         super().__init__(params)
         self.params: PolarContextParams = params
         self._dropped = 0
+        self._frames = FrameLog(keep=TERRAIN_FRAMES)
+        self._ground: dict[str, int] = {}
 
     def begin(self, context: RunContext) -> None:
-        """Reset the count of dropped SGFs; announce the descriptor's shape (N_r, N_s) to later stages."""
+        """Reset the counts and the odometry; announce the descriptor's shape (N_r, N_s) to later stages."""
         self._dropped = 0
+        self._frames = FrameLog(keep=TERRAIN_FRAMES)
+        self._ground = {"driven": 0, "plane": 0}
         context.artifacts["descriptor_shape"] = (self.params.num_rings, self.params.num_sectors)
 
-    def process(self, sgfs: SgfDetections) -> SgfDescriptors:
+    def process(self, frame: Frame, sgfs: SgfDetections) -> SgfDescriptors:
         """The descriptors of this frame's selected SGFs."""
+        p = self.params
+        if p.ground == "driven":
+            self._frames.append(frame)
         out = []
         for sgf in sgfs.items:
-            descriptor = describe(sgf, self.params)
+            ground = None
+            if p.ground == "driven":
+                driven = self._frames.odometry_since(sgf.frame_index)
+                if len(driven) and sgf.frame_index in self._frames:
+                    ground = lift_driven(sgf, frame.calibration, driven, p.ground_ahead, p.ground_radius)
+                self._ground["plane" if ground is None else "driven"] += 1
+            descriptor = describe(sgf, p, ground)
             if descriptor is None:
                 self._dropped += 1
             else:
@@ -87,7 +146,11 @@ class PolarContext(Stage):
 
     def finalize(self, context: RunContext) -> None:
         """Report how many SGFs had too few points to describe."""
-        context.metrics.setdefault("sgf", {})["too_few_points"] = self._dropped
+        sgf = context.metrics.setdefault("sgf", {})
+        sgf["too_few_points"] = self._dropped
+        if self.params.ground == "driven":
+            sgf["lifted_on_driven_ground"] = self._ground["driven"]
+            sgf["lifted_on_plane"] = self._ground["plane"]
 
 
 @hookimpl

@@ -42,6 +42,7 @@ class FeatureView:
     timestamp: float
     odometry: np.ndarray
     region: Region
+    homography: np.ndarray | None = None
 
 
 @dataclass
@@ -383,6 +384,7 @@ class HuMomentDetector(Stage):
             hu=region.hu,
             views=len(track.views),
             instance_id=region.instance_id,
+            homography=best.homography,
         )
 
     def process(self, frame: Frame, bev: Bev, saliency: SaliencyMap) -> SgfDetections:
@@ -408,7 +410,9 @@ class HuMomentDetector(Stage):
                 if last.region.touches_border and len(last.region.pixels):
                     # A border view is never selected; only the newest view's pixels predict the next frame.
                     track.views[-1] = replace(last, region=replace(last.region, pixels=_NO_PIXELS))
-                track.views.append(FeatureView(frame.index, frame.timestamp, odometry, regions[matches[t]]))
+                track.views.append(
+                    FeatureView(frame.index, frame.timestamp, odometry, regions[matches[t]], bev.homography)
+                )
                 if len(track.views) >= self.params.max_track_views:
                     self._stats["tracks_split"] = self._stats.get("tracks_split", 0) + 1
                     finished.append(track)
@@ -426,7 +430,9 @@ class HuMomentDetector(Stage):
         assigned = set(matches.values())
         for r, region in enumerate(regions):
             if r not in assigned:
-                track = FeatureTrack(self._next_id, [FeatureView(frame.index, frame.timestamp, odometry, region)])
+                track = FeatureTrack(
+                    self._next_id, [FeatureView(frame.index, frame.timestamp, odometry, region, bev.homography)]
+                )
                 self._next_id += 1
                 self._stats["tracks"] = self._stats.get("tracks", 0) + 1
                 still_open.append(track)

@@ -1,0 +1,148 @@
+"""Lifting SGF pixels onto the driven ground (``descriptor.ground=driven``): rays, ramps, fallback, the stage."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from sgf_plugins.ipm.geometry import bev_to_image_homography
+from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams, lift, lift_driven
+from sgf_plugins.sgf.synthetic import DEFAULT_GRID, toy_calibration
+from sgf_plugins.sgf.terrain import driven_ground, intersect_ground, pixel_rays
+
+from sgf_pipeline import RunContext
+from sgf_pipeline.geometry import pose_from_xy_yaw
+from sgf_pipeline.types import Frame, SalientGroundFeature, SgfDetections
+
+CALIBRATION = toy_calibration()  # 0.5 m high, 30 degrees down
+HOMOGRAPHY = bev_to_image_homography(CALIBRATION, DEFAULT_GRID)  # plain IPM
+
+
+def patch(x0: float, x1: float, y0: float = -0.3, y1: float = 0.3) -> np.ndarray:
+    """BEV pixels (u, v) of a ground rectangle [x0, x1] x [y0, y1] on the BEV's plane."""
+    u, v = np.meshgrid(np.arange(DEFAULT_GRID.width), np.arange(DEFAULT_GRID.height))
+    x, y = DEFAULT_GRID.pixel_to_ground(u.ravel(), v.ravel())
+    inside = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+    return np.stack([u.ravel()[inside], v.ravel()[inside]], axis=1)
+
+
+def sgf(pixels: np.ndarray, frame: int = 0, homography: np.ndarray | None = HOMOGRAPHY) -> SalientGroundFeature:
+    return SalientGroundFeature(
+        frame, frame, 0.1 * frame, np.eye(4), pixels, DEFAULT_GRID, 1.0, np.zeros(7), 3, homography=homography
+    )
+
+
+def pitched(x: float, z: float, grade: float) -> np.ndarray:
+    """A base pose at (x, 0, z) heading +x, nose up by ``grade`` (rad): on a ramp of that grade."""
+    c, s = math.cos(grade), math.sin(grade)
+    pose = np.eye(4)
+    pose[:3, :3] = [[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]]
+    pose[:3, 3] = (x, 0.0, z)
+    return pose
+
+
+def ramp(start: float, grade: float, length: float = 6.0, step: float = 0.25) -> np.ndarray:
+    """Base poses every ``step`` m of path: flat ground, then a ramp of ``grade`` from ``start`` m on."""
+    poses = []
+    for s in np.arange(0.0, length + 1e-9, step):
+        if s <= start:
+            poses.append(pitched(s, 0.0, 0.0))
+        else:
+            poses.append(pitched(start + (s - start) * math.cos(grade), (s - start) * math.sin(grade), grade))
+    return np.array(poses)
+
+
+def ray_meets_ramp(x_flat: float, start: float, grade: float) -> float:
+    """Where the ray to ``x_flat`` on the flat plane (the plane IPM assumes) meets a ramp starting at ``start``."""
+    cam = CALIBRATION.camera_to_base_matrix[:3, 3]
+    xc, h = float(cam[0]), float(cam[2])
+    t = math.tan(grade)
+    # ray height h (1 - (x - xc) / (x_flat - xc)) equals the ramp's (x - start) t
+    return (h + h * xc / (x_flat - xc) + start * t) / (t + h / (x_flat - xc))
+
+
+def test_on_flat_ground_the_driven_lift_is_eq_9():
+    pixels = patch(2.0, 4.5, -1.0, 1.0)
+    flat = np.array([pose_from_xy_yaw(0.25 * k, 0.02 * k, 0.01 * k) for k in range(20)])
+    driven = lift_driven(sgf(pixels), CALIBRATION, flat, ahead=3.0, radius=1.5)
+    assert driven is not None
+    assert np.abs(driven - lift(sgf(pixels))).max() < 1e-9
+
+
+def test_a_ramp_ahead_pulls_the_far_paint_in_as_the_ray_geometry_says():
+    grade = math.radians(3.0)
+    pixels = patch(4.0, 4.6)
+    on_plane = lift(sgf(pixels))
+    driven = lift_driven(sgf(pixels), CALIBRATION, ramp(2.0, grade), ahead=3.0, radius=1.5)
+    assert driven is not None
+    for x_flat in (4.01, 4.59):  # the patch's nearest and farthest pixel centres
+        rows = np.isclose(on_plane[:, 0], x_flat)
+        expected = ray_meets_ramp(x_flat, 2.0, grade)
+        assert driven[rows, 0] == pytest.approx(expected, abs=0.01)  # horizontal distance on the base frame
+    # The plane puts the paint half a metre too far: the error a reverse loop doubles.
+    assert on_plane[:, 0].mean() - driven[:, 0].mean() > 0.45
+    # Lateral positions scale with the distance along the ray.
+    assert np.ptp(driven[:, 1]) < np.ptp(on_plane[:, 1]) * 0.9
+
+
+def test_the_ramp_is_extrapolated_from_the_newest_pose_when_the_robot_has_not_reached_the_paint():
+    grade = math.radians(3.0)
+    pixels = patch(4.0, 4.6)
+    full = lift_driven(sgf(pixels), CALIBRATION, ramp(2.0, grade), ahead=3.0, radius=1.5)
+    short = lift_driven(sgf(pixels), CALIBRATION, ramp(2.0, grade, length=3.0), ahead=3.0, radius=1.5)
+    assert full is not None and short is not None
+    assert np.abs(short - full).max() < 0.005
+    # Without the extension the far paint has no ground sample within 0.5 m: it stays on the plane.
+    assert lift_driven(sgf(pixels), CALIBRATION, ramp(2.0, grade, length=3.0), ahead=0.0, radius=0.5) is None
+
+
+def test_paint_the_robot_turned_away_from_stays_on_the_plane():
+    pixels = patch(4.0, 4.6)
+    away = np.array([pose_from_xy_yaw(0.0, -0.25 * k, -math.pi / 2) for k in range(20)])  # drives off to the right
+    away[0] = np.eye(4)
+    assert lift_driven(sgf(pixels), CALIBRATION, away, ahead=0.0, radius=1.0) is None
+    assert lift_driven(sgf(pixels, homography=None), CALIBRATION, ramp(2.0, 0.05), ahead=3.0, radius=1.5) is None
+
+
+def test_rays_that_never_reach_the_ground_are_not_covered():
+    origin = np.array([0.0, 0.0, 0.5])
+    directions = np.array([[1.0, 0.0, -0.1], [1.0, 0.0, 0.1]])  # down to the ground; up into the sky
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    points, normals = driven_ground(np.array([np.eye(4)]), ahead=10.0, step=0.25)
+    hit, covered = intersect_ground(origin, directions, points, normals, radius=1.0)
+    assert covered.tolist() == [True, False]
+    assert hit[0] == pytest.approx([5.0, 0.0, 0.0])
+    with pytest.raises(ValueError, match=r"\(N, 4, 4\)"):
+        driven_ground(np.eye(4), ahead=1.0, step=0.25)
+
+
+def test_pixel_rays_pass_through_the_plane_point_of_each_pixel():
+    pixels = patch(1.0, 5.0, -2.0, 2.0)
+    origin, directions = pixel_rays(pixels, HOMOGRAPHY, CALIBRATION, np.eye(4))
+    assert origin == pytest.approx(CALIBRATION.camera_to_base_matrix[:3, 3])
+    t = -origin[2] / directions[:, 2]
+    ground = origin + t[:, None] * directions
+    assert np.abs(ground[:, :2] - lift(sgf(pixels))).max() < 1e-9
+
+
+def test_the_stage_lifts_on_the_driven_ground_and_counts_the_fallbacks():
+    grade = math.radians(3.0)
+    poses = ramp(2.0, grade)
+    feature = sgf(patch(4.0, 4.6), frame=0)
+    off_path = sgf(patch(4.0, 4.6, 2.0, 2.5), frame=0)  # 2 m beside the path
+    stage = PolarContext(PolarContextParams(ground="driven", ground_radius=1.5))
+    context = RunContext(None)
+    stage.begin(context)
+    out = None
+    for k, pose in enumerate(poses[:12]):
+        items = (feature, off_path) if k == 11 else ()
+        out = stage.process(Frame(k, 0.1 * k, np.zeros((2, 2), np.uint8), pose, CALIBRATION), SgfDetections(items))
+    assert out is not None and len(out.items) == 2
+    on_ramp, beside = out.items
+    expected = np.mean([ray_meets_ramp(x, 2.0, grade) for x in (4.01, 4.59)])
+    assert on_ramp.centroid[0] == pytest.approx(expected, abs=0.02)
+    assert beside.centroid[0] == pytest.approx(4.3, abs=0.02)  # uncovered: eq. 9 on the plane
+    stage.finalize(context)
+    assert context.metrics["sgf"]["lifted_on_driven_ground"] == 1
+    assert context.metrics["sgf"]["lifted_on_plane"] == 1
