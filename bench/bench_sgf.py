@@ -293,6 +293,36 @@ def bench_stages(quick: bool) -> None:
     print(f"({n} frames, {n_sgf} SGFs selected)")
 
 
+def bench_ground_lift(quick: bool) -> None:
+    """Per-SGF cost of eq. 9 on the BEV's plane against the lift onto the driven ground (``descriptor.ground``)."""
+    from sgf_plugins.ipm.geometry import bev_to_image_homography
+    from sgf_plugins.sgf.descriptor import describe, lift_driven
+    from sgf_plugins.sgf.synthetic import toy_calibration
+
+    from sgf_pipeline.types import SalientGroundFeature
+
+    print("\n## SGF lift: BEV plane vs driven ground (one SGF, 1.5 x 0.9 m marking 3.5-5 m ahead)")
+    calibration = toy_calibration()
+    u, v = np.meshgrid(np.arange(DEFAULT_GRID.width), np.arange(DEFAULT_GRID.height))
+    x, y = DEFAULT_GRID.pixel_to_ground(u.ravel(), v.ravel())
+    inside = (x >= 3.5) & (x <= 5.0) & (np.abs(y) <= 0.45)
+    pixels = np.stack([u.ravel()[inside], v.ravel()[inside]], axis=1)
+    homography = bev_to_image_homography(calibration, DEFAULT_GRID)
+    sgf = SalientGroundFeature(0, 0, 0.0, np.eye(4), pixels, DEFAULT_GRID, 1.0, np.zeros(7), 3, homography=homography)
+    grade = 0.05
+    driven = np.array([pose_from_xy_yaw(0.25 * k, 0.0, 0.0) for k in range(30)])  # 7.5 m driven
+    driven[16:, 2, 3] = (np.arange(14) + 1) * 0.25 * grade  # a 5 % ramp from 4 m on
+    params = PolarContextParams()
+    repeat = 3 if quick else 20
+    t_plane = best_of(lambda: describe(sgf, params), repeat)
+    t_driven = best_of(lambda: describe(sgf, params, lift_driven(sgf, calibration, driven, 3.0, 3.0)), repeat)
+    print("| lift | per SGF (ms) |")
+    print("|---|---|")
+    print(f"| plane (eq. 9) | {1e3 * t_plane:.2f} |")
+    print(f"| driven ground | {1e3 * t_driven:.2f} |")
+    print(f"({len(pixels)} pixels, {len(driven)} poses; driven / plane = {t_driven / t_plane:.1f}x)")
+
+
 def main() -> None:
     """Run every section."""
     parser = argparse.ArgumentParser(description=__doc__)
@@ -305,6 +335,7 @@ def main() -> None:
     )
     bench_search(rng, args.quick)
     bench_stages(args.quick)
+    bench_ground_lift(args.quick)
     measure_hu_scale(rng, args.quick)
     measure_bin_values(rng, args.quick)
 

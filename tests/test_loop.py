@@ -490,11 +490,11 @@ def test_a_match_into_a_repeated_pattern_needs_neighbours_unlike_it() -> None:
     assert not isinstance(c, str) and np.allclose(xy_yaw(c.constraint.relative), (0.0, 0.0, 0.0), atol=0.05)
     assert stage._support(wrong, c.constraint, unlike=True) == 0
     # the arrows one period on agree (two of them); as a common design (look-alikes in 6 other groups) each counts
-    # half with consensus_common_groups = 3
-    assert stage._support(wrong, c.constraint) == pytest.approx(2.0)
-    rarity = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2, consensus_common_groups=3))
-    _run_loop(rarity, frames, by_frame)
-    assert rarity._support(wrong, c.constraint) == pytest.approx(1.0)
+    # half with consensus_common_groups = 3 (the default), fully without it
+    assert stage._support(wrong, c.constraint) == pytest.approx(1.0)
+    every = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2, consensus_common_groups=None))
+    _run_loop(every, frames, by_frame)
+    assert every._support(wrong, c.constraint) == pytest.approx(2.0)
     # aliased_support = 0 (the default): a repeated pattern never gives loop factors
     frames, by_frame = _repeated_arrows(28.0)
     strict = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=0))

@@ -31,10 +31,10 @@ into the earlier pass, must land on look-alike SGFs of that pass (with ``consens
 set, look-alike at the heading the match predicts for them, and a neighbour that looks alike
 turned half a turn too, a bar or a disc, fixes no heading and counts
 ``consensus_unoriented_weight``; off by default, see docs/results.md). A neighbour of a common
-design (look-alikes in more than ``consensus_common_groups`` other groups) can be made to count that
+design (look-alikes in more than ``consensus_common_groups`` other groups, 3 by default) counts that
 limit over their number: a wrong match finds copies of a common design where it predicts them by
-chance, and at a crossing laid out like another one, several at once (off by default: it also
-refuses true loops whose one agreeing neighbour is common; docs/results.md). The one option with at
+chance, and at a crossing laid out like another one, several at once (it can also refuse a true
+loop whose one agreeing neighbour is common; docs/results.md). The one option with at
 least ``tie_support`` agreeing markings wins; none or several, and the match gives no factor.
 ``min_support`` asks the same of every loop, except a match into a distinct marking: one the
 query looks like (eq. 10 within ``consensus_distance``) while no SGF of any other group comes within
@@ -172,7 +172,7 @@ class IcpLoopParams(StageParams):
         "counts this much of an agreeing marking",
     )
     consensus_common_groups: int | None = Field(
-        None,
+        3,
         ge=1,
         description="a neighbour whose design has look-alikes (eq. 10 at most consensus_distance) in more than this "
         "many other groups is common: it counts this many over their number, since a wrong match finds one of its "

@@ -31,7 +31,7 @@ class PolarContextParams(StageParams):
     )
     min_points: int = Field(3, ge=1, description="SGFs with fewer ground points after downsampling are dropped")
     ground: Literal["plane", "driven"] = Field(
-        "plane",
+        "driven",
         description="where eq. 9 puts the SGF pixels: on the BEV's plane (the paper), or where their camera rays meet "
         "the ground the robot drove over since the view (3-D odometry: heights and the IMU's attitude)",
     )
@@ -39,7 +39,7 @@ class PolarContextParams(StageParams):
         3.0, ge=0.0, description="driven: metres the newest pose's tangent plane is extended ahead (the far paint)"
     )
     ground_radius: float = Field(
-        1.5, gt=0.0, description="driven: an SGF with a pixel farther (m) from every ground sample stays on the plane"
+        3.0, gt=0.0, description="driven: an SGF with a pixel farther (m) from every ground sample stays on the plane"
     )
 
 
@@ -103,6 +103,11 @@ class PolarContext(Stage):
     smallest yaw error (p95 3.2 degrees). The default voxel (2 cm) is the BEV's pixel: at 4 cm
     the 4-degree sectors of the inner rings empty out and the same-marking median rises five-fold
     (0.021 to 0.104), overlapping different markings.
+
+    ``ground=driven`` lifts the pixels along their camera rays onto the ground the robot drove
+    over between the view and the SGF's selection (``sgf_plugins.sgf.terrain``), instead of onto
+    the BEV's plane: where the grade changes under a marking the plane misplaces it by about
+    d^2 / h times the change (docs/results.md, "SGF points on the driven ground").
     """
 
     kind = "descriptor"
