@@ -146,3 +146,24 @@ def test_the_stage_lifts_on_the_driven_ground_and_counts_the_fallbacks():
     stage.finalize(context)
     assert context.metrics["sgf"]["lifted_on_driven_ground"] == 1
     assert context.metrics["sgf"]["lifted_on_plane"] == 1
+
+
+def test_planar_odometry_with_a_tilted_imu_is_warned_about_once(caplog):
+    stage = PolarContext(PolarContextParams(ground="driven"))
+    stage.begin(RunContext(None))
+    with caplog.at_level("WARNING", logger="sgf_pipeline.sgf"):
+        for k in range(3):  # on a 5 % slope by the IMU, level by the odometry
+            frame = Frame(
+                k, 0.1 * k, np.zeros((2, 2), np.uint8), pose_from_xy_yaw(0.25 * k, 0.0, 0.0), CALIBRATION, (0.0, 0.05)
+            )
+            stage.process(frame, SgfDetections())
+    warnings = [r for r in caplog.records if "descriptor.ground=plane" in r.getMessage()]
+    assert len(warnings) == 1 and "pitch 0.050" in warnings[0].getMessage()
+    caplog.clear()
+    stage.begin(RunContext(None))
+    with caplog.at_level("WARNING", logger="sgf_pipeline.sgf"):  # 3-D odometry that carries the IMU's attitude
+        stage.process(
+            Frame(0, 0.0, np.zeros((2, 2), np.uint8), pitched(0.0, 0.0, 0.05), CALIBRATION, (0.0, 0.05)),
+            SgfDetections(),
+        )
+    assert not caplog.records

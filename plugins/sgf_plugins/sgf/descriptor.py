@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Literal
 
 import numpy as np
@@ -17,6 +18,9 @@ from sgf_plugins.sgf.terrain import driven_ground, intersect_ground, pixel_rays
 
 #: Frames of odometry the driven-ground lift remembers (a feature's valid range is far shorter).
 TERRAIN_FRAMES = 2_000
+#: IMU roll or pitch (rad) beyond which level odometry is taken for planar odometry that left the attitude out.
+PLANAR_ATTITUDE = 0.01
+log = logging.getLogger("sgf_pipeline.sgf")
 
 
 class PolarContextParams(StageParams):
@@ -121,12 +125,14 @@ class PolarContext(Stage):
         self._dropped = 0
         self._frames = FrameLog(keep=TERRAIN_FRAMES)
         self._ground: dict[str, int] = {}
+        self._warned = False
 
     def begin(self, context: RunContext) -> None:
         """Reset the counts and the odometry; announce the descriptor's shape (N_r, N_s) to later stages."""
         self._dropped = 0
         self._frames = FrameLog(keep=TERRAIN_FRAMES)
         self._ground = {"driven": 0, "plane": 0}
+        self._warned = False
         context.artifacts["descriptor_shape"] = (self.params.num_rings, self.params.num_sectors)
 
     def process(self, frame: Frame, sgfs: SgfDetections) -> SgfDescriptors:
@@ -134,6 +140,7 @@ class PolarContext(Stage):
         p = self.params
         if p.ground == "driven":
             self._frames.append(frame)
+            self._check_attitude(frame)
         out = []
         for sgf in sgfs.items:
             ground = None
@@ -148,6 +155,24 @@ class PolarContext(Stage):
             else:
                 out.append(descriptor)
         return SgfDescriptors(tuple(out))
+
+    def _check_attitude(self, frame: Frame) -> None:
+        """Warn once when the odometry is level while the IMU is not: planar odometry gives the lift no attitude."""
+        if self._warned or frame.imu_roll_pitch is None:
+            return
+        odometry = np.asarray(frame.odometry, dtype=np.float64)
+        level = abs(odometry[2, 0]) < 1e-9 and abs(odometry[2, 1]) < 1e-9
+        if level and max(abs(a) for a in frame.imu_roll_pitch) > PLANAR_ATTITUDE:
+            self._warned = True
+            roll, pitch = frame.imu_roll_pitch
+            log.warning(
+                "descriptor.ground=driven: frame %d's odometry is level but the IMU reads roll %.3f, pitch %.3f rad; "
+                "with planar odometry the SGF points are lifted without the robot's attitude (as plain IPM would); "
+                "set descriptor.ground=plane to keep the IPM's compensation",
+                frame.index,
+                roll,
+                pitch,
+            )
 
     def finalize(self, context: RunContext) -> None:
         """Report how many SGFs had too few points to describe."""
