@@ -311,7 +311,7 @@ def bench_ground_lift(quick: bool) -> None:
     sgf = SalientGroundFeature(0, 0, 0.0, np.eye(4), pixels, DEFAULT_GRID, 1.0, np.zeros(7), 3, homography=homography)
     grade = 0.05
     driven = np.array([pose_from_xy_yaw(0.25 * k, 0.0, 0.0) for k in range(30)])  # 7.5 m driven
-    driven[16:, 2, 3] = (np.arange(14) + 1) * 0.25 * grade  # a 5 % ramp from 4 m on
+    driven[16:, 2, 3] = (np.arange(14) + 1) * 0.25 * grade  # rising 5 % from 4 m on (heights only: timing)
     params = PolarContextParams()
     repeat = 3 if quick else 20
     t_plane = best_of(lambda: describe(sgf, params), repeat)

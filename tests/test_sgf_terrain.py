@@ -119,7 +119,7 @@ def test_rays_that_never_reach_the_ground_are_not_covered():
 
 def test_pixel_rays_pass_through_the_plane_point_of_each_pixel():
     pixels = patch(1.0, 5.0, -2.0, 2.0)
-    origin, directions = pixel_rays(pixels, HOMOGRAPHY, CALIBRATION, np.eye(4))
+    origin, directions = pixel_rays(pixels, HOMOGRAPHY, CALIBRATION)
     assert origin == pytest.approx(CALIBRATION.camera_to_base_matrix[:3, 3])
     t = -origin[2] / directions[:, 2]
     ground = origin + t[:, None] * directions

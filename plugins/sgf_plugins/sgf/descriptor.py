@@ -66,7 +66,7 @@ def lift_driven(
     view = np.asarray(driven[0], dtype=np.float64)
     local = invert(view) @ np.asarray(driven, dtype=np.float64)  # poses in the view's base frame
     points, normals = driven_ground(local, ahead, step=0.25)
-    origin, directions = pixel_rays(np.asarray(sgf.pixels), sgf.homography, calibration, np.eye(4))
+    origin, directions = pixel_rays(np.asarray(sgf.pixels), sgf.homography, calibration)
     hit, covered = intersect_ground(origin, directions, points, normals, radius)
     if not covered.all():
         return None
@@ -145,8 +145,8 @@ class PolarContext(Stage):
         for sgf in sgfs.items:
             ground = None
             if p.ground == "driven":
-                driven = self._frames.odometry_since(sgf.frame_index)
-                if len(driven) and sgf.frame_index in self._frames:
+                if sgf.frame_index in self._frames:  # the view's odometry, and all since, are remembered
+                    driven = self._frames.odometry_since(sgf.frame_index)
                     ground = lift_driven(sgf, frame.calibration, driven, p.ground_ahead, p.ground_radius)
                 self._ground["plane" if ground is None else "driven"] += 1
             descriptor = describe(sgf, p, ground)

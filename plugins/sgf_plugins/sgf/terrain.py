@@ -3,8 +3,8 @@
 The BEV puts every pixel on one plane: the plane the IPM variant assumed when the view was taken
 (the robot's base plane for plain IPM, the reference attitude's plane for MC-IPM). Where the grade
 ahead differs from that plane (a slope starting or ending under the marking), a point seen d
-metres ahead by a camera h metres high moves by about d^2 / h times the grade difference: 0.5 m
-at 4.4 m ahead for 1.5 degrees with the world's 0.6 m camera. By the time a feature has left the
+metres ahead by a camera h metres high moves by about d^2 / h times the grade difference: 0.56 m
+at 4.4 m ahead for 1 degree with the world's 0.6 m camera. By the time a feature has left the
 view the robot has driven up to it, so its odometry (3-D: heights and attitude from the IMU) has
 measured that ground. Each pixel's camera ray (through the view's homography to the image and the
 camera's pose in the odometry frame) is intersected with the driven ground: a surface made of
@@ -43,14 +43,12 @@ def driven_ground(poses: np.ndarray, ahead: float, step: float) -> tuple[np.ndar
     return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
-def pixel_rays(
-    pixels: np.ndarray, homography: np.ndarray, calibration: Calibration, base_pose: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """The camera ray of each BEV pixel ``(u, v)``: origin (3,) and unit directions (M, 3) in the base pose's frame."""
+def pixel_rays(pixels: np.ndarray, homography: np.ndarray, calibration: Calibration) -> tuple[np.ndarray, np.ndarray]:
+    """The camera ray of each BEV pixel ``(u, v)``: origin (3,) and unit directions (M, 3) in the base frame."""
     uv1 = np.column_stack([np.asarray(pixels, dtype=np.float64).reshape(-1, 2), np.ones(len(pixels))])
     image = uv1 @ np.asarray(homography, dtype=np.float64).T  # BEV index -> image pixel (homogeneous)
     rays = image @ np.linalg.inv(calibration.intrinsics.matrix).T  # optical frame, z forward
-    camera = np.asarray(base_pose, dtype=np.float64) @ calibration.camera_to_base_matrix
+    camera = calibration.camera_to_base_matrix
     directions = rays @ camera[:3, :3].T
     directions /= np.linalg.norm(directions, axis=1, keepdims=True)
     return camera[:3, 3].copy(), directions
