@@ -58,6 +58,19 @@ LOOP_COLUMNS = (
     "true",
 )
 
+#: Columns of ``loop_candidates.csv``: every match the loop stage decided on (``artifacts["loop_candidates"]``).
+CANDIDATE_COLUMNS = (
+    "frame_from",
+    "frame_to",
+    "time_from",
+    "time_to",
+    "group_id",
+    "from_map",
+    "outcome",
+    "instance_from",
+    "instance_to",
+)
+
 #: Rows of the loop table in ``report.md`` (``loops.csv`` has them all).
 REPORT_LOOP_ROWS = 30
 
@@ -114,6 +127,9 @@ def write_run(pipeline: Pipeline, trajectories: dict[str, Trajectory], metrics: 
     loops = pipeline.context.artifacts.get("loops")
     if loops is not None:
         atomic_write_text(run_dir / "loops.csv", render_loops_csv(loops))
+    candidates = pipeline.context.artifacts.get("loop_candidates")
+    if candidates is not None:
+        atomic_write_text(run_dir / "loop_candidates.csv", render_candidates_csv(candidates))
     if pipeline.config.run.plots:
         plot_trajectories(run_dir / "trajectory.png", trajectories, metrics, loops)
         atomic_write_text(run_dir / "report.md", render_report(metrics, loops))
@@ -179,6 +195,26 @@ def render_loops_csv(loops: list[dict[str, Any]]) -> str:
     for loop in loops:
         row = _loop_row(loop)
         writer.writerow({k: "" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+    return out.getvalue()
+
+
+def render_candidates_csv(candidates: list[dict[str, Any]]) -> str:
+    """``loop_candidates.csv``: each match the loop stage decided on, and its outcome.
+
+    The outcome is ``accepted`` or the test that refused it, named as in ``loops.rejected`` of
+    ``metrics.json``; a map match held for confirmation is ``map_unconfirmed`` (and has a second
+    row when it is confirmed later).
+    """
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=CANDIDATE_COLUMNS, lineterminator="\n", extrasaction="ignore")
+    writer.writeheader()
+    for row in candidates:
+        writer.writerow(
+            {
+                k: "" if row.get(k) is None else (f"{row[k]:.6g}" if isinstance(row[k], float) else row[k])
+                for k in CANDIDATE_COLUMNS
+            }
+        )
     return out.getvalue()
 
 

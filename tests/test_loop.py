@@ -46,6 +46,16 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
     assert loops["closed_reverse"] == 4
     assert loops["false_closed"] == 0
     assert loops["rejected"]["symmetric"] == 2  # the manhole's two revisits
+    # every decision is logged (loop_candidates.csv): the outcomes tally with the counts, frames and truth included
+    decisions = run.context.artifacts["loop_candidates"]
+    outcomes = [d["outcome"] for d in decisions]
+    assert outcomes.count("accepted") == 8 and outcomes.count("symmetric") == 2
+    assert {k: outcomes.count(k) for k in loops["rejected"]} == loops["rejected"]
+    assert len(decisions) == loops["candidates"]
+    symmetric = [d for d in decisions if d["outcome"] == "symmetric"]
+    assert all(world.truth.markings[d["instance_to"]].symmetric for d in symmetric)
+    accepted = [(d["frame_from"], d["frame_to"]) for d in decisions if d["outcome"] == "accepted"]
+    assert accepted == [(c.frame_from, c.frame_to) for c in run.loops]
     assert len(run.context.artifacts["loops"]) == 8
     assert all(entry["true"] is True for entry in run.context.artifacts["loops"])
     assert len(run.context.artifacts["group_assignments"]) == sum(len(v) for v in world.sgfs.values())
@@ -80,6 +90,8 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     consensus = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None)))
     assert consensus.context.metrics["loops"]["false_closed"] == 0
     assert consensus.context.metrics["loops"]["rejected"]["consensus"] == 4
+    refused = [d for d in consensus.context.artifacts["loop_candidates"] if d["outcome"] == "consensus"]
+    assert len(refused) == 4 and all(d["instance_from"] != d["instance_to"] for d in refused)  # the look-alikes
     assert consensus.context.metrics["loops"]["closed"] == 5
     # ...but not when a distinct marking vouches for itself: the two arrows share their group, so nothing in
     # another group looks like them; that default leans on the gate, which keeps them out (above)

@@ -135,6 +135,15 @@ def test_a_run_closes_loops_and_writes_trajectory_metrics_and_map(tmp_path: Path
         assert float(row["time_from"]) < float(row["time_to"])
         assert min(abs(gt.timestamps - float(row["time_to"]))) < 1e-6  # the stamps are the frames' own
     assert sum(row["reverse"] == "True" for row in rows) == 3
+    # ...and every match the loop stage decided on, with the test that refused it
+    with open(tmp_path / "loop_candidates.csv", newline="") as f:
+        decided = list(csv.DictReader(f))
+    assert len(decided) == saved["loops"]["candidates"]
+    refused = {k: v for k, v in saved["loops"]["rejected"].items() if v}
+    assert {k: sum(r["outcome"] == k for r in decided) for k in refused} == refused
+    assert [(r["frame_from"], r["frame_to"]) for r in decided if r["outcome"] == "accepted"] == [
+        (r["frame_from"], r["frame_to"]) for r in rows
+    ]
     report = (tmp_path / "report.md").read_text()
     assert "## Accepted loops (5; all in `loops.csv`)" in report
     assert report.count("| True |") == 5

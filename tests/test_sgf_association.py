@@ -316,6 +316,33 @@ def test_identical_markings_far_apart_stay_in_their_own_groups():
     assert group_purity(s.groups) == 1.0
 
 
+@pytest.mark.parametrize("member_gate", [True, False])
+def test_a_group_is_compared_through_its_members_inside_the_gate(member_gate):
+    # An arrow seen at the start; 390 m later (a wide gate around it) an L near it joins its group;
+    # 30 m on, another L. The arrow's wide gate lets the group in, but its L lies 30 m back with a
+    # 3 m gate: with member_gate the query meets the arrow only, else it matches that far L.
+    s = stage(member_gate=member_gate)
+    (a,) = feed(s, 1, pose_from_xy_yaw(0, 0, 0), desc(ARROW, seen_from(ARROW, 3.0, 0.0), 1))
+    feed(s, 2, pose_from_xy_yaw(195, 0, 0))
+    far_ell = pose_from_xy_yaw(10, 0, 0)
+    (b,) = feed(s, 3, far_ell, desc(ELL, seen_from(ELL, 3.0, 0.0), 3, far_ell))
+    assert a.new_group and not b.new_group and b.group_id == a.group_id  # the premise: the L joined the arrow's group
+    here = pose_from_xy_yaw(40, 0, 0)
+    query = desc(ELL, seen_from(ELL, 3.0, 0.0), 4, here)
+    s._record(Frame(4, 0.4, np.zeros((2, 2), np.uint8), here, toy_calibration()))
+    (gated,) = s.gated(query, None)
+    c = s.assign(query)
+    assert gated.group.group_id == a.group_id
+    if member_gate:
+        assert gated.members.tolist() == [0] and gated.nearest == pytest.approx(38.0, abs=0.5)
+        eq10 = shifted_distances(c.descriptor.matrix, a.descriptor.matrix[None]).min()
+        assert c.distance == pytest.approx(eq10) and c.distance > 0.1
+        assert c.new_group or c.matched.sgf.frame_index == 1
+    else:
+        assert gated.members is None and gated.nearest == pytest.approx(30.0, abs=0.5)
+        assert not c.new_group and c.matched.sgf.frame_index == 3 and c.distance < 0.05
+
+
 def test_the_back_end_estimate_moves_members_on_the_map():
     s = stage(drift_rate=0.0, gate_radius=1.0)
     p1 = seen_from(ARROW, 3.0, 0.0)
@@ -647,15 +674,15 @@ def _shared_cells(s: OnlineSgfGroups, a: SgfDescriptor, b: SgfDescriptor, estima
     return len(cells[0] & cells[1]) / min(len(c) for c in cells)
 
 
-def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[tuple[int, float, bool]]:
+def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[tuple[int, float, bool, list[int]]]:
     """The spatial gate member by member, as its docstring states it (to check the vectorised one)."""
     p = s.params
     here = s.position_of(query, estimate)
     since = s._frames.distance(query.sgf.frame_index)
     out = []
     for group in s.groups:
-        nearest, inside, repeated = math.inf, not p.spatial_gate, False
-        for member, anchor in zip(group.members, group.anchors, strict=True):
+        nearest, repeated, members = math.inf, False, []
+        for m, (member, anchor) in enumerate(zip(group.members, group.anchors, strict=True)):
             if anchor is not None:
                 distance = float(np.linalg.norm(anchor - here))
                 radius = math.inf if p.prior_gate_radius is None else p.prior_gate_radius
@@ -665,10 +692,11 @@ def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[
                 radius = p.gate_radius + p.drift_rate * travelled + p.drift_quadratic * travelled**2
                 if travelled <= p.repeat_window and distance > p.repeat_radius:
                     repeated |= _shared_cells(s, query, member, estimate) < p.repeat_overlap
-            nearest = min(nearest, distance)
-            inside |= distance <= radius
-        if inside:
-            out.append((group.group_id, nearest, repeated))
+            if distance <= radius or not p.spatial_gate:
+                nearest = min(nearest, distance)
+                members.append(m)
+        if members:
+            out.append((group.group_id, nearest, repeated, members))
     return out
 
 
@@ -690,7 +718,7 @@ def test_the_vectorised_gate_is_the_member_by_member_gate():
     s.seed_groups([seeded])
     s.begin(RunContext(None))
     store, dictionary = PoseStore(lifted=False), {}
-    seen = {"repeated": 0, "left_out": 0, "seeded": 0}
+    seen = {"repeated": 0, "left_out": 0, "seeded": 0, "members_left_out": 0}
     x = 0.0
     for frame in range(1, 121):  # a drive up and down a 60 m street with an SGF on every other frame
         x += 1.0 if frame <= 60 else -1.0
@@ -711,6 +739,11 @@ def test_the_vectorised_gate_is_the_member_by_member_gate():
                     assert [g[0] for g in got] == [w[0] for w in want]
                     np.testing.assert_allclose([g[1] for g in got], [w[1] for w in want], rtol=1e-12)
                     assert [g[2] for g in got] == [w[2] for w in want]
+                    inside = [g.members.tolist() for g in s.gated(query, estimate)]
+                    assert inside == [w[3] for w in want]
+                    seen["members_left_out"] += sum(
+                        len(g.group.members) - len(g.members) for g in s.gated(query, estimate)
+                    )
                     seen["repeated"] += sum(g[2] for g in got)
                     seen["left_out"] += len(s.groups) - len(got)
                     seen["seeded"] += any(g[0] == 500 for g in got)

@@ -317,6 +317,7 @@ class IcpLoopClosing(Stage):
         self.ties_resolved = 0
         self.aliases_resolved = 0
         self.distinct = 0
+        self.decisions: list[dict[str, Any]] = []  # every candidate's outcome: loop_candidates.csv
         self._sgf_group: list[int] = []
         self._sgf_xy: list[np.ndarray] = []
         self._sgf_distance: list[float] = []
@@ -355,13 +356,13 @@ class IcpLoopClosing(Stage):
             return []
         self.counts["candidates"] += 1
         if a.symmetric:
-            self.counts["symmetric"] += 1
+            self._refuse(a, "symmetric")
             return []
         if a.ambiguous:
             return self._resolve_tie(a, estimate)
         candidate = self._evaluate(a, estimate)
         if isinstance(candidate, str):
-            self.counts[candidate] += 1
+            self._refuse(a, candidate)
             return []
         need = self.p.min_support
         if self.p.distinct_support is not None and need > self.p.distinct_support and self._distinct(a):
@@ -402,17 +403,17 @@ class IcpLoopClosing(Stage):
             for alt in a.alternatives
         ]
         if any(isinstance(o.matched, MapDescriptor) for o in options):
-            self.counts["ambiguous"] += 1
+            self._refuse(a, "ambiguous")
             return []
         if a.aliased and not a.alternatives and self.p.aliased_support > 0:
             # a repeated pattern: only markings unlike the query may vouch for which copy it is
             candidate = self._evaluate(a, estimate)
             if isinstance(candidate, str):
-                self.counts["ambiguous"] += 1
+                self._refuse(a, "ambiguous")
                 return []
             return self._consensus(((a, candidate),), self.p.aliased_support, True, "ambiguous", "aliases", estimate)
         if a.aliased or not a.alternatives or self.p.tie_support == 0:
-            self.counts["ambiguous"] += 1
+            self._refuse(a, "ambiguous")
             return []
         passed = []
         for option in options:
@@ -420,7 +421,7 @@ class IcpLoopClosing(Stage):
             if not isinstance(candidate, str):
                 passed.append((option, candidate))
         if not passed:
-            self.counts["ambiguous"] += 1
+            self._refuse(a, "ambiguous")
             return []
         need = max(self.p.tie_support, self.p.min_support)
         return self._consensus(tuple(passed), need, False, "ambiguous", "ties", estimate)
@@ -455,7 +456,7 @@ class IcpLoopClosing(Stage):
                 self.aliases_resolved += 1
             return self._accept(supported[0], estimate)
         if len(supported) > 1 or final:
-            self.counts["ambiguous" if len(supported) > 1 else w.refused] += 1
+            self._refuse(w.options[0][0], "ambiguous" if len(supported) > 1 else w.refused)
             return []
         return None
 
@@ -536,7 +537,35 @@ class IcpLoopClosing(Stage):
         if candidate.map_pose is not None and not candidate.anchored:
             return self._confirm_map(candidate, estimate)
         self.accepted.append(candidate)
+        self._decided(candidate.constraint, candidate.group_id, "accepted")
         return [candidate.constraint]
+
+    def _refuse(self, a: GroupAssignment, reason: str) -> None:
+        """Count a refused candidate under ``reason`` and log it."""
+        assert a.matched is not None
+        self.counts[reason] += 1
+        ends = (a.matched.sgf.frame_index, a.descriptor.sgf.frame_index)
+        ids = (a.matched.sgf.instance_id, a.descriptor.sgf.instance_id)
+        self._log(ends, ids, a.group_id, isinstance(a.matched, MapDescriptor), reason)
+
+    def _decided(self, k: LoopConstraint, group_id: int, outcome: str) -> None:
+        self._log((k.frame_from, k.frame_to), k.instance_ids, group_id, k.from_map, outcome)
+
+    def _log(self, ends: tuple[int, int], ids: Any, group_id: int, from_map: bool, outcome: str) -> None:
+        """One row of ``loop_candidates.csv``: a match the loop stage decided on, and the outcome."""
+        self.decisions.append(
+            {
+                "frame_from": ends[0],
+                "frame_to": ends[1],
+                "time_from": None if from_map else self.frames.get_time(ends[0]),
+                "time_to": self.frames.get_time(ends[1]),
+                "group_id": group_id,
+                "from_map": from_map,
+                "outcome": outcome,
+                "instance_from": ids[0] if ids else None,
+                "instance_to": ids[1] if ids else None,
+            }
+        )
 
     # -- neighbour consensus ----------------------------------------------------------------
 
@@ -769,12 +798,15 @@ class IcpLoopClosing(Stage):
         agreeing = [q for q in self.pending if q.group_id != candidate.group_id and self._agree(q, candidate, estimate)]
         if len(agreeing) + 1 < self.p.map_anchor_matches:
             self.counts["map_unconfirmed"] += 1
+            self._decided(candidate.constraint, candidate.group_id, "map_unconfirmed")
             self.pending = [*self.pending, candidate][-self.p.map_pending :]
             return []
         confirmed = [*agreeing, candidate]
         self.pending = [q for q in self.pending if all(q is not c for c in confirmed)]
         self.counts["map_unconfirmed"] -= len(agreeing)
         self.accepted.extend(confirmed)
+        for c in confirmed:
+            self._decided(c.constraint, c.group_id, "accepted")
         return [c.constraint for c in confirmed]
 
     def _agree(self, first: _Candidate, second: _Candidate, estimate: PoseEstimate | None) -> bool:
@@ -818,7 +850,7 @@ class IcpLoopClosing(Stage):
     def finalize(self, context: RunContext) -> None:
         """Loop metrics (Table 3: loops closed, reverse ones, false ones) and the accepted loops for plots."""
         for w in self.waiting:  # the run ended before they were settled
-            self.counts[w.refused] += 1
+            self._refuse(w.options[0][0], w.refused)
         self.waiting = []
         errors = [self._truth_error(c) for c in self.accepted]
         truths = [self._true(c, e) for c, e in zip(self.accepted, errors, strict=True)]
@@ -846,6 +878,7 @@ class IcpLoopClosing(Stage):
             self._loop_entry(c, e, t) for c, e, t in zip(self.accepted, errors, truths, strict=True)
         ]
         context.artifacts["group_assignments"] = list(self.assignments)
+        context.artifacts["loop_candidates"] = list(self.decisions)
 
     def _loop_entry(self, c: _Candidate, error: tuple[float, float] | None, true: bool | None) -> dict[str, Any]:
         """One accepted loop as the run reports it (``artifacts['loops']``, ``loops.csv``)."""

@@ -106,6 +106,11 @@ class OnlineGroupsParams(StageParams):
         description="gate growth per squared metre travelled, for the odometry's heading bias (position error ~ d^2); "
         "a straight drive's bound is half the bias in rad/m, routes that turn back stay well under it",
     )
+    member_gate: bool = Field(
+        True,
+        description="eq. 10 against a group's members inside the gate only; false = against every member once one "
+        "is inside (a group then reaches far: a member seen long ago opens the gate, a recent one far away matches)",
+    )
     prior_gate_radius: float | None = Field(
         None, gt=0.0, description="gate (m) around members of groups seeded from a saved map; null = no gate"
     )
@@ -174,6 +179,7 @@ class GatedGroup:
     nearest: float
     repeated: bool
     ratio: float = 0.0
+    members: np.ndarray | None = None  # indices of the members inside the gate (None: every member)
 
 
 class _MemberIndex:
@@ -234,7 +240,9 @@ class OnlineSgfGroups(Stage):
     """Assign each SGF descriptor to the nearest SGF group by the column-shifted cosine distance (eq. 10).
 
     Candidates: with ``spatial_gate``, only groups with a member whose map position lies within
-    ``gate_radius + drift_rate * (distance travelled between the two sightings)`` of the query's.
+    ``gate_radius + drift_rate * (distance travelled between the two sightings)`` of the query's;
+    with ``member_gate`` a group is compared through those members only (a sighting from long ago
+    has a wide gate, and must not let a recent member of its group far from the query match it).
     Map positions apply the back-end's previous estimate of the member's frame to its centroid,
     or the odometry pose when no back-end runs; the gate keeps identical standard markings at
     different places (perceptual aliasing) in different groups while allowing for drift. With
@@ -459,16 +467,24 @@ class OnlineSgfGroups(Stage):
         radius[anchored] = math.inf if p.prior_gate_radius is None else p.prior_gate_radius
         groups = index.group[:n]
         count = len(self._groups)
+        member_inside = (distance <= radius) | (not p.spatial_gate)
         nearest = np.full(count, math.inf)
-        np.minimum.at(nearest, groups, distance)
+        np.minimum.at(nearest, groups, np.where(member_inside | (not p.member_gate), distance, math.inf))
         ratio = np.full(count, math.inf)
         np.minimum.at(ratio, groups, distance / radius)
-        inside = np.bincount(groups, weights=distance <= radius, minlength=count) > 0
-        if not p.spatial_gate:
-            inside[:] = True
+        inside = np.bincount(groups, weights=member_inside, minlength=count) > 0
         repeats = np.bincount(groups, weights=repeated, minlength=count) > 0
+        members: list[np.ndarray | None] = [None] * count
+        if p.member_gate and p.spatial_gate and inside.any():
+            # members sit in the index in the order they joined their group: rank within the group = member index
+            order = np.argsort(groups, kind="stable")
+            starts = np.concatenate([[0], np.cumsum(np.bincount(groups, minlength=count))[:-1]])
+            rank = np.empty(n, dtype=np.int64)
+            rank[order] = np.arange(n) - starts[groups[order]]
+            for k in np.flatnonzero(inside):
+                members[k] = rank[(groups == k) & member_inside]
         return [
-            GatedGroup(group, float(nearest[k]), bool(repeats[k]), float(min(ratio[k], 1.0)))
+            GatedGroup(group, float(nearest[k]), bool(repeats[k]), float(min(ratio[k], 1.0)), members[k])
             for k, group in enumerate(self._groups)
             if inside[k]
         ]
@@ -531,7 +547,8 @@ class OnlineSgfGroups(Stage):
         candidates = self.gated(query, estimate)
         best: tuple[SgfGroup, float] | None = None
         opened_distance = 1.0  # reported when the query opens a group and no group was kept
-        tied: list[SgfGroup] = []
+        tied: list[GatedGroup] = []
+        gated_members: np.ndarray | None = None
         copy_nearby = False
         if candidates:
             stack = np.stack([c.group.descriptor for c in candidates])
@@ -543,7 +560,9 @@ class OnlineSgfGroups(Stage):
             if p.group_distance == "mean":
                 eq10 = shifted_distances(query.matrix, stack, p.columns).min(axis=1)
             else:
-                eq10 = self._nearest_member_distances(query, [c.group for c in candidates])
+                eq10 = self._nearest_member_distances(
+                    query, [c.group for c in candidates], [c.members for c in candidates]
+                )
             # Where the estimate puts the query counts too: a group at the gate's edge pays position_weight.
             score = eq10 + p.position_weight * np.array([c.ratio for c in candidates])
             self._rank_own_group(query, candidates, score)
@@ -564,7 +583,8 @@ class OnlineSgfGroups(Stage):
                 # Look-alike groups inside the gate (identical standard markings) cannot be told apart
                 # by eq. 10: the query joins the nearest, the match is ambiguous, and the others are
                 # handed on as alternatives (a loop stage may tell them apart by their neighbours).
-                tied = [candidates[t].group for t in ties if t != i]
+                tied = [candidates[t] for t in ties if t != i]
+                gated_members = candidates[i].members
         if best is None or best[1] > p.new_group_distance:
             group = SgfGroup(self._next_id, aliased=copy_nearby)
             self._next_id += 1
@@ -588,9 +608,11 @@ class OnlineSgfGroups(Stage):
             )
         group, best_distance = best
         group.aliased = group.aliased or copy_nearby
-        m, matched, shift = self._closest_member(query, group, estimate)
+        m, matched, shift = self._closest_member(query, group, estimate, gated_members)
         # An aliased look-alike (a repeated pattern) could be the true one: then nothing resolves the tie.
-        alternatives = () if any(g.aliased for g in tied) else tuple(self._look_alike(query, g, estimate) for g in tied)
+        alternatives = (
+            () if any(g.group.aliased for g in tied) else tuple(self._look_alike(query, g, estimate) for g in tied)
+        )
         group.add(query, shift + group.offsets[m])
         self._index.add(self._slot[group.group_id], query, self._frames.get_distance(query.sgf.frame_index), None)
         group.refresh(p.columns, p.symmetry_threshold)
@@ -629,28 +651,33 @@ class OnlineSgfGroups(Stage):
             self._ranked[0] += 1
             self._ranked[1] += int(score[own].min() < score[~own].min())
 
-    def _nearest_member_distances(self, query: SgfDescriptor, groups: list[SgfGroup]) -> np.ndarray:
-        """Eq. 10 distance (best shift) from the query to each group's closest member, in one pass over all members."""
-        members = np.concatenate([g.matrices for g in groups])
-        per_member = shifted_distances(query.matrix, members, self.params.columns).min(axis=1)
-        starts = np.cumsum([0] + [len(g.members) for g in groups[:-1]])
+    def _nearest_member_distances(
+        self, query: SgfDescriptor, groups: list[SgfGroup], members: list[np.ndarray | None] | None = None
+    ) -> np.ndarray:
+        """Eq. 10 distance (best shift) from the query to each group's closest member (of ``members``, when given)."""
+        members = [None] * len(groups) if members is None else members
+        chosen = [g.matrices if m is None else g.matrices[m] for g, m in zip(groups, members, strict=True)]
+        per_member = shifted_distances(query.matrix, np.concatenate(chosen), self.params.columns).min(axis=1)
+        starts = np.cumsum([0] + [len(c) for c in chosen[:-1]])
         return np.minimum.reduceat(per_member, starts)
 
     def _closest_member(
-        self, query: SgfDescriptor, group: SgfGroup, estimate: PoseEstimate | None
+        self, query: SgfDescriptor, group: SgfGroup, estimate: PoseEstimate | None, members: np.ndarray | None = None
     ) -> tuple[int, SgfDescriptor, int]:
-        """The group member closest to the query by eq. 10, its index, and the query's column shift from it."""
+        """The group member (of ``members``, when given) closest to the query by eq. 10, its index, and the shift."""
         p = self.params
-        profiles = shifted_distances(query.matrix, group.matrices, p.columns)
-        m = int(np.argmin(profiles.min(axis=1)))
+        candidates = np.arange(len(group.members)) if members is None else members
+        profiles = shifted_distances(query.matrix, group.matrices[candidates], p.columns)
+        k = int(np.argmin(profiles.min(axis=1)))
+        m = int(candidates[k])
         matched = group.members[m]
         prior = None if group.anchors[m] is not None else self._prior_shift(query, matched, estimate)
-        return m, matched, best_shift(profiles[m], prior, p.yaw_tolerance)
+        return m, matched, best_shift(profiles[k], prior, p.yaw_tolerance)
 
-    def _look_alike(self, query: SgfDescriptor, group: SgfGroup, estimate: PoseEstimate | None) -> LookAlike:
+    def _look_alike(self, query: SgfDescriptor, gated: GatedGroup, estimate: PoseEstimate | None) -> LookAlike:
         """A tied group's closest member, as an alternative match of the query."""
-        _, matched, shift = self._closest_member(query, group, estimate)
-        return LookAlike(group.group_id, matched, shift, shift_to_yaw(shift, query.matrix.shape[1]))
+        _, matched, shift = self._closest_member(query, gated.group, estimate, gated.members)
+        return LookAlike(gated.group.group_id, matched, shift, shift_to_yaw(shift, query.matrix.shape[1]))
 
     def process(
         self,
