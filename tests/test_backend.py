@@ -418,3 +418,41 @@ def test_isam2_reports_how_much_each_update_reeliminates_and_a_contradicted_grap
         assert backend["pose_nodes"] <= counts["updates"] <= backend["pose_nodes"] + backend["loop_factors"]
     assert a["reeliminated_median"] <= 10 and a["relinearized_median"] <= 10
     assert b["reeliminated_p90"] > 5 * a["reeliminated_p90"]
+
+
+BIASED = (0.005, math.radians(0.05), 0.0, math.radians(0.2))  # small noise, a 0.2 deg/m heading bias
+
+
+@pytest.mark.parametrize(
+    ("backend_class", "params_class", "pose"),
+    [
+        (GtsamLmBackend, LmParams, "pose2"),
+        (Isam2Backend, Isam2Params, "pose2"),
+        (GtsamLmBackend, LmParams, "pose3"),
+        (Isam2Backend, Isam2Params, "pose3"),
+    ],
+    ids=["lm-pose2", "isam2-pose2", "lm-pose3", "isam2-pose3"],
+)
+def test_the_odometry_heading_bias_is_estimated_from_loops_and_corrects_the_drive_after_them(
+    backend_class, params_class, pose
+) -> None:  # type: ignore[no-untyped-def]
+    # Loops on the first laps only: the last lap (reverse) has none, and drifts by the bias unless it is known.
+    biased = make_world(seed=4, laps=2.0, odometry_noise=BIASED)
+    lap = len(biased.frames) // 3
+    loops = {k: v for k, v in true_loops(biased).items() if k < 2 * lap}
+    assert loops and max(loops) < 2 * lap
+    results = {}
+    for estimate_bias in (False, True):
+        backend = backend_class(params_class(save_map=False, pose=pose, odometry_yaw_bias=estimate_bias))
+        context, _ = feed(biased, backend, loops)
+        tail = context.trajectories["sgf"].poses[2 * lap :]
+        results[estimate_bias] = (rmse_xy(tail, biased.gt[2 * lap :]), context.metrics["backend"])
+    plain, with_bias = results[False], results[True]
+    assert "odometry_yaw_bias" not in plain[1]
+    assert with_bias[1]["odometry_yaw_bias"]["deg_per_m"] == pytest.approx(0.2, abs=0.02)
+    assert with_bias[1]["odometry_yaw_bias"]["loops"] == sum(len(v) for v in loops.values())
+    assert with_bias[0] < 0.3 * plain[0]  # the unlooped lap, placed by the corrected odometry
+
+
+def rmse_xy(poses: np.ndarray, gt: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((poses[:, :2, 3] - gt[:, :2, 3]) ** 2, axis=1))))

@@ -77,6 +77,14 @@ class GraphParams(BackendParams):
     prior_map: str | None = Field(None, description="SGF map of an earlier run to localize on (inter-session factors)")
     map_sigma_xy: float = Field(0.05, gt=0.0, description="prior sigma of a prior map's frame poses (m)")
     map_sigma_yaw_deg: float = Field(0.5, gt=0.0, description="prior sigma of a prior map's frame poses (deg)")
+    odometry_yaw_bias: bool = Field(
+        False,
+        description="estimate the odometry's heading bias per metre travelled from the loops, and take it off the "
+        "odometry that follows (the drive after the last loop drifts less); false = eq. 11 as printed",
+    )
+    odometry_yaw_bias_sigma_deg_per_m: float = Field(
+        0.5, gt=0.0, description="prior sigma of that bias (deg per metre; the prior's mean is 0)"
+    )
 
     def noise(self) -> NoiseSettings:
         """The noise models in the graph's units (radians)."""
@@ -97,6 +105,7 @@ class GraphParams(BackendParams):
             prior_sigma_yaw=r(self.prior_sigma_yaw_deg),
             map_sigma_xy=self.map_sigma_xy,
             map_sigma_yaw=r(self.map_sigma_yaw_deg),
+            yaw_bias_sigma=r(self.odometry_yaw_bias_sigma_deg_per_m) if self.odometry_yaw_bias else None,
         )
 
 
@@ -303,6 +312,9 @@ class _GraphBackend(_Backend):
             "optimize_seconds": round(self.optimize_seconds, 4),
             "final_error": self.graph.error(),
         }
+        bias = self.graph.heading_bias
+        if bias is not None:
+            out["odometry_yaw_bias"] = {"deg_per_m": math.degrees(bias.value), "loops": bias.loops}
         if self.prior is not None:
             out["prior_map"] = {"map_id": self.prior.map_id, "anchored": self.graph.anchored}
         return out

@@ -6,6 +6,8 @@ from its node, and loops that reach it are moved onto that node (the loop's rela
 with the offset, its covariance carried by the offset's adjoint). When localizing on a prior SGF map,
 the map's frames that SGFs were matched to (``m<map frame index>``, held by priors at their
 map poses). Poses are ``Pose2`` or ``Pose3`` (roll and pitch from the IMU as attitude factors).
+With ``NoiseSettings.yaw_bias_sigma`` set, the odometry's heading bias per metre is estimated from
+the loops and taken off the odometry steps that follow (:mod:`sgf_plugins.odometry_bias`).
 GTSAM is imported inside functions so that listing plugins stays fast.
 """
 
@@ -20,6 +22,7 @@ import numpy as np
 
 from sgf_pipeline.geometry import invert, rotation_rpy, xy_yaw
 from sgf_pipeline.types import Frame, LoopConstraint
+from sgf_plugins.odometry_bias import HeadingBias
 
 PoseKind = Literal["pose2", "pose3"]
 FREE_ROLL_PITCH = 0.1  # rad, first-pose prior on roll and pitch (observed by the IMU, not a gauge)
@@ -154,6 +157,7 @@ class NoiseSettings:
     prior_sigma_yaw: float = 1e-4
     map_sigma_xy: float = 0.05
     map_sigma_yaw: float = math.radians(0.5)
+    yaw_bias_sigma: float | None = None  # rad/m, prior sigma of the odometry's heading bias (None: not estimated)
 
 
 FRAME_SYMBOL = "x"  # GTSAM key character of a processed frame's pose
@@ -235,6 +239,11 @@ class PoseGraph:
         self._pending_distance = 0.0
         self._pending_steps = 0
         self._pending_imu: tuple[float, float] | None = None
+        self.heading_bias = (
+            None
+            if noise.yaw_bias_sigma is None
+            else HeadingBias(noise.yaw_bias_sigma, noise.odometry_sigma_yaw, noise.loop_kernel_width)
+        )
 
     # -- gtsam conversions ------------------------------------------------------------------
 
@@ -306,6 +315,8 @@ class PoseGraph:
         odometry = np.asarray(frame.odometry, dtype=np.float64)
         if odometry.shape != (4, 4) or not np.all(np.isfinite(odometry)):
             raise ValueError(f"frame {index}: odometry must be a finite 4x4 pose")
+        if self.heading_bias is not None:
+            odometry = self.heading_bias.correct(index, odometry)
         lift = None
         if not self.pose3:
             # Pose2 corrects x, y, yaw; the odometry's height, roll and pitch ride along unchanged.
@@ -435,6 +446,8 @@ class PoseGraph:
         relative = np.asarray(loop.relative, dtype=np.float64)
         if relative.shape != (4, 4) or not np.all(np.isfinite(relative)):
             raise ValueError("a loop constraint's relative pose must be a finite 4x4 matrix")
+        if self.heading_bias is not None and not loop.from_map:
+            self.heading_bias.observe(loop.frame_from, loop.frame_to, xy_yaw(relative)[2], float(loop.covariance[2][2]))
         if not self.pose3:
             relative = planar(relative)
         node_to, relative, adjoint = self._on_node(loop.frame_to, relative, "to")
