@@ -78,7 +78,7 @@ class GraphParams(BackendParams):
     map_sigma_xy: float = Field(0.05, gt=0.0, description="prior sigma of a prior map's frame poses (m)")
     map_sigma_yaw_deg: float = Field(0.5, gt=0.0, description="prior sigma of a prior map's frame poses (deg)")
     odometry_yaw_bias: bool = Field(
-        False,
+        True,
         description="estimate the odometry's heading bias per metre travelled from the loops, and take it off the "
         "odometry that follows (the drive after the last loop drifts less); false = eq. 11 as printed",
     )
@@ -314,7 +314,13 @@ class _GraphBackend(_Backend):
         }
         bias = self.graph.heading_bias
         if bias is not None:
-            out["odometry_yaw_bias"] = {"deg_per_m": math.degrees(bias.value), "loops": bias.loops}
+            out["odometry_yaw_bias"] = {
+                "deg_per_m": math.degrees(bias.value),
+                "estimate_deg_per_m": math.degrees(bias.estimate),
+                "sigma_deg_per_m": math.degrees(bias.sigma),
+                "loops": bias.loops,
+                "agreeing": bias.agreeing,
+            }
         if self.prior is not None:
             out["prior_map"] = {"map_id": self.prior.map_id, "anchored": self.graph.anchored}
         return out

@@ -6,7 +6,15 @@ each loop's error over the drive it closes, but the drive after the last loop ke
 loop measures the bias: between its two frames the odometry turned by the true turn plus the bias
 times the path length, and the loop's ICP measured the true turn. :class:`HeadingBias` keeps those
 measurements, estimates the bias by weighted least squares (a zero-mean prior; a Cauchy weight
-per loop, so that one false loop cannot set it) and takes it off every odometry step that follows.
+per loop, so that one false loop among true ones hardly moves it) and, once at least two loops
+agree with it (a lone false loop must not bend the drive) and it stands out of its own uncertainty
+(``significance`` sigmas), takes it off every odometry step that follows. Loops over one stretch
+share that stretch's heading noise, so the uncertainty counts the best single loop's information,
+not their sum: a bias the heading noise could explain is left alone.
+
+The raw turn between two frames is known modulo a full turn: it is unwrapped around the bias
+estimated so far, so a first loop over which the bias turns the odometry by more than half a turn
+(0.07 deg/m over 2.6 km) is read wrongly, and then outweighed by the loops that follow.
 """
 
 from __future__ import annotations
@@ -19,6 +27,20 @@ from sgf_pipeline.geometry import invert, rotation_rpy, xy_yaw
 
 #: Largest bias the estimate may take (rad per metre: 1 degree per metre turns a robot round in 360 m).
 MAX_YAW_BIAS = math.radians(1.0)
+
+
+def _turn(angle: float) -> np.ndarray:
+    out = np.eye(4)
+    out[:3, :3] = rotation_rpy(0.0, 0.0, angle)
+    return out
+
+
+def _planar(pose: np.ndarray) -> np.ndarray:
+    """The pose's x, y and heading as a 4x4 pose."""
+    x, y, yaw = xy_yaw(pose)
+    out = _turn(yaw)
+    out[:2, 3] = (x, y)
+    return out
 
 
 def _wrap(angle: float) -> float:
@@ -35,8 +57,19 @@ class HeadingBias:
     """
 
     def __init__(
-        self, prior_sigma: float, odometry_sigma_yaw: float, kernel_width: float = 3.0, max_bias: float = MAX_YAW_BIAS
+        self,
+        prior_sigma: float,
+        odometry_sigma_yaw: float,
+        kernel_width: float = 3.0,
+        max_bias: float = MAX_YAW_BIAS,
+        min_loops: int = 2,
+        significance: float = 2.0,
     ) -> None:
+        self.min_loops = min_loops
+        self.significance = significance
+        self.sigma = math.inf  # the estimate's standard deviation (rad/m), from the best loop and the prior
+        self.estimate = 0.0  # the least-squares estimate; ``value`` is what is applied
+        self.agreeing = 0
         self.prior_sigma = prior_sigma
         self.odometry_sigma_yaw = odometry_sigma_yaw
         self.kernel_width = kernel_width
@@ -44,7 +77,7 @@ class HeadingBias:
         self.value = 0.0
         self._travel: dict[int, tuple[float, float]] = {}  # frame: path length and raw heading change so far
         self._raw: np.ndarray | None = None
-        self._corrected: np.ndarray | None = None
+        self._corrected: np.ndarray | None = None  # the corrected planar path at the last frame
         self._distance = 0.0
         self._turn = 0.0
         self._turns: list[float] = []  # per loop: the raw odometry's turn less the loop's (rad)
@@ -57,21 +90,24 @@ class HeadingBias:
         return len(self._turns)
 
     def correct(self, frame_index: int, odometry: np.ndarray) -> np.ndarray:
-        """The frame's odometry pose with every step since the first frame turned by the bias then known."""
+        """The frame's odometry pose with every step since the first frame turned by the bias then known.
+
+        The correction turns the planar path (x, y, heading) about the vertical; height, roll and
+        pitch stay the odometry's own.
+        """
         raw = np.asarray(odometry, dtype=np.float64)
+        flat = _planar(raw)
         if self._raw is None or self._corrected is None:
-            corrected = raw.copy()
+            path = flat
         else:
-            step = invert(self._raw) @ raw
-            length = float(np.linalg.norm(step[:3, 3]))
+            length = float(np.linalg.norm(raw[:3, 3] - self._raw[:3, 3]))
+            step = invert(_planar(self._raw)) @ flat
             self._distance += length
             self._turn += xy_yaw(step)[2]
-            turn = np.eye(4)
-            turn[:3, :3] = rotation_rpy(0.0, 0.0, -self.value * length)
-            corrected = self._corrected @ step @ turn
-        self._raw, self._corrected = raw, corrected
+            path = self._corrected @ step @ _turn(-self.value * length)
+        self._raw, self._corrected = raw, path
         self._travel[frame_index] = (self._distance, self._turn)
-        return corrected
+        return path @ invert(flat) @ raw
 
     def observe(self, frame_from: int, frame_to: int, loop_yaw: float, loop_yaw_variance: float) -> bool:
         """Add a loop: its relative yaw (frame_to in frame_from) and that yaw's variance; False for unknown frames."""
@@ -81,7 +117,7 @@ class HeadingBias:
         length = abs(end[0] - start[0])
         if length <= 0.0:
             return False
-        prediction = self.value * length
+        prediction = self.estimate * length
         turn = prediction + _wrap(end[1] - start[1] - loop_yaw - prediction)
         self._turns.append(turn)
         self._lengths.append(length)
@@ -92,7 +128,7 @@ class HeadingBias:
     def _estimate(self) -> None:
         """Weighted least squares with the prior, re-weighted by a Cauchy kernel on each loop's residual."""
         turns, lengths, variances = np.array(self._turns), np.array(self._lengths), np.array(self._variances)
-        bias = self.value
+        bias = self.estimate
         for _ in range(20):
             whitened = (turns - bias * lengths) / np.sqrt(variances)
             weights = 1.0 / (1.0 + (whitened / self.kernel_width) ** 2)
@@ -102,4 +138,11 @@ class HeadingBias:
             bias = updated
             if done:
                 break
-        self.value = float(np.clip(bias, -self.max_bias, self.max_bias))
+        self.estimate = float(np.clip(bias, -self.max_bias, self.max_bias))
+        whitened = (turns - self.estimate * lengths) / np.sqrt(variances)
+        agree = np.abs(whitened) <= self.kernel_width
+        self.agreeing = int(np.sum(agree))
+        best = float(np.max(lengths[agree] ** 2 / variances[agree])) if self.agreeing else 0.0
+        self.sigma = 1.0 / math.sqrt(1.0 / self.prior_sigma**2 + best)
+        significant = abs(self.estimate) >= self.significance * self.sigma
+        self.value = self.estimate if self.agreeing >= self.min_loops and significant else 0.0

@@ -1,0 +1,114 @@
+"""The odometry's heading bias from loops (sgf_plugins.odometry_bias): the estimate, its robustness, the correction."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from sgf_plugins.odometry_bias import MAX_YAW_BIAS, HeadingBias
+
+from sgf_pipeline.geometry import invert, pose_from_xy_yaw, xy_yaw
+
+BIAS = math.radians(0.07)  # rad per metre, the campus presets' bias
+
+
+def circuit(laps: int, bias: float, rng: np.random.Generator, step: float = 1.0, radius: float = 80.0):
+    """Ground truth and biased odometry around a circle, ``step`` m per frame (heading noise 0.001 rad/sqrt(m))."""
+    n = round(laps * 2 * math.pi * radius / step)
+    turn = step / radius
+    gt = [pose_from_xy_yaw(0.0, 0.0, 0.0)]
+    odo = [gt[0]]
+    for _ in range(n - 1):
+        true_step = pose_from_xy_yaw(step, 0.0, turn)
+        gt.append(gt[-1] @ true_step)
+        measured = pose_from_xy_yaw(step, 0.0, turn + bias * step + rng.normal(0.0, 0.001 * math.sqrt(step)))
+        odo.append(odo[-1] @ measured)
+    return np.stack(gt), np.stack(odo)
+
+
+def feed(estimator: HeadingBias, odometry: np.ndarray) -> np.ndarray:
+    return np.stack([estimator.correct(k, pose) for k, pose in enumerate(odometry)])
+
+
+def test_loops_measure_the_bias_and_the_odometry_after_them_is_turned_back():
+    rng = np.random.default_rng(0)
+    gt, odo = circuit(3, BIAS, rng)
+    lap = len(gt) // 3
+    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
+    corrected = [estimator.correct(k, odo[k]) for k in range(lap + 10)]
+    np.testing.assert_allclose(corrected, odo[: lap + 10], atol=1e-9)  # nothing known yet: the odometry itself
+    # three loops between the first two laps, measured from the ground truth (1 degree of ICP noise)
+    for a in (5, 60, 120):
+        b = a + lap
+        if b >= lap + 10:
+            corrected += [estimator.correct(k, odo[k]) for k in range(len(corrected), b + 1)]
+        yaw = xy_yaw(invert(gt[a]) @ gt[b])[2] + rng.normal(0.0, math.radians(1.0))
+        assert estimator.observe(a, b, yaw, math.radians(1.0) ** 2)
+    assert estimator.loops == 3
+    assert math.degrees(estimator.value) == pytest.approx(0.07, abs=0.005)
+    # from here on every step is turned back by the estimate: the third lap's heading drifts 20 times less
+    start = len(corrected)
+    corrected += [estimator.correct(k, odo[k]) for k in range(start, len(odo))]
+    corrected_arr = np.stack(corrected)
+
+    def heading_drift(poses: np.ndarray) -> float:
+        relative = invert(poses[start]) @ poses[-1]
+        truth = invert(gt[start]) @ gt[-1]
+        return abs(xy_yaw(invert(truth) @ relative)[2])
+
+    assert heading_drift(odo) == pytest.approx(BIAS * (len(odo) - 1 - start), rel=0.1)
+    assert heading_drift(corrected_arr) < heading_drift(odo) / 20
+    # each step keeps its length: only the heading is corrected
+    steps = np.linalg.norm(np.diff(corrected_arr[:, :2, 3], axis=0), axis=1)
+    np.testing.assert_allclose(steps, 1.0, atol=1e-9)
+
+
+def test_a_false_loop_among_true_ones_barely_moves_the_estimate_and_alone_it_is_bounded():
+    rng = np.random.default_rng(1)
+    gt, odo = circuit(2, BIAS, rng)
+    lap = len(gt) // 2
+    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
+    feed(estimator, odo)
+    for a in range(0, 200, 25):
+        b = a + lap
+        assert estimator.observe(a, b, xy_yaw(invert(gt[a]) @ gt[b])[2], math.radians(1.0) ** 2)
+    good = estimator.value
+    # a false loop: the right frames' relative yaw off by 60 degrees
+    a, b = 210, 210 + lap
+    estimator.observe(a, b, xy_yaw(invert(gt[a]) @ gt[b])[2] + math.radians(60.0), math.radians(1.0) ** 2)
+    assert abs(estimator.value - good) < 0.1 * abs(good)
+    assert estimator.agreeing == 8  # the eight true loops agree with the estimate, the false one does not
+    # alone, a loop over a short stretch that claims 90 degrees of turn is estimated (bounded) but not applied
+    lone = HeadingBias(math.radians(0.5), math.radians(0.5))
+    feed(lone, odo)
+    lone.observe(10, 40, xy_yaw(invert(gt[10]) @ gt[40])[2] - math.radians(90.0), math.radians(1.0) ** 2)
+    assert lone.estimate == pytest.approx(MAX_YAW_BIAS) and lone.value == 0.0 and lone.agreeing < 2
+    # a second loop elsewhere that disagrees with it does not make it applied either
+    lone.observe(100, 100 + lap, xy_yaw(invert(gt[100]) @ gt[100 + lap])[2], math.radians(1.0) ** 2)
+    assert lone.agreeing < 2 and lone.value == 0.0
+
+
+def test_a_loop_to_an_unknown_frame_is_not_observed():
+    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
+    estimator.correct(0, np.eye(4))
+    assert not estimator.observe(0, 5, 0.0, 1e-4)
+    assert estimator.loops == 0 and estimator.value == 0.0
+
+
+def test_a_bias_the_heading_noise_could_explain_is_estimated_but_not_applied():
+    rng = np.random.default_rng(2)
+    gt, odo = circuit(2, math.radians(0.01), rng)  # 0.01 deg/m: 5 degrees a lap, under the model's 11-degree noise
+    lap = len(gt) // 2
+    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
+    feed(estimator, odo)
+    for a in (0, 50, 100):
+        estimator.observe(a, a + lap, xy_yaw(invert(gt[a]) @ gt[a + lap])[2], math.radians(1.0) ** 2)
+    assert estimator.agreeing == 3 and math.degrees(estimator.estimate) == pytest.approx(0.01, abs=0.005)
+    assert abs(estimator.estimate) < estimator.significance * estimator.sigma and estimator.value == 0.0
+    # the same loops on a quieter odometry model make it significant
+    quiet = HeadingBias(math.radians(0.5), math.radians(0.05))
+    feed(quiet, odo)
+    for a in (0, 50, 100):
+        quiet.observe(a, a + lap, xy_yaw(invert(gt[a]) @ gt[a + lap])[2], math.radians(0.1) ** 2)
+    assert quiet.value == quiet.estimate != 0.0
