@@ -89,11 +89,15 @@ def test_a_false_loop_among_true_ones_barely_moves_the_estimate_and_alone_it_is_
     assert lone.agreeing < 2 and lone.value == 0.0
 
 
-def test_a_loop_to_an_unknown_frame_is_not_observed():
+def test_a_loop_to_an_unknown_frame_is_not_observed_and_frames_must_increase():
     estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
     estimator.correct(0, np.eye(4))
-    assert not estimator.observe(0, 5, 0.0, 1e-4)
+    estimator.correct(3, pose_from_xy_yaw(1.0, 0.0, 0.0))
+    assert not estimator.observe(0, 5, 0.0, 1e-4) and not estimator.observe(1, 3, 0.0, 1e-4)
     assert estimator.loops == 0 and estimator.value == 0.0
+    with pytest.raises(ValueError, match="frame 3 came after frame 3"):
+        estimator.correct(3, pose_from_xy_yaw(2.0, 0.0, 0.0))
+    assert estimator.observe(0, 3, 0.0, 1e-4) and estimator.loops == 1  # the refused frame left nothing behind
 
 
 def test_a_bias_the_heading_noise_could_explain_is_estimated_but_not_applied():

@@ -75,7 +75,10 @@ class HeadingBias:
         self.kernel_width = kernel_width
         self.max_bias = max_bias
         self.value = 0.0
-        self._travel: dict[int, tuple[float, float]] = {}  # frame: path length and raw heading change so far
+        # per frame, in order: index, path length and raw heading change so far (24 bytes a frame)
+        self._frames = np.zeros(0, dtype=np.int64)
+        self._travel = np.zeros((0, 2))
+        self._size = 0
         self._raw: np.ndarray | None = None
         self._corrected: np.ndarray | None = None  # the corrected planar path at the last frame
         self._distance = 0.0
@@ -95,6 +98,9 @@ class HeadingBias:
         The correction turns the planar path (x, y, heading) about the vertical; height, roll and
         pitch stay the odometry's own.
         """
+        if self._size and frame_index <= self._frames[self._size - 1]:
+            last = int(self._frames[self._size - 1])
+            raise ValueError(f"frame {frame_index} came after frame {last}: frame indices must increase")
         raw = np.asarray(odometry, dtype=np.float64)
         flat = _planar(raw)
         if self._raw is None or self._corrected is None:
@@ -106,12 +112,23 @@ class HeadingBias:
             self._turn += xy_yaw(step)[2]
             path = self._corrected @ step @ _turn(-self.value * length)
         self._raw, self._corrected = raw, path
-        self._travel[frame_index] = (self._distance, self._turn)
+        if self._size == len(self._frames):
+            grown = max(64, 2 * self._size)
+            self._frames = np.resize(self._frames, grown)
+            self._travel = np.resize(self._travel, (grown, 2))
+        self._frames[self._size] = frame_index
+        self._travel[self._size] = (self._distance, self._turn)
+        self._size += 1
         return path @ invert(flat) @ raw
+
+    def _travelled(self, frame_index: int) -> np.ndarray | None:
+        """Path length and raw heading change up to a corrected frame (None when it was never seen)."""
+        k = int(np.searchsorted(self._frames[: self._size], frame_index))
+        return self._travel[k] if k < self._size and self._frames[k] == frame_index else None
 
     def observe(self, frame_from: int, frame_to: int, loop_yaw: float, loop_yaw_variance: float) -> bool:
         """Add a loop: its relative yaw (frame_to in frame_from) and that yaw's variance; False for unknown frames."""
-        start, end = self._travel.get(frame_from), self._travel.get(frame_to)
+        start, end = self._travelled(frame_from), self._travelled(frame_to)
         if start is None or end is None:
             return False
         length = abs(end[0] - start[0])
