@@ -189,12 +189,17 @@ def _loop_row(loop: dict[str, Any]) -> dict[str, Any]:
 
 def render_loops_csv(loops: list[dict[str, Any]]) -> str:
     """``loops.csv``: the accepted loops, one per row (empty cells: unknown, e.g. no ground truth)."""
+    return _render_csv([_loop_row(loop) for loop in loops], LOOP_COLUMNS)
+
+
+def _render_csv(rows: list[dict[str, Any]], columns: tuple[str, ...]) -> str:
+    """CSV text of ``rows`` over ``columns``: empty cells for None (unknown), floats to 6 significant digits."""
     out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=LOOP_COLUMNS, lineterminator="\n")
+    writer = csv.DictWriter(out, fieldnames=columns, lineterminator="\n")
     writer.writeheader()
-    for loop in loops:
-        row = _loop_row(loop)
-        writer.writerow({k: "" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+    for row in rows:
+        cells = {k: row.get(k) for k in columns}
+        writer.writerow({k: "" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for k, v in cells.items()})
     return out.getvalue()
 
 
@@ -205,17 +210,7 @@ def render_candidates_csv(candidates: list[dict[str, Any]]) -> str:
     ``metrics.json``; a map match held for confirmation is ``map_unconfirmed`` (and has a second
     row when it is confirmed later).
     """
-    out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=CANDIDATE_COLUMNS, lineterminator="\n", extrasaction="ignore")
-    writer.writeheader()
-    for row in candidates:
-        writer.writerow(
-            {
-                k: "" if row.get(k) is None else (f"{row[k]:.6g}" if isinstance(row[k], float) else row[k])
-                for k in CANDIDATE_COLUMNS
-            }
-        )
-    return out.getvalue()
+    return _render_csv(candidates, CANDIDATE_COLUMNS)
 
 
 LoopSegment = tuple[np.ndarray, np.ndarray, bool | None]

@@ -551,7 +551,9 @@ class IcpLoopClosing(Stage):
     def _decided(self, k: LoopConstraint, group_id: int, outcome: str) -> None:
         self._log((k.frame_from, k.frame_to), k.instance_ids, group_id, k.from_map, outcome)
 
-    def _log(self, ends: tuple[int, int], ids: Any, group_id: int, from_map: bool, outcome: str) -> None:
+    def _log(
+        self, ends: tuple[int, int], ids: tuple[int | None, int | None], group_id: int, from_map: bool, outcome: str
+    ) -> None:
         """One row of ``loop_candidates.csv``: a match the loop stage decided on, and the outcome."""
         self.decisions.append(
             {
@@ -562,8 +564,8 @@ class IcpLoopClosing(Stage):
                 "group_id": group_id,
                 "from_map": from_map,
                 "outcome": outcome,
-                "instance_from": ids[0] if ids else None,
-                "instance_to": ids[1] if ids else None,
+                "instance_from": ids[0],
+                "instance_to": ids[1],
             }
         )
 

@@ -23,28 +23,10 @@ import math
 
 import numpy as np
 
-from sgf_pipeline.geometry import invert, rotation_rpy, xy_yaw
+from sgf_pipeline.geometry import invert, pose_from_xy_yaw, wrap_angle, xy_yaw
 
 #: Largest bias the estimate may take (rad per metre: 1 degree per metre turns a robot round in 360 m).
 MAX_YAW_BIAS = math.radians(1.0)
-
-
-def _turn(angle: float) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = rotation_rpy(0.0, 0.0, angle)
-    return out
-
-
-def _planar(pose: np.ndarray) -> np.ndarray:
-    """The pose's x, y and heading as a 4x4 pose."""
-    x, y, yaw = xy_yaw(pose)
-    out = _turn(yaw)
-    out[:2, 3] = (x, y)
-    return out
-
-
-def _wrap(angle: float) -> float:
-    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 class HeadingBias:
@@ -102,15 +84,15 @@ class HeadingBias:
             last = int(self._frames[self._size - 1])
             raise ValueError(f"frame {frame_index} came after frame {last}: frame indices must increase")
         raw = np.asarray(odometry, dtype=np.float64)
-        flat = _planar(raw)
+        flat = pose_from_xy_yaw(*xy_yaw(raw))
         if self._raw is None or self._corrected is None:
             path = flat
         else:
             length = float(np.linalg.norm(raw[:3, 3] - self._raw[:3, 3]))
-            step = invert(_planar(self._raw)) @ flat
+            step = invert(pose_from_xy_yaw(*xy_yaw(self._raw))) @ flat
             self._distance += length
             self._turn += xy_yaw(step)[2]
-            path = self._corrected @ step @ _turn(-self.value * length)
+            path = self._corrected @ step @ pose_from_xy_yaw(0.0, 0.0, -self.value * length)
         self._raw, self._corrected = raw, path
         if self._size == len(self._frames):
             grown = max(64, 2 * self._size)
@@ -135,7 +117,7 @@ class HeadingBias:
         if length <= 0.0:
             return False
         prediction = self.estimate * length
-        turn = prediction + _wrap(end[1] - start[1] - loop_yaw - prediction)
+        turn = prediction + wrap_angle(end[1] - start[1] - loop_yaw - prediction)
         self._turns.append(turn)
         self._lengths.append(length)
         self._variances.append(self.odometry_sigma_yaw**2 * length + max(float(loop_yaw_variance), 0.0))

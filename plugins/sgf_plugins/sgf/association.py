@@ -479,10 +479,12 @@ class OnlineSgfGroups(Stage):
             # members sit in the index in the order they joined their group: rank within the group = member index
             order = np.argsort(groups, kind="stable")
             starts = np.concatenate([[0], np.cumsum(np.bincount(groups, minlength=count))[:-1]])
-            rank = np.empty(n, dtype=np.int64)
-            rank[order] = np.arange(n) - starts[groups[order]]
-            for k in np.flatnonzero(inside):
-                members[k] = rank[(groups == k) & member_inside]
+            rank = np.arange(n) - starts[groups[order]]  # of each member, in ``order``
+            kept = member_inside[order]
+            split = np.cumsum(np.bincount(groups[order][kept], minlength=count))[:-1]
+            for k, inside_members in enumerate(np.split(rank[kept], split)):
+                if inside[k]:
+                    members[k] = inside_members
         return [
             GatedGroup(group, float(nearest[k]), bool(repeats[k]), float(min(ratio[k], 1.0)), members[k])
             for k, group in enumerate(self._groups)
