@@ -69,6 +69,9 @@ CANDIDATE_COLUMNS = (
     "outcome",
     "instance_from",
     "instance_to",
+    "anchored_distance",
+    "gate_sigma_xy",
+    "gate_chi2",
 )
 
 #: Rows of the loop table in ``report.md`` (``loops.csv`` has them all).
@@ -208,7 +211,9 @@ def render_candidates_csv(candidates: list[dict[str, Any]]) -> str:
 
     The outcome is ``accepted`` or the test that refused it, named as in ``loops.rejected`` of
     ``metrics.json``; a map match held for confirmation is ``map_unconfirmed`` (and has a second
-    row when it is confirmed later).
+    row when it is confirmed later). A match that reached the gate also has what the gate saw:
+    the travel since a loop last anchored its two frames (m), the predicted position's sigma (m)
+    and the best fit's chi-square (3 dof; the gate passes up to ``chi2(loop.gate_probability)``).
     """
     return _render_csv(candidates, CANDIDATE_COLUMNS)
 

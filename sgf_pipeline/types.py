@@ -275,6 +275,17 @@ class LoopConstraints:
 
 
 @dataclass(frozen=True)
+class YawBiasCorrection:
+    """A heading bias per metre the back-end takes off the odometry after frame ``since``.
+
+    ``sigma`` (rad/m) is the uncertainty of the bias left in the odometry steps after ``since``.
+    """
+
+    since: int
+    sigma: float
+
+
+@dataclass(frozen=True)
 class PoseEstimate:
     """The back-end's current estimate of every processed frame's pose (map frame).
 
@@ -284,6 +295,8 @@ class PoseEstimate:
 
     frame_index: int
     poses: Mapping[int, np.ndarray]
+    #: the back-end's correction of the odometry's heading bias, None while it makes none
+    yaw_bias: YawBiasCorrection | None = None
 
     @property
     def latest(self) -> np.ndarray:

@@ -444,9 +444,21 @@ def test_the_odometry_heading_bias_is_estimated_from_loops_and_corrects_the_driv
     results = {}
     for estimate_bias in (False, True):
         backend = backend_class(params_class(save_map=False, pose=pose, odometry_yaw_bias=estimate_bias))
-        context, _ = feed(biased, backend, loops)
+        context, estimates = feed(biased, backend, loops)
         tail = context.trajectories["sgf"].poses[2 * lap :]
         results[estimate_bias] = (rmse_xy(tail, biased.gt[2 * lap :]), context.metrics["backend"])
+        # the published estimates say from which frame the odometry is corrected, and how well the bias is known
+        corrected = [e.yaw_bias for e in estimates if e.yaw_bias is not None]
+        if not estimate_bias:
+            assert corrected == []
+            continue
+        loop_frames = sorted(loops)
+        first = next(k for k, e in enumerate(estimates) if e.yaw_bias is not None)
+        assert first in loop_frames[1:]  # applied on a loop, once a second one agrees
+        assert {c.since for c in corrected} == {first}
+        sigma = corrected[-1].sigma
+        assert sigma == pytest.approx(math.radians(context.metrics["backend"]["odometry_yaw_bias"]["sigma_deg_per_m"]))
+        assert 0.0 < sigma < math.radians(0.1)
     plain, with_bias = results[False], results[True]
     assert "odometry_yaw_bias" not in plain[1]
     assert with_bias[1]["odometry_yaw_bias"]["deg_per_m"] == pytest.approx(0.2, abs=0.02)

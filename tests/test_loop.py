@@ -80,6 +80,18 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     assert all(c.instance_ids[0] == c.instance_ids[1] for c in gated.loops)
     assert gated.context.metrics["loops"]["false_closed"] == 0
     assert gated.context.metrics["loops"]["rejected"]["gate"] == 4
+    # loop_candidates.csv says what the gate saw: the look-alikes' chi-square above its threshold, the loops' under
+    threshold = IcpLoopClosing(IcpLoopParams()).threshold
+    decisions = gated.context.artifacts["loop_candidates"]
+    refused = [d for d in decisions if d["outcome"] == "gate"]
+    accepted = [d for d in decisions if d["outcome"] == "accepted"]
+    assert len(refused) == 4 and all(d["gate_chi2"] > threshold for d in refused)
+    assert accepted and all(d["gate_chi2"] <= threshold for d in accepted)
+    for d in refused + accepted:  # the prediction's sigma: the 0.5 m floor, grown with the travel since an anchor
+        assert d["anchored_distance"] >= 0.0
+        expected = math.sqrt(drift_covariance(d["anchored_distance"], IcpLoopParams())[0, 0])
+        assert d["gate_sigma_xy"] == pytest.approx(expected, abs=0.01)  # distance rounded to cm
+    assert all(d["gate_chi2"] is None for d in decisions if d["outcome"] in ("symmetric", "separation"))
     ungated = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False, min_support=0)))
     look_alikes = [c for c in ungated.loops if c.instance_ids[0] != c.instance_ids[1]]
     assert len(look_alikes) == 4
@@ -214,6 +226,44 @@ def test_the_prediction_covariance_starts_at_the_floors_and_grows_with_distance(
     biased = np.sqrt(np.diag(drift_covariance(1000.0, IcpLoopParams(gate_yaw_bias_deg_per_m=0.07))))
     assert math.degrees(biased[2]) == pytest.approx(math.hypot(15.9, 70.0), abs=0.3)
     assert biased[0] == pytest.approx(math.hypot(161.0, 0.5 * math.radians(0.07) * 1000.0**2), abs=3.0)
+
+
+def test_the_gate_counts_the_back_ends_bias_uncertainty_over_the_drive_it_corrected() -> None:
+    p = IcpLoopParams()  # the configured bias: 0.07 deg/m
+    configured = np.sqrt(np.diag(drift_covariance(300.0, p)))
+    residual = math.radians(0.01)
+    corrected = np.sqrt(np.diag(drift_covariance(300.0, p, residual)))
+    # after 300 m the heading bias alone adds 0.5 * 0.07 deg/m * 300^2 m^2 = 55 m; 0.01 deg/m of it only 7.9 m
+    no_bias = np.sqrt(np.diag(drift_covariance(300.0, IcpLoopParams(gate_yaw_bias_deg_per_m=0.0))))
+    assert configured[0] == pytest.approx(math.hypot(no_bias[0], 0.5 * math.radians(0.07) * 300.0**2), rel=1e-6)
+    assert corrected[0] == pytest.approx(math.hypot(no_bias[0], 0.5 * residual * 300.0**2), rel=1e-6)
+    assert corrected[2] == pytest.approx(math.hypot(no_bias[2], residual * 300.0), rel=1e-6)
+    # never more than the configured bias, and the option turns it off
+    assert np.allclose(drift_covariance(300.0, p, math.radians(0.5)), drift_covariance(300.0, p))
+    off = IcpLoopParams(gate_bias_from_backend=False)
+    assert np.allclose(drift_covariance(300.0, off, residual), drift_covariance(300.0, off))
+    # the stage takes the estimate's uncertainty only when the corrected drive spans the whole distance
+    from sgf_pipeline.types import PoseEstimate, YawBiasCorrection
+
+    frames = _straight_run(40, 0.0)[:-1]  # 1 m per frame
+    stage = IcpLoopClosing(p)
+    for f in frames:
+        stage.process(frame=f, assignments=None, estimate=None)
+    poses = {f.index: f.odometry for f in frames}
+    since = frames[10].index
+    estimate = PoseEstimate(frames[-1].index, poses, YawBiasCorrection(since, residual))
+    newest = frames[-1].index
+    span = stage.frames.distance(newest) - stage.frames.distance(since)
+    assert span == pytest.approx(29.0)
+    assert np.allclose(stage._drift(span, newest, estimate), drift_covariance(span, p, residual))
+    assert np.allclose(stage._drift(span + 1.0, newest, estimate), drift_covariance(span + 1.0, p))
+    assert np.allclose(stage._drift(span, newest, PoseEstimate(newest, poses)), drift_covariance(span, p))
+    # so a look-alike 150 m from where the estimate puts the robot, 300 m after the last anchor, passes the
+    # gate on the configured bias and fails it on the corrected one
+    error = np.array([150.0, 0.0, math.radians(5.0)])
+    chi2 = stage.threshold
+    assert error @ np.linalg.solve(drift_covariance(300.0, p), error) < chi2
+    assert error @ np.linalg.solve(drift_covariance(300.0, p, residual), error) > chi2
 
 
 def test_an_sgf_of_an_unseen_frame_is_a_clear_error() -> None:

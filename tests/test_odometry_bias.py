@@ -39,12 +39,18 @@ def test_loops_measure_the_bias_and_the_odometry_after_them_is_turned_back():
     corrected = [estimator.correct(k, odo[k]) for k in range(lap + 10)]
     np.testing.assert_allclose(corrected, odo[: lap + 10], atol=1e-9)  # nothing known yet: the odometry itself
     # three loops between the first two laps, measured from the ground truth (1 degree of ICP noise)
+    first_applied = None
     for a in (5, 60, 120):
         b = a + lap
         if b >= lap + 10:
             corrected += [estimator.correct(k, odo[k]) for k in range(len(corrected), b + 1)]
         yaw = xy_yaw(invert(gt[a]) @ gt[b])[2] + rng.normal(0.0, math.radians(1.0))
         assert estimator.observe(a, b, yaw, math.radians(1.0) ** 2)
+        if estimator.value != 0.0 and first_applied is None:
+            first_applied = len(corrected) - 1
+        # ``since``: the newest frame when the bias was first applied, None while it is not
+        assert estimator.since == first_applied
+    assert first_applied == 60 + lap  # the second loop agrees with the first
     assert estimator.loops == 3
     assert math.degrees(estimator.value) == pytest.approx(0.07, abs=0.005)
     # from here on every step is turned back by the estimate: the third lap's heading drifts 20 times less
@@ -110,6 +116,7 @@ def test_a_bias_the_heading_noise_could_explain_is_estimated_but_not_applied():
         estimator.observe(a, a + lap, xy_yaw(invert(gt[a]) @ gt[a + lap])[2], math.radians(1.0) ** 2)
     assert estimator.agreeing == 3 and math.degrees(estimator.estimate) == pytest.approx(0.01, abs=0.005)
     assert abs(estimator.estimate) < estimator.significance * estimator.sigma and estimator.value == 0.0
+    assert estimator.since is None
     # the same loops on a quieter odometry model make it significant
     quiet = HeadingBias(math.radians(0.5), math.radians(0.05))
     feed(quiet, odo)

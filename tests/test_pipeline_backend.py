@@ -144,6 +144,11 @@ def test_a_run_closes_loops_and_writes_trajectory_metrics_and_map(tmp_path: Path
     assert [(r["frame_from"], r["frame_to"]) for r in decided if r["outcome"] == "accepted"] == [
         (r["frame_from"], r["frame_to"]) for r in rows
     ]
+    assert all(
+        float(r["gate_chi2"]) <= 16.27 and float(r["gate_sigma_xy"]) >= 0.5
+        for r in decided
+        if r["outcome"] == "accepted"
+    )
     report = (tmp_path / "report.md").read_text()
     assert "## Accepted loops (5; all in `loops.csv`)" in report
     assert report.count("| True |") == 5

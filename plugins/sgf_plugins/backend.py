@@ -27,7 +27,7 @@ from sgf_pipeline import RunContext, Stage, StageParams, StageRegistry, hookimpl
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.sgf_map import SgfMap, build_map, load_map, save_map
 from sgf_pipeline.trajectory import Trajectory
-from sgf_pipeline.types import Frame, LoopConstraints, PoseEstimate
+from sgf_pipeline.types import Frame, LoopConstraints, PoseEstimate, YawBiasCorrection
 from sgf_plugins.pose_graph import FRAME_SYMBOL, MAP_SYMBOL, NoiseSettings, PoseGraph, PoseStore, X
 
 log = logging.getLogger("sgf_pipeline")
@@ -278,14 +278,22 @@ class _GraphBackend(_Backend):
 
     def estimate(self) -> PoseEstimate:
         """The current estimate of every processed frame."""
-        return PoseEstimate(self.graph.store.frames[-1], self.graph.store.snapshot())
+        return PoseEstimate(self.graph.store.frames[-1], self.graph.store.snapshot(), self._yaw_bias())
+
+    def _yaw_bias(self) -> YawBiasCorrection | None:
+        """The heading bias correction of the odometry and its uncertainty; None while none is made."""
+        bias = self.graph.heading_bias
+        if bias is None or bias.since is None:
+            return None
+        return YawBiasCorrection(bias.since, bias.sigma)
 
     def poses(self) -> tuple[list[float], np.ndarray, PoseEstimate | None]:
         """Timestamps, poses and the latest estimate of the processed frames."""
         if not self.graph.timestamps:
             return [], np.zeros((0, 4, 4)), None
         table = self.graph.store.snapshot()
-        return self.graph.timestamps, table.array(), PoseEstimate(self.graph.store.frames[-1], table)
+        estimate = PoseEstimate(self.graph.store.frames[-1], table, self._yaw_bias())
+        return self.graph.timestamps, table.array(), estimate
 
     def batch_optimize(self) -> None:
         """Levenberg-Marquardt over the whole graph from the current estimate."""

@@ -14,8 +14,12 @@ The gate: the relative pose predicted by the previous frame's estimate (odometry
 back-end's first estimate) is compared with ICP's by a chi-square test whose covariance is
 ICP's plus a drift term that grows with ``d``, the distance the estimate has travelled since a
 loop closure last anchored the two poses: ``sigma_xy^2 = floor^2 + (scale d)^2 + sxy^2 d +
-syaw^2 d^3 / 3`` (translation random walk, heading random walk, scale error) and ``sigma_yaw^2
-= floor^2 + syaw^2 d``. ``d`` is the shortest odometry path between the two frames in a graph
+syaw^2 d^3 / 3 + (bias d^2 / 2)^2`` (translation random walk, heading random walk, scale error,
+heading bias) and ``sigma_yaw^2 = floor^2 + syaw^2 d + (bias d)^2``. ``bias`` is
+``gate_yaw_bias_deg_per_m`` until the back-end takes its own estimate of the bias off the odometry
+(``backend.odometry_yaw_bias``); from then on it is that estimate's uncertainty
+(``PoseEstimate.yaw_bias``) wherever the corrected drive spans all of ``d``, so the gate narrows as
+much as the drift it predicts. ``d`` is the shortest odometry path between the two frames in a graph
 where each accepted loop that the estimate satisfies (the back-end has absorbed it) joins its
 two frames at no cost; a loop that the back-end did not absorb (``backend=none``, batch
 optimisation only at the end, a loop down-weighted by the robust kernel) anchors nothing, so
@@ -142,6 +146,11 @@ class IcpLoopParams(StageParams):
     gate_yaw_bias_deg_per_m: float = Field(
         0.07, ge=0.0, description="odometry heading bias (deg per m): heading error grows with d, position with d^2"
     )
+    gate_bias_from_backend: bool = Field(
+        True,
+        description="once the back-end corrects the odometry for its heading bias, the gate counts that estimate's "
+        "uncertainty instead of gate_yaw_bias_deg_per_m (never more)",
+    )
     consensus_window: float = Field(
         60.0, gt=0.0, description="m of travel: SGFs seen this far around each sighting are its neighbours"
     )
@@ -216,6 +225,15 @@ class IcpLoopParams(StageParams):
 
 
 @dataclass(frozen=True)
+class _GateReading:
+    """What the gate saw of a match (``loop_candidates.csv``): distance since the anchor, sigma, chi-square."""
+
+    distance: float  # m of travel since a loop last anchored the two frames (``d`` above)
+    sigma_xy: float  # the prediction's position sigma (m) from the drift model
+    chi2: float  # the best fit's squared Mahalanobis distance to the prediction
+
+
+@dataclass(frozen=True)
 class _Candidate:
     """A constraint that passed ICP, with what the gate and the map anchoring need."""
 
@@ -224,6 +242,7 @@ class _Candidate:
     map_truth: np.ndarray | None
     group_id: int
     anchored: bool = False  # a map match made once the run was placed in the map
+    gate: _GateReading | None = None
 
 
 @dataclass(frozen=True)
@@ -243,11 +262,17 @@ class _Waiting:
     distance: float
 
 
-def drift_covariance(distance: float, p: IcpLoopParams) -> np.ndarray:
-    """Covariance (x, y, yaw) of a relative pose predicted across ``distance`` metres since the last anchor."""
+def drift_covariance(distance: float, p: IcpLoopParams, yaw_bias_sigma: float | None = None) -> np.ndarray:
+    """Covariance (x, y, yaw) of a relative pose predicted across ``distance`` metres since the last anchor.
+
+    ``yaw_bias_sigma`` (rad/m): the heading bias left in the estimate's odometry once the back-end
+    corrects it (``PoseEstimate.yaw_bias``); it replaces ``gate_yaw_bias_deg_per_m`` when smaller.
+    """
     d = max(distance, 0.0)
     s_yaw = math.radians(p.gate_sigma_yaw_deg)
     bias = math.radians(p.gate_yaw_bias_deg_per_m)
+    if yaw_bias_sigma is not None and p.gate_bias_from_backend:
+        bias = min(bias, yaw_bias_sigma)
     var_xy = (
         p.gate_floor_xy**2
         + (p.gate_scale_error * d) ** 2
@@ -297,6 +322,7 @@ class IcpLoopClosing(Stage):
     def begin(self, context: RunContext) -> None:
         """Forget the previous sequence."""
         self.truth: SequenceTruth | None = context.truth
+        self._reading: _GateReading | None = None  # what the gate saw of the match evaluated last
         self.frames = FrameLog(truth=True)  # every processed frame: loops may reach any earlier place
         self.accepted: list[_Candidate] = []
         self.pending: list[_Candidate] = []
@@ -362,7 +388,7 @@ class IcpLoopClosing(Stage):
             return self._resolve_tie(a, estimate)
         candidate = self._evaluate(a, estimate)
         if isinstance(candidate, str):
-            self._refuse(a, candidate)
+            self._refuse(a, candidate, self._reading)
             return []
         need = self.p.min_support
         if self.p.distinct_support is not None and need > self.p.distinct_support and self._distinct(a):
@@ -456,7 +482,7 @@ class IcpLoopClosing(Stage):
                 self.aliases_resolved += 1
             return self._accept(supported[0], estimate)
         if len(supported) > 1 or final:
-            self._refuse(w.options[0][0], "ambiguous" if len(supported) > 1 else w.refused)
+            self._refuse(w.options[0][0], "ambiguous" if len(supported) > 1 else w.refused, w.options[0][1].gate)
             return []
         return None
 
@@ -484,6 +510,7 @@ class IcpLoopClosing(Stage):
         """Separation, ICP and the gate for one match: the candidate, or the name of the test it failed."""
         matched, query = a.matched, a.descriptor
         assert matched is not None
+        self._reading = None
         j = query.sgf.frame_index
         self._known(j)
         from_map = isinstance(matched, MapDescriptor)
@@ -507,52 +534,64 @@ class IcpLoopClosing(Stage):
         map_truth = matched.ground_truth if isinstance(matched, MapDescriptor) else None
         anchored = from_map and self._map_anchored(estimate)
         predicted = None
+        distance = math.nan
         if not from_map:
-            predicted = (
-                invert(self._pose(i, estimate)) @ self._pose(j, estimate),
-                self._anchored_distance(i, j, estimate),
-            )
+            distance = self._anchored_distance(i, j, estimate)
+            predicted = (invert(self._pose(i, estimate)) @ self._pose(j, estimate), self._drift(distance, j, estimate))
         elif anchored:
             assert map_pose is not None
-            predicted = (invert(map_pose) @ self._pose(j, estimate), self._anchored_distance(_MAP, j, estimate))
+            distance = self._anchored_distance(_MAP, j, estimate)
+            predicted = (invert(map_pose) @ self._pose(j, estimate), self._drift(distance, j, estimate))
         fits = self._fits(results, np.asarray(query.points, dtype=np.float64))
+        if predicted is not None:
+            chi2 = [self._gate_chi2(a, r, from_map, predicted) for r in fits]
+            self._reading = _GateReading(distance, math.sqrt(predicted[1][0, 0]), min(chi2))
         if predicted is None or not self.p.gate:
             best = self._select(fits, predicted)
         else:
             # several distinct fits (a twofold symmetric shape, a row one period on): the gate must pick one
-            passing = [r for r in fits if self._gated(a, r, from_map, predicted)]
+            passing = [r for r, value in zip(fits, chi2, strict=True) if value <= self.threshold]
             if len(passing) != 1:
                 return "not_unique" if passing else "gate"
             best = passing[0]
-        return _Candidate(self._constraint(a, best, from_map), map_pose, map_truth, a.group_id, anchored)
+        constraint = self._constraint(a, best, from_map)
+        return _Candidate(constraint, map_pose, map_truth, a.group_id, anchored, self._reading)
 
-    def _gated(self, a: GroupAssignment, r: IcpResult, from_map: bool, predicted: tuple[np.ndarray, float]) -> bool:
-        """Whether a fit's relative pose passes the chi-square test against the prediction."""
+    def _gate_chi2(
+        self, a: GroupAssignment, r: IcpResult, from_map: bool, predicted: tuple[np.ndarray, np.ndarray]
+    ) -> float:
+        """A fit's squared Mahalanobis distance to the prediction (pose, drift covariance); the gate's test value."""
         c = self._constraint(a, r, from_map)
-        cov = c.covariance + drift_covariance(predicted[1], self.p)
-        return mahalanobis2(pose_error(predicted[0], c.relative), cov) <= self.threshold
+        cov = c.covariance + predicted[1]
+        return mahalanobis2(pose_error(predicted[0], c.relative), cov)
 
     def _accept(self, candidate: _Candidate, estimate: PoseEstimate | None) -> list[LoopConstraint]:
         """Emit a candidate that passed every test (map matches wait for the run's anchoring in the map)."""
         if candidate.map_pose is not None and not candidate.anchored:
             return self._confirm_map(candidate, estimate)
         self.accepted.append(candidate)
-        self._decided(candidate.constraint, candidate.group_id, "accepted")
+        self._decided(candidate.constraint, candidate.group_id, "accepted", candidate.gate)
         return [candidate.constraint]
 
-    def _refuse(self, a: GroupAssignment, reason: str) -> None:
-        """Count a refused candidate under ``reason`` and log it."""
+    def _refuse(self, a: GroupAssignment, reason: str, gate: _GateReading | None = None) -> None:
+        """Count a refused candidate under ``reason`` and log it (with what the gate saw, when it was reached)."""
         assert a.matched is not None
         self.counts[reason] += 1
         ends = (a.matched.sgf.frame_index, a.descriptor.sgf.frame_index)
         ids = (a.matched.sgf.instance_id, a.descriptor.sgf.instance_id)
-        self._log(ends, ids, a.group_id, isinstance(a.matched, MapDescriptor), reason)
+        self._log(ends, ids, a.group_id, isinstance(a.matched, MapDescriptor), reason, gate)
 
-    def _decided(self, k: LoopConstraint, group_id: int, outcome: str) -> None:
-        self._log((k.frame_from, k.frame_to), k.instance_ids, group_id, k.from_map, outcome)
+    def _decided(self, k: LoopConstraint, group_id: int, outcome: str, gate: _GateReading | None) -> None:
+        self._log((k.frame_from, k.frame_to), k.instance_ids, group_id, k.from_map, outcome, gate)
 
     def _log(
-        self, ends: tuple[int, int], ids: tuple[int | None, int | None], group_id: int, from_map: bool, outcome: str
+        self,
+        ends: tuple[int, int],
+        ids: tuple[int | None, int | None],
+        group_id: int,
+        from_map: bool,
+        outcome: str,
+        gate: _GateReading | None,
     ) -> None:
         """One row of ``loop_candidates.csv``: a match the loop stage decided on, and the outcome."""
         self.decisions.append(
@@ -566,6 +605,9 @@ class IcpLoopClosing(Stage):
                 "outcome": outcome,
                 "instance_from": ids[0],
                 "instance_to": ids[1],
+                "anchored_distance": None if gate is None else round(gate.distance, 2),
+                "gate_sigma_xy": None if gate is None else round(gate.sigma_xy, 3),
+                "gate_chi2": None if gate is None else round(gate.chi2, 3),
             }
         )
 
@@ -716,12 +758,11 @@ class IcpLoopClosing(Stage):
                 clusters.append([r])
         return [_merged(cluster) for cluster in clusters]
 
-    def _select(self, results: list[IcpResult], predicted: tuple[np.ndarray, float] | None) -> IcpResult:
+    def _select(self, results: list[IcpResult], predicted: tuple[np.ndarray, np.ndarray] | None) -> IcpResult:
         """The first fit; among several (a twofold symmetric shape), the one nearest the prediction (gate off)."""
         if predicted is None or len(results) == 1:
             return results[0]
-        target, distance = predicted
-        cov = drift_covariance(distance, self.p)
+        target, cov = predicted
         return min(results, key=lambda r: mahalanobis2(pose_error(target, _pose4(r)), cov + r.covariance))
 
     def _constraint(self, a: GroupAssignment, r: IcpResult, from_map: bool) -> LoopConstraint:
@@ -758,6 +799,20 @@ class IcpLoopClosing(Stage):
             return np.asarray(estimate.poses[k])
         last = estimate.frame_index
         return np.asarray(estimate.poses[last]) @ invert(self.frames.odometry(last)) @ self.frames.odometry(k)
+
+    def _drift(self, distance: float, newest: int, estimate: PoseEstimate | None) -> np.ndarray:
+        """The gate's drift covariance across ``distance`` m since the last anchor up to frame ``newest``.
+
+        The back-end's heading bias estimate replaces the configured bias when it corrected the
+        odometry over the whole of that distance (the drive from its ``since`` frame to ``newest``).
+        """
+        correction = None if estimate is None else estimate.yaw_bias
+        sigma = None
+        if correction is not None:
+            start = self.frames.get_distance(correction.since)
+            if start is not None and self.frames.distance(newest) - start >= distance:
+                sigma = correction.sigma
+        return drift_covariance(distance, self.p, sigma)
 
     def _absorbed(self, c: _Candidate, estimate: PoseEstimate | None) -> bool:
         """Whether the estimate satisfies an accepted constraint (so it anchors its two frames)."""
@@ -800,7 +855,7 @@ class IcpLoopClosing(Stage):
         agreeing = [q for q in self.pending if q.group_id != candidate.group_id and self._agree(q, candidate, estimate)]
         if len(agreeing) + 1 < self.p.map_anchor_matches:
             self.counts["map_unconfirmed"] += 1
-            self._decided(candidate.constraint, candidate.group_id, "map_unconfirmed")
+            self._decided(candidate.constraint, candidate.group_id, "map_unconfirmed", candidate.gate)
             self.pending = [*self.pending, candidate][-self.p.map_pending :]
             return []
         confirmed = [*agreeing, candidate]
@@ -808,7 +863,7 @@ class IcpLoopClosing(Stage):
         self.counts["map_unconfirmed"] -= len(agreeing)
         self.accepted.extend(confirmed)
         for c in confirmed:
-            self._decided(c.constraint, c.group_id, "accepted")
+            self._decided(c.constraint, c.group_id, "accepted", c.gate)
         return [c.constraint for c in confirmed]
 
     def _agree(self, first: _Candidate, second: _Candidate, estimate: PoseEstimate | None) -> bool:
@@ -818,7 +873,7 @@ class IcpLoopClosing(Stage):
         from_map = invert(first.map_pose @ a.relative) @ (second.map_pose @ b.relative)
         own = invert(self._pose(a.frame_to, estimate)) @ self._pose(b.frame_to, estimate)
         distance = self._anchored_distance(a.frame_to, b.frame_to, estimate)
-        cov = a.covariance + b.covariance + drift_covariance(distance, self.p)
+        cov = a.covariance + b.covariance + self._drift(distance, max(a.frame_to, b.frame_to), estimate)
         return mahalanobis2(pose_error(own, from_map), cov) <= self.threshold
 
     # -- evaluation ---------------------------------------------------------------------------
@@ -852,7 +907,7 @@ class IcpLoopClosing(Stage):
     def finalize(self, context: RunContext) -> None:
         """Loop metrics (Table 3: loops closed, reverse ones, false ones) and the accepted loops for plots."""
         for w in self.waiting:  # the run ended before they were settled
-            self._refuse(w.options[0][0], w.refused)
+            self._refuse(w.options[0][0], w.refused, w.options[0][1].gate)
         self.waiting = []
         errors = [self._truth_error(c) for c in self.accepted]
         truths = [self._true(c, e) for c, e in zip(self.accepted, errors, strict=True)]

@@ -57,6 +57,7 @@ class HeadingBias:
         self.kernel_width = kernel_width
         self.max_bias = max_bias
         self.value = 0.0
+        self.since: int | None = None  # the frame after which ``value`` is taken off (None: nothing is)
         # per frame, in order: index, path length and raw heading change so far (24 bytes a frame)
         self._frames = np.zeros(0, dtype=np.int64)
         self._travel = np.zeros((0, 2))
@@ -145,3 +146,7 @@ class HeadingBias:
         self.sigma = 1.0 / math.sqrt(1.0 / self.prior_sigma**2 + best)
         significant = abs(self.estimate) >= self.significance * self.sigma
         self.value = self.estimate if self.agreeing >= self.min_loops and significant else 0.0
+        if self.value == 0.0:
+            self.since = None
+        elif self.since is None:
+            self.since = int(self._frames[self._size - 1])
