@@ -228,6 +228,34 @@ def test_the_prediction_covariance_starts_at_the_floors_and_grows_with_distance(
     assert biased[0] == pytest.approx(math.hypot(161.0, 0.5 * math.radians(0.07) * 1000.0**2), abs=3.0)
 
 
+def test_the_heading_bias_bends_only_the_drive_after_the_loop_that_bridges_the_matched_frame(world) -> None:  # type: ignore[no-untyped-def]
+    stage = IcpLoopClosing(IcpLoopParams())
+    run = run_stages(world, loop=stage, backend=GtsamLmBackend(LmParams(save_map=False)))
+    estimate = run.estimates[-1]
+    first = min(run.loops, key=lambda c: c.frame_to)
+    j = max(c.frame_to for c in run.loops) + 5  # after every loop
+    assert j in stage.frames
+    last = max(stage.frames.distance(c.frame_to) for c in run.loops)
+    tail = stage.frames.distance(j) - last
+    inside, before = (first.frame_from + first.frame_to) // 2, first.frame_from - 3
+    for i, bridged in ((inside, True), (before, False)):
+        distance = stage._anchored_distance(i, j, estimate)
+        got = stage._bias_distance(i, j, distance, estimate)
+        if bridged:  # the pose graph spread the loop's closure error over the frames it spans
+            assert got == pytest.approx(min(distance, tail))
+            full, bent = drift_covariance(distance, stage.p), drift_covariance(distance, stage.p, None, got)
+            assert bent[0, 0] < full[0, 0] and bent[2, 2] < full[2, 2]
+        else:
+            assert got is None
+    # the estimate that absorbed no loop (the odometry) bridges nothing; the option turns it off
+    from sgf_pipeline.types import PoseEstimate
+
+    odometry = PoseEstimate(world.frames[-1].index, {f.index: f.odometry for f in world.frames})
+    assert stage._bias_distance(inside, j, 100.0, odometry) is None
+    stage.p = IcpLoopParams(gate_bridged_bias=False)
+    assert stage._bias_distance(inside, j, 100.0, estimate) is None
+
+
 def test_the_gate_counts_the_back_ends_bias_uncertainty_over_the_drive_it_corrected() -> None:
     p = IcpLoopParams()  # the configured bias: 0.07 deg/m
     configured = np.sqrt(np.diag(drift_covariance(300.0, p)))

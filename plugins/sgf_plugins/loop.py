@@ -151,6 +151,11 @@ class IcpLoopParams(StageParams):
         description="once the back-end corrects the odometry for its heading bias, the gate counts that estimate's "
         "uncertainty instead of gate_yaw_bias_deg_per_m (never more)",
     )
+    gate_bridged_bias: bool = Field(
+        True,
+        description="a matched frame between the two frames of an absorbed loop has had the heading bias taken off "
+        "by the pose graph: the gate's bias term counts only the drive since the newest absorbed loop",
+    )
     consensus_window: float = Field(
         60.0, gt=0.0, description="m of travel: SGFs seen this far around each sighting are its neighbours"
     )
@@ -262,25 +267,29 @@ class _Waiting:
     distance: float
 
 
-def drift_covariance(distance: float, p: IcpLoopParams, yaw_bias_sigma: float | None = None) -> np.ndarray:
+def drift_covariance(
+    distance: float, p: IcpLoopParams, yaw_bias_sigma: float | None = None, bias_distance: float | None = None
+) -> np.ndarray:
     """Covariance (x, y, yaw) of a relative pose predicted across ``distance`` metres since the last anchor.
 
     ``yaw_bias_sigma`` (rad/m): the heading bias left in the estimate's odometry once the back-end
     corrects it (``PoseEstimate.yaw_bias``); it replaces ``gate_yaw_bias_deg_per_m`` when smaller.
+    ``bias_distance``: the part of ``distance`` the heading bias acts on (default: all of it).
     """
     d = max(distance, 0.0)
     s_yaw = math.radians(p.gate_sigma_yaw_deg)
     bias = math.radians(p.gate_yaw_bias_deg_per_m)
     if yaw_bias_sigma is not None and p.gate_bias_from_backend:
         bias = min(bias, yaw_bias_sigma)
+    b = d if bias_distance is None else min(max(bias_distance, 0.0), d)
     var_xy = (
         p.gate_floor_xy**2
         + (p.gate_scale_error * d) ** 2
         + p.gate_sigma_xy**2 * d
         + s_yaw**2 * d**3 / 3.0
-        + (0.5 * bias * d**2) ** 2
+        + (0.5 * bias * b**2) ** 2
     )
-    var_yaw = math.radians(p.gate_floor_yaw_deg) ** 2 + s_yaw**2 * d + (bias * d) ** 2
+    var_yaw = math.radians(p.gate_floor_yaw_deg) ** 2 + s_yaw**2 * d + (bias * b) ** 2
     return np.diag([var_xy, var_xy, var_yaw])
 
 
@@ -537,7 +546,8 @@ class IcpLoopClosing(Stage):
         distance = math.nan
         if not from_map:
             distance = self._anchored_distance(i, j, estimate)
-            predicted = (invert(self._pose(i, estimate)) @ self._pose(j, estimate), self._drift(distance, j, estimate))
+            drift = self._drift(distance, j, estimate, self._bias_distance(i, j, distance, estimate))
+            predicted = (invert(self._pose(i, estimate)) @ self._pose(j, estimate), drift)
         elif anchored:
             assert map_pose is not None
             distance = self._anchored_distance(_MAP, j, estimate)
@@ -800,19 +810,45 @@ class IcpLoopClosing(Stage):
         last = estimate.frame_index
         return np.asarray(estimate.poses[last]) @ invert(self.frames.odometry(last)) @ self.frames.odometry(k)
 
-    def _drift(self, distance: float, newest: int, estimate: PoseEstimate | None) -> np.ndarray:
+    def _drift(
+        self, distance: float, newest: int, estimate: PoseEstimate | None, bias_distance: float | None = None
+    ) -> np.ndarray:
         """The gate's drift covariance across ``distance`` m since the last anchor up to frame ``newest``.
 
-        The back-end's heading bias estimate replaces the configured bias when it corrected the
-        odometry over the whole of that distance (the drive from its ``since`` frame to ``newest``).
+        The heading bias acts on ``bias_distance`` m of it (all, by default). The back-end's bias
+        estimate replaces the configured bias when it corrected the odometry over all of that
+        (the drive from its ``since`` frame to ``newest``).
         """
+        biased = distance if bias_distance is None else bias_distance
         correction = None if estimate is None else estimate.yaw_bias
         sigma = None
         if correction is not None:
             start = self.frames.get_distance(correction.since)
-            if start is not None and self.frames.distance(newest) - start >= distance:
+            if start is not None and self.frames.distance(newest) - start >= biased:
                 sigma = correction.sigma
-        return drift_covariance(distance, self.p, sigma)
+        return drift_covariance(distance, self.p, sigma, bias_distance)
+
+    def _bias_distance(self, i: int, j: int, distance: float, estimate: PoseEstimate | None) -> float | None:
+        """The part of the path from frame ``i`` to the newer ``j`` that the odometry's heading bias bends.
+
+        With ``loop.gate_bridged_bias``, when a loop the estimate has absorbed joins a frame at or
+        before ``i`` to one at or after it, the pose graph has spread that loop's closure error over
+        the drive between them, which takes a constant heading bias off it: only the drive from the
+        newest absorbed loop frame to ``j`` keeps the bias. None (all of ``distance``) otherwise.
+        """
+        if not self.p.gate_bridged_bias or estimate is None:
+            return None
+        bridged = False
+        last = -math.inf
+        for c in self.accepted:
+            k = c.constraint
+            if k.from_map or k.frame_to > j or not self._absorbed(c, estimate):
+                continue
+            bridged |= k.frame_from <= i <= k.frame_to
+            last = max(last, self.frames.distance(k.frame_to))
+        if not bridged:
+            return None
+        return min(distance, self.frames.distance(j) - last)
 
     def _absorbed(self, c: _Candidate, estimate: PoseEstimate | None) -> bool:
         """Whether the estimate satisfies an accepted constraint (so it anchors its two frames)."""
