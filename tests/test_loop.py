@@ -214,7 +214,7 @@ def test_anchored_distance_shrinks_once_the_estimate_has_absorbed_a_loop(world) 
 
 
 def test_the_prediction_covariance_starts_at_the_floors_and_grows_with_distance() -> None:
-    p = IcpLoopParams(gate_yaw_bias_deg_per_m=0.0)
+    p = IcpLoopParams(gate_yaw_bias_deg_per_m=0.0, gate_sigma_yaw_deg=0.5)
     zero = drift_covariance(0.0, p)
     assert np.allclose(np.sqrt(np.diag(zero)), [0.5, 0.5, math.radians(3.0)])
     sigmas = [np.sqrt(np.diag(drift_covariance(d, p))) for d in (10.0, 100.0, 1000.0)]
@@ -223,7 +223,9 @@ def test_the_prediction_covariance_starts_at_the_floors_and_grows_with_distance(
     assert math.degrees(sigmas[2][2]) == pytest.approx(15.9, abs=0.2)
     assert sigmas[2][0] == pytest.approx(161.0, abs=2.0)
     # a heading bias of 0.07 deg/m adds 70 degrees of heading and 0.5 * bias * d^2 = 611 m after 1 km
-    biased = np.sqrt(np.diag(drift_covariance(1000.0, IcpLoopParams(gate_yaw_bias_deg_per_m=0.07))))
+    biased = np.sqrt(
+        np.diag(drift_covariance(1000.0, IcpLoopParams(gate_yaw_bias_deg_per_m=0.07, gate_sigma_yaw_deg=0.5)))
+    )
     assert math.degrees(biased[2]) == pytest.approx(math.hypot(15.9, 70.0), abs=0.3)
     assert biased[0] == pytest.approx(math.hypot(161.0, 0.5 * math.radians(0.07) * 1000.0**2), abs=3.0)
 

@@ -141,7 +141,12 @@ class IcpLoopParams(StageParams):
     gate_floor_xy: float = Field(0.5, gt=0.0, description="prediction sigma when freshly anchored (m)")
     gate_floor_yaw_deg: float = Field(3.0, gt=0.0, description="prediction sigma when freshly anchored (deg)")
     gate_sigma_xy: float = Field(0.05, ge=0.0, description="translation random walk of the drift (m per sqrt(m))")
-    gate_sigma_yaw_deg: float = Field(0.5, ge=0.0, description="heading random walk of the drift (deg per sqrt(m))")
+    gate_sigma_yaw_deg: float = Field(
+        0.1,
+        ge=0.0,
+        description="heading random walk of the drift (deg per sqrt(m)); the campus robot's odometry, with margin "
+        "(a robot whose heading wanders more sets its own)",
+    )
     gate_scale_error: float = Field(0.02, ge=0.0, description="odometry scale error (fraction of distance)")
     gate_yaw_bias_deg_per_m: float = Field(
         0.07, ge=0.0, description="odometry heading bias (deg per m): heading error grows with d, position with d^2"
