@@ -339,6 +339,10 @@ class IcpLoopClosing(Stage):
         self._reading: _GateReading | None = None  # what the gate saw of the match evaluated last
         self.frames = FrameLog(truth=True)  # every processed frame: loops may reach any earlier place
         self.accepted: list[_Candidate] = []
+        # the absorbed constraints for one estimate (a snapshot: held, so its identity is not reused) and count
+        self._absorbed_for: PoseEstimate | None = None
+        self._absorbed_count = -1
+        self._absorbed_cache: list[_Candidate] = []
         self.pending: list[_Candidate] = []
         self.waiting: list[_Waiting] = []
         self.assignments: list[GroupAssignment] = []
@@ -845,15 +849,22 @@ class IcpLoopClosing(Stage):
             return None
         bridged = False
         last = -math.inf
-        for c in self.accepted:
+        for c in self._absorbed_loops(estimate):
             k = c.constraint
-            if k.from_map or k.frame_to > j or not self._absorbed(c, estimate):
+            if k.from_map or k.frame_to > j:
                 continue
             bridged |= k.frame_from <= i <= k.frame_to
             last = max(last, self.frames.distance(k.frame_to))
         if not bridged:
             return None
         return min(distance, self.frames.distance(j) - last)
+
+    def _absorbed_loops(self, estimate: PoseEstimate | None) -> list[_Candidate]:
+        """The accepted constraints the estimate satisfies; kept while the estimate and the accepted list stay."""
+        if self._absorbed_for is not estimate or self._absorbed_count != len(self.accepted) or estimate is None:
+            self._absorbed_for, self._absorbed_count = estimate, len(self.accepted)
+            self._absorbed_cache = [c for c in self.accepted if self._absorbed(c, estimate)]
+        return self._absorbed_cache
 
     def _absorbed(self, c: _Candidate, estimate: PoseEstimate | None) -> bool:
         """Whether the estimate satisfies an accepted constraint (so it anchors its two frames)."""
@@ -868,19 +879,18 @@ class IcpLoopClosing(Stage):
 
     def _map_anchored(self, estimate: PoseEstimate | None) -> bool:
         """Whether the estimate is in the map frame (it satisfies an accepted map constraint)."""
-        return any(c.constraint.from_map and self._absorbed(c, estimate) for c in self.accepted)
+        return any(c.constraint.from_map for c in self._absorbed_loops(estimate))
 
     def _anchored_distance(self, a: int, b: int, estimate: PoseEstimate | None) -> float:
         """Path distance from ``a`` to ``b`` where absorbed loops (and the map) join frames at no cost."""
         shortcuts: list[tuple[float, float]] = []
         on_map: list[float] = []  # frames anchored in the map are all joined through it
-        for c in self.accepted:
-            if self._absorbed(c, estimate):
-                k = c.constraint
-                if k.from_map:
-                    on_map.append(self.frames.distance(k.frame_to))
-                else:
-                    shortcuts.append((self.frames.distance(k.frame_from), self.frames.distance(k.frame_to)))
+        for c in self._absorbed_loops(estimate):
+            k = c.constraint
+            if k.from_map:
+                on_map.append(self.frames.distance(k.frame_to))
+            else:
+                shortcuts.append((self.frames.distance(k.frame_from), self.frames.distance(k.frame_to)))
         on_map.sort()
         shortcuts.extend(itertools.pairwise(on_map))
         if a == _MAP:
