@@ -180,8 +180,13 @@ def build_map(
     calibration: Calibration | None = None,
     sequence: str = "",
     ground_truth: Mapping[int, np.ndarray] | None = None,
+    group_of: Mapping[tuple[int, int], int] | None = None,
 ) -> SgfMap:
-    """The map of a run: its group assignments (the SGF of each) seen from the optimized ``poses``."""
+    """The map of a run: its group assignments (the SGF of each) seen from the optimized ``poses``.
+
+    ``group_of`` maps an SGF's ``(frame_index, track_id)`` to its final group where the association
+    regrouped it after assigning it (a group split at the end of the run).
+    """
     members: dict[int, list[MapView]] = {}
     symmetric: dict[int, bool] = {}
     for a in assignments:
@@ -189,12 +194,13 @@ def build_map(
         if isinstance(d, MapDescriptor):
             continue
         frame = d.sgf.frame_index
+        group_id = a.group_id if group_of is None else group_of.get((frame, d.sgf.track_id), a.group_id)
         if frame not in poses:
-            raise DataError(f"no optimized pose for frame {frame} (SGF of group {a.group_id}); cannot build the map")
+            raise DataError(f"no optimized pose for frame {frame} (SGF of group {group_id}); cannot build the map")
         gt = None if ground_truth is None else ground_truth.get(frame)
-        members.setdefault(a.group_id, []).append(
+        members.setdefault(group_id, []).append(
             MapView(
-                group_id=a.group_id,
+                group_id=group_id,
                 frame_index=frame,
                 timestamp=d.sgf.timestamp,
                 pose=np.asarray(poses[frame], dtype=np.float64),
@@ -211,7 +217,7 @@ def build_map(
                 views=int(d.sgf.views),
             )
         )
-        symmetric[a.group_id] = symmetric.get(a.group_id, False) or a.symmetric
+        symmetric[group_id] = symmetric.get(group_id, False) or a.symmetric
     groups = tuple(MapGroup(gid, symmetric[gid], tuple(views)) for gid, views in sorted(members.items()))
     return SgfMap(groups=groups, calibration=calibration, sequence=sequence)
 

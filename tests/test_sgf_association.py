@@ -316,6 +316,60 @@ def test_identical_markings_far_apart_stay_in_their_own_groups():
     assert group_purity(s.groups) == 1.0
 
 
+def _a_look_alike_joined_early(**params):
+    """Arrow A at x = 5, then after 300 m of travel (gate 34.5 m) the same design at x = 65 m, which the
+    drifted odometry (58 m short) puts 2 m from A: it joins A's group; then, 100 m on, A is revisited."""
+    far = ARROW.placed(65.0, 0.0, 0.3, instance_id=9)
+    s = stage(**params)
+    p1, p4, p6 = seen_from(ARROW, 3.0, 0.0), seen_from(far, 3.0, 0.0), seen_from(ARROW, 3.0, math.pi)
+    (a,) = feed(s, 1, p1, desc(ARROW, p1, 1))
+    feed(s, 2, pose_from_xy_yaw(150.0, 0.0, 0.0))
+    feed(s, 3, pose_from_xy_yaw(0.0, 0.0, 0.0))
+    drifted = pose_from_xy_yaw(-58.0, 0.0, 0.0) @ p4
+    (b,) = feed(s, 4, drifted, desc(far, p4, 4, odometry=drifted))
+    assert not b.new_group and b.group_id == a.group_id  # the wide gate let the look-alike in
+    feed(s, 5, pose_from_xy_yaw(60.0, 0.0, 0.0))
+    # The back-end's estimate (loops closed) puts every frame where it truly was; A is seen again.
+    estimate = PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: p6})
+    (c,) = feed(s, 6, p6, desc(ARROW, p6, 6), estimate=estimate)
+    assert not c.new_group and c.group_id == a.group_id
+    return s, a.group_id
+
+
+def test_a_group_the_final_estimate_spreads_beyond_the_gate_is_split_at_the_end():
+    s, first = _a_look_alike_joined_early()
+    context = RunContext(None)
+    context.truth = SequenceTruth(passes=[], revisits=[])
+    s.finalize(context)
+    sgf = context.metrics["sgf"]
+    assert sgf["purity_online"] == pytest.approx(2 / 3) and sgf["purity"] == 1.0 and sgf["groups_split"] == 1
+    kept, split = s.groups
+    assert kept.group_id == first and [m.sgf.frame_index for m in kept.members] == [1, 6]
+    assert [m.sgf.frame_index for m in split.members] == [4] and split.group_id == first + 1
+    assert context.artifacts["sgf_group_of"] == {(1, 1): first, (6, 6): first, (4, 4): first + 1}
+    # The kept part's descriptor is the mean of its own members only, aligned to its first.
+    assert np.allclose(kept.descriptor, (kept.members[0].matrix + align(kept.members[1].matrix, kept.offsets[1])) / 2)
+    # Off: the group stays as it was joined.
+    s, _ = _a_look_alike_joined_early(split_at_end=False)
+    context = RunContext(None)
+    context.truth = SequenceTruth(passes=[], revisits=[])
+    s.finalize(context)
+    assert context.metrics["sgf"]["purity"] == pytest.approx(2 / 3) and len(s.groups) == 1
+    assert "groups_split" not in context.metrics["sgf"]
+
+
+def test_a_member_seen_long_after_the_last_loop_does_not_chain_two_places():
+    """Marking A at x = 0 and its look-alike B 30 m on, 20 m of travel apart (gate 2.6 m); C, seen 500 m later
+    (gate 76.5 m), lies between them: it may join either, but the two stay apart (complete linkage)."""
+    s = stage()
+    positions = np.array([[0.0, 0.0], [30.0, 0.0], [14.0, 0.0], [0.5, 0.0]])
+    travelled = np.array([0.0, 20.0, 520.0, 1.0])
+    parts = s._parts(positions, travelled, [])
+    assert parts.tolist() == [0, 1, 0, 0]  # C joins A (nearer); the part of the first member is 0
+    # A loop joining 20 m and 519 m of travel makes C's sighting 1 m from B's: C is too far from A now.
+    assert s._parts(positions, travelled, [(20.0, 519.0)]).tolist() == [0, 1, 2, 0]
+
+
 @pytest.mark.parametrize("member_gate", [True, False])
 def test_a_group_is_compared_through_its_members_inside_the_gate(member_gate):
     # An arrow seen at the start; 390 m later (a wide gate around it) an L near it joins its group;

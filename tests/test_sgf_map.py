@@ -151,6 +151,19 @@ def test_build_map_needs_a_pose_for_every_view(run) -> None:  # type: ignore[no-
         build_map(assignments, some)
 
 
+def test_build_map_puts_views_into_the_groups_the_association_regrouped_them_into(run) -> None:  # type: ignore[no-untyped-def]
+    assignments, poses, _ = run
+    plain = build_map(assignments, poses)
+    big = max(plain.groups, key=lambda g: len(g.views))
+    moved = big.views[-1]
+    new_id = max(g.group_id for g in plain.groups) + 1
+    regrouped = build_map(assignments, poses, group_of={(moved.frame_index, moved.track_id): new_id})
+    by_id = {g.group_id: g for g in regrouped.groups}
+    assert [(v.frame_index, v.group_id) for v in by_id[new_id].views] == [(moved.frame_index, new_id)]
+    assert len(by_id[big.group_id].views) == len(big.views) - 1
+    assert len(regrouped.views) == len(plain.views)
+
+
 def test_an_empty_map_is_not_saved(tmp_path: Path) -> None:
     with pytest.raises(DataError, match="no views"):
         save_map(tmp_path / "m.safetensors", SgfMap(groups=()))

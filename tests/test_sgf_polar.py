@@ -151,6 +151,23 @@ def test_reverse_loop_on_a_chiral_marking_gives_180_degrees():
     assert abs(abs(math.degrees(shift_to_yaw(k, 90))) - 180.0) <= 4.0
 
 
+def test_a_sliver_of_shared_columns_is_no_match_with_min_overlap():
+    """Two columns of one marking line up with two of another: `intersection` alone calls it a perfect match."""
+    candidate = np.zeros((10, 90))
+    candidate[0, 0:30] = 1.0  # 30 columns, all ring 0
+    query = np.zeros((10, 90))
+    query[0, 28:30] = 1.0  # the query's 20 columns: 2 that look like the candidate's...
+    query[5, 30:48] = 1.0  # ...and 18 that look like nothing in it
+    assert shifted_distances(query, candidate).min() == pytest.approx(0.0)
+    guarded = shifted_distances(query, candidate, min_overlap=0.5)
+    # A shift must share at least 10 columns (half the query's 20); at best 2 of them are alike.
+    assert guarded.min() == pytest.approx(0.8)
+    assert guarded[0, 0] == 1.0  # shift 0 shares 2 columns: refused
+    # A true match keeps its distance: the candidate against itself turned by 7 columns.
+    turned = np.roll(candidate, 7, axis=1)
+    assert shifted_distances(turned, candidate, min_overlap=0.5).min() == pytest.approx(0.0)
+
+
 def test_identical_descriptors_have_zero_distance_and_empty_ones_one():
     m = describe(grid_points(arrow))
     d = shifted_distances(m, np.stack([m, m]))

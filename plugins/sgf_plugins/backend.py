@@ -195,6 +195,7 @@ class _Backend(Stage):
                 calibration=context.calibration or self.calibration,
                 sequence=context.sequence,
                 ground_truth=self.ground_truth,
+                group_of=context.artifacts.get("sgf_group_of"),
             )
             path = Path(context.run_dir) / params.map_file
             map_id = save_map(path, sgf_map)

@@ -92,6 +92,13 @@ class OnlineGroupsParams(StageParams):
     columns: Literal["union", "intersection", "all"] = Field(
         "intersection", description="columns averaged in eq. 10: occupied in both (Scan Context), in either, or all N_s"
     )
+    min_overlap: float = Field(
+        0.5,
+        ge=0.0,
+        le=1.0,
+        description="eq. 10 is 1 at a column shift where fewer than this share of the emptier descriptor's occupied "
+        "columns are occupied in both (a sliver lining up with two columns of another marking is no match); 0 = off",
+    )
     symmetry_threshold: float = Field(
         0.1, ge=0.0, description="a group whose self-distance over all column shifts varies less is symmetric"
     )
@@ -168,6 +175,11 @@ class OnlineGroupsParams(StageParams):
         0.02,
         ge=0.0,
         description="shifts within this eq. 10 distance of the best are ties, resolved by the pose estimate's yaw",
+    )
+    split_at_end: bool = Field(
+        True,
+        description="at the end of the run, split each group into the parts that the final estimate puts within "
+        "the spatial gate of each other (identical markings joined while the gate was tens of metres wide)",
     )
 
 
@@ -299,6 +311,7 @@ class OnlineSgfGroups(Stage):
         self._closures: list[_Closure] = []
         self._shortcuts: tuple[object, list[tuple[float, float]]] = (_NO_ESTIMATE, [])
         self._ranked = [0, 0]  # labelled decisions between the own marking's group and others; own ranked first
+        self._estimate: PoseEstimate | None = None  # the newest estimate seen (for the split at the end)
 
     # -- groups ---------------------------------------------------------------------------
 
@@ -341,6 +354,7 @@ class OnlineSgfGroups(Stage):
         self._closures = []
         self._shortcuts = (_NO_ESTIMATE, [])
         self._ranked = [0, 0]
+        self._estimate = None
         for k, group in enumerate(self._groups):
             for member, anchor in zip(group.members, group.anchors, strict=True):
                 self._index.add(k, member, None, anchor)
@@ -463,7 +477,7 @@ class OnlineSgfGroups(Stage):
             if shortcuts:
                 known = ~unknown
                 travelled[known] = anchored_distances(since, index.travelled[:n][known], shortcuts)
-        radius = p.gate_radius + p.drift_rate * travelled + p.drift_quadratic * travelled**2
+        radius = self._gate_radius(travelled)
         radius[anchored] = math.inf if p.prior_gate_radius is None else p.prior_gate_radius
         groups = index.group[:n]
         count = len(self._groups)
@@ -533,6 +547,82 @@ class OnlineSgfGroups(Stage):
         self._shortcuts = (estimate, shortcuts)
         return shortcuts
 
+    def _gate_radius(self, travelled: np.ndarray) -> np.ndarray:
+        """The spatial gate's radius (m) for the distances travelled between two sightings."""
+        p = self.params
+        return p.gate_radius + p.drift_rate * travelled + p.drift_quadratic * travelled**2
+
+    def split_groups(self, estimate: PoseEstimate | None) -> int:
+        """Split each group into the parts the estimate puts within the spatial gate of each other; new groups made.
+
+        Two members may stay together when their map distance is within the gate radius of the
+        (anchored) distance travelled between their sightings; a part holds members that may all
+        stay together (:meth:`_parts`). Early in a run, before any loop, the gate is tens of metres wide and identical
+        standard markings at different places (stop lines, chevrons) can join one group; once
+        loops have corrected the estimate, their members lie far apart and the group is split:
+        the part holding its first member keeps its id, the others get new ids. Groups seeded
+        from a map are left alone.
+        """
+        index = self._index
+        if not self._groups or index.size == 0:
+            return 0
+        positions = self._member_positions(estimate)
+        shortcuts = self._anchoring(estimate) if self.params.anchored_gate else []
+        rows = np.arange(index.size)
+        made = 0
+        for slot, group in enumerate(list(self._groups)):
+            mine = rows[index.group[: index.size] == slot]
+            if len(mine) < 2 or any(a is not None for a in group.anchors) or np.isnan(index.travelled[mine]).any():
+                continue
+            parts = self._parts(positions[mine], index.travelled[mine], shortcuts)
+            if parts.max() == 0:
+                continue
+            keep = parts == 0
+            n_s = group.members[0].matrix.shape[1]
+            for label in range(1, int(parts.max()) + 1):
+                taken = np.flatnonzero(parts == label)
+                new = SgfGroup(self._next_id, aliased=group.aliased)
+                self._next_id += 1
+                base = group.offsets[taken[0]]
+                for k in taken:
+                    new.add(group.members[k], group.offsets[k] - base)
+                new.refresh(self.params.columns, self.params.symmetry_threshold)
+                self._slot[new.group_id] = len(self._groups)
+                index.group[mine[taken]] = len(self._groups)
+                self._groups.append(new)
+                made += 1
+            group.members = [m for m, k in zip(group.members, keep, strict=True) if k]
+            group.offsets = [o for o, k in zip(group.offsets, keep, strict=True) if k]
+            group.anchors = [a for a, k in zip(group.anchors, keep, strict=True) if k]
+            group.offsets = [(o - group.offsets[0]) % n_s for o in group.offsets]
+            group.refresh(self.params.columns, self.params.symmetry_threshold)
+        return made
+
+    def _parts(self, positions: np.ndarray, travelled: np.ndarray, shortcuts: list[tuple[float, float]]) -> np.ndarray:
+        """Parts (labels from 0, in order of first member) whose members are all within the gate of each other.
+
+        Agglomerative, closest pairs (by map distance over gate radius) first; two parts merge only
+        when every pair across them is within the gate (complete linkage), so a member seen long
+        after the last loop, with a gate wide enough to reach two places, does not chain them.
+        """
+        n = len(positions)
+        distance = np.hypot(*(positions[:, None, :] - positions[None, :, :]).transpose(2, 0, 1))
+        anchored = np.stack([anchored_distances(float(t), travelled, shortcuts) for t in travelled])
+        ratio = distance / self._gate_radius(anchored)
+        within = ratio <= 1.0
+        label = np.arange(n)
+        i, j = np.triu_indices(n, 1)
+        for k in np.argsort(ratio[i, j], kind="stable"):
+            a, b = label[i[k]], label[j[k]]
+            if ratio[i[k], j[k]] > 1.0:
+                break
+            if a != b and within[np.ix_(label == a, label == b)].all():
+                label[label == b] = a
+        _, first, inverse = np.unique(label, return_index=True, return_inverse=True)
+        rank = np.empty(len(first), dtype=np.int64)
+        rank[np.argsort(first)] = np.arange(len(first))
+        return rank[inverse]
+
     # -- eq. 10 ------------------------------------------------------------------------------
 
     def _prior_shift(self, query: SgfDescriptor, member: SgfDescriptor, estimate: PoseEstimate | None) -> float | None:
@@ -560,7 +650,7 @@ class OnlineSgfGroups(Stage):
                     "all SGF descriptors of a run (and of a seeded map) need the same N_r and N_s"
                 )
             if p.group_distance == "mean":
-                eq10 = shifted_distances(query.matrix, stack, p.columns).min(axis=1)
+                eq10 = shifted_distances(query.matrix, stack, p.columns, p.min_overlap).min(axis=1)
             else:
                 eq10 = self._nearest_member_distances(
                     query, [c.group for c in candidates], [c.members for c in candidates]
@@ -659,7 +749,8 @@ class OnlineSgfGroups(Stage):
         """Eq. 10 distance (best shift) from the query to each group's closest member (of ``members``, when given)."""
         members = [None] * len(groups) if members is None else members
         chosen = [g.matrices if m is None else g.matrices[m] for g, m in zip(groups, members, strict=True)]
-        per_member = shifted_distances(query.matrix, np.concatenate(chosen), self.params.columns).min(axis=1)
+        p = self.params
+        per_member = shifted_distances(query.matrix, np.concatenate(chosen), p.columns, p.min_overlap).min(axis=1)
         starts = np.cumsum([0] + [len(c) for c in chosen[:-1]])
         return np.minimum.reduceat(per_member, starts)
 
@@ -669,7 +760,7 @@ class OnlineSgfGroups(Stage):
         """The group member (of ``members``, when given) closest to the query by eq. 10, its index, and the shift."""
         p = self.params
         candidates = np.arange(len(group.members)) if members is None else members
-        profiles = shifted_distances(query.matrix, group.matrices[candidates], p.columns)
+        profiles = shifted_distances(query.matrix, group.matrices[candidates], p.columns, p.min_overlap)
         k = int(np.argmin(profiles.min(axis=1)))
         m = int(candidates[k])
         matched = group.members[m]
@@ -691,14 +782,30 @@ class OnlineSgfGroups(Stage):
         """Group this frame's SGF descriptors."""
         self._record(frame)
         self._remember_loops(loops)
+        if estimate is not None:
+            self._estimate = estimate
         return GroupAssignments(tuple(self.assign(d, estimate) for d in descriptors.items))
 
     # -- evaluation ---------------------------------------------------------------------------
 
     def finalize(self, context: RunContext) -> None:
-        """Publish the groups (``artifacts['sgf_groups']``) and write purity and loop-pair metrics."""
-        context.artifacts["sgf_groups"] = list(self._groups)
+        """Publish the groups (``artifacts['sgf_groups']``) and write purity and loop-pair metrics.
+
+        With ``split_at_end`` the groups are first split by the newest estimate (:meth:`split_groups`);
+        ``artifacts['sgf_group_of']`` maps each run member's ``(frame_index, track_id)`` to its final
+        group, for the SGF map. ``purity_online`` is the purity before the split.
+        """
         sgf: dict[str, Any] = context.metrics.setdefault("sgf", {})
+        online = group_purity(self._groups) if context.truth is not None else None
+        if self.params.split_at_end and self.params.spatial_gate:
+            sgf["groups_split"] = self.split_groups(self._estimate)
+        context.artifacts["sgf_groups"] = list(self._groups)
+        context.artifacts["sgf_group_of"] = {
+            (m.sgf.frame_index, m.sgf.track_id): g.group_id
+            for g in self._groups
+            for m, a in zip(g.members, g.anchors, strict=True)
+            if a is None
+        }
         sgf["groups"] = len(self._groups)
         sgf["symmetric_groups"] = sum(1 for g in self._groups if g.symmetric)
         sgf["aliased_groups"] = sum(1 for g in self._groups if g.aliased)
@@ -709,6 +816,7 @@ class OnlineSgfGroups(Stage):
         )
         if context.truth is not None:
             sgf["purity"] = group_purity(self._groups)
+            sgf["purity_online"] = online
             decisions, first = self._ranked
             sgf["own_group_ranked_first"] = {"decisions": decisions, "share": first / decisions if decisions else None}
             sgf["mixed_groups"] = sum(1 for g in self._groups if len(_instance_counts(g)[0]) > 1)

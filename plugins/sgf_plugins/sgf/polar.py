@@ -76,7 +76,9 @@ def _unit_columns(matrices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return unit, occupied[..., 0, :]
 
 
-def shifted_distances(query: np.ndarray, candidates: np.ndarray, columns: ColumnSet = "intersection") -> np.ndarray:
+def shifted_distances(
+    query: np.ndarray, candidates: np.ndarray, columns: ColumnSet = "intersection", min_overlap: float = 0.0
+) -> np.ndarray:
     """Eq. 10 at every column shift: a (G, N_s) array for a (N_r, N_s) query and (G, N_r, N_s) candidates.
 
     Entry ``[g, k]`` compares query column j with candidate column (j + k) mod N_s, so shift k
@@ -85,7 +87,10 @@ def shifted_distances(query: np.ndarray, candidates: np.ndarray, columns: Column
     sets N_c and what an empty column counts: ``intersection`` averages over columns occupied in
     both descriptors (Scan Context's choice); ``union`` over columns occupied in either, a column
     empty on one side counting distance 1; ``all`` over all N_s columns, empty ones counting 1
-    (eq. 10 read literally). With nothing to compare the distance is 1.
+    (eq. 10 read literally). With nothing to compare the distance is 1, and so it is at a shift where
+    the columns occupied in both are fewer than ``min_overlap`` times those of the emptier
+    descriptor: with ``intersection``, two columns that happen to line up would otherwise make
+    a sliver match any marking at distance near 0.
     """
     q = np.asarray(query, dtype=np.float64)
     c = np.asarray(candidates, dtype=np.float64)
@@ -100,18 +105,20 @@ def shifted_distances(query: np.ndarray, candidates: np.ndarray, columns: Column
     index = (np.arange(n_s)[None, :] - np.arange(n_s)[:, None]) % n_s
     q_stack = q_unit[:, index].transpose(1, 0, 2).reshape(n_s, n_r * n_s)
     similarity = c_unit.reshape(len(c), n_r * n_s) @ q_stack.T
+    both = c_occ.astype(np.float64) @ q_occ[index].astype(np.float64).T  # columns occupied in both, per shift
     if columns == "all":
         count = np.full(similarity.shape, float(n_s))
+    elif columns == "union":
+        count = q_occ.sum() + c_occ.sum(axis=1, keepdims=True) - both
+    elif columns == "intersection":
+        count = both
     else:
-        both = c_occ.astype(np.float64) @ q_occ[index].astype(np.float64).T
-        if columns == "union":
-            count = q_occ.sum() + c_occ.sum(axis=1, keepdims=True) - both
-        elif columns == "intersection":
-            count = both
-        else:
-            raise ValueError(f"unknown column set {columns!r}; expected union, intersection or all")
+        raise ValueError(f"unknown column set {columns!r}; expected union, intersection or all")
     distance = np.ones_like(similarity)
-    np.divide(count - similarity, count, out=distance, where=count > 0)
+    valid = count > 0
+    if min_overlap > 0.0:
+        valid &= both >= min_overlap * np.minimum(c_occ.sum(axis=1, keepdims=True), q_occ.sum())
+    np.divide(count - similarity, count, out=distance, where=valid)
     return np.clip(distance, 0.0, 1.0)
 
 
