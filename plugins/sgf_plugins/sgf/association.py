@@ -93,7 +93,7 @@ class OnlineGroupsParams(StageParams):
         "intersection", description="columns averaged in eq. 10: occupied in both (Scan Context), in either, or all N_s"
     )
     min_overlap: float = Field(
-        0.5,
+        0.0,
         ge=0.0,
         le=1.0,
         description="eq. 10 is 1 at a column shift where fewer than this share of the emptier descriptor's occupied "
