@@ -577,8 +577,7 @@ class OnlineSgfGroups(Stage):
             parts = self._parts(positions[mine], index.travelled[mine], shortcuts)
             if parts.max() == 0:
                 continue
-            keep = parts == 0
-            n_s = group.members[0].matrix.shape[1]
+            keep = parts == 0  # holds the first member, whose offset (the group's orientation) is 0
             for label in range(1, int(parts.max()) + 1):
                 taken = np.flatnonzero(parts == label)
                 new = SgfGroup(self._next_id, aliased=group.aliased)
@@ -594,7 +593,6 @@ class OnlineSgfGroups(Stage):
             group.members = [m for m, k in zip(group.members, keep, strict=True) if k]
             group.offsets = [o for o, k in zip(group.offsets, keep, strict=True) if k]
             group.anchors = [a for a, k in zip(group.anchors, keep, strict=True) if k]
-            group.offsets = [(o - group.offsets[0]) % n_s for o in group.offsets]
             group.refresh(self.params.columns, self.params.symmetry_threshold)
         return made
 
