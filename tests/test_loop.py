@@ -683,3 +683,66 @@ def test_fits_are_told_apart_on_the_marking_not_at_the_robot() -> None:
     assert fits[1] is period and fits[2] is turned
     # a fit much worse than the best is no alternative
     assert loop._fits([best, result(about_marking(math.pi), 0.02)], points) == [best]
+
+
+@pytest.mark.parametrize(
+    ("copy_x", "sigma_limit", "closed"),
+    [(5.0, 5.0, True), (26.0, 5.0, False), (5.0, None, False), (5.0, 4.0, False)],
+)
+def test_a_match_the_gate_predicts_tightly_needs_no_neighbours(
+    copy_x: float, sigma_limit: float | None, closed: bool
+) -> None:
+    # the arrow is revisited after 78 m of exact odometry: the gate's sigma is 4.14 m, and nothing seen on both
+    # passes can agree. A copy of the arrow in another group makes it common (not distinct): 25 m from the
+    # matched arrow the gate would have refused it, 4 m from it (within 4.03 sigma + 2 m = 18.7 m) it could pass.
+    copy = Marking(4, "arrow", (copy_x, 1.5, 0.0))
+    frames, by_frame = _revisit_with_neighbours([copy], [])
+    stage = IcpLoopClosing(IcpLoopParams(gate_support_sigma=sigma_limit))
+    loops = _run_loop(stage, frames, by_frame)
+    assert [c.instance_ids for c in loops] == ([(1, 1)] if closed else [])
+    assert stage.distinct == 0 and stage.gate_decided == int(closed)
+    assert stage.counts["consensus"] == (0 if closed else 1)
+    (row,) = [d for d in stage.decisions if d["frame_to"] == 68]
+    assert row["gate_sigma_xy"] == pytest.approx(4.144, abs=1e-3) and row["gate_chi2"] < 0.01
+    if closed:
+        assert np.allclose(xy_yaw(loops[0].relative), (0.0, 0.0, 0.0), atol=0.02)
+    # with the gate off, the gate decides nothing
+    if closed:
+        off = IcpLoopClosing(IcpLoopParams(gate=False, gate_support_sigma=sigma_limit))
+        assert _run_loop(off, frames, by_frame) == [] and off.gate_decided == 0
+
+
+def test_a_tie_the_gate_leaves_one_option_of_is_resolved_without_neighbours() -> None:
+    # B is 20 m from A. With the gate at 90 % (chi-square 6.25) only A passes (B: 10.1 at 6.3 m sigma), and B
+    # lies beyond the gate's reach from A (2.5 x 4.14 m + 2 m = 12.4 m): the gate alone tells them apart
+    frames, by_frame, _ = _tied_arrows(neighbour=False)
+    stage = IcpLoopClosing(IcpLoopParams(gate_probability=0.9, gate_support_sigma=5.0, consensus_window=15.0))
+    (loop,) = _run_loop(stage, frames, by_frame)
+    assert loop.instance_ids == (1, 1) and loop.group_id == 1
+    assert stage.gate_decided == 1 and stage.ties_resolved == 1 and stage.counts["ambiguous"] == 0
+    strict = IcpLoopClosing(IcpLoopParams(gate_probability=0.9, gate_support_sigma=None, consensus_window=15.0))
+    assert _run_loop(strict, frames, by_frame) == [] and strict.counts["ambiguous"] == 1
+    # at 99 % B passes the gate too: two options, and no neighbour to choose between them
+    loose = IcpLoopClosing(IcpLoopParams(gate_support_sigma=5.0, consensus_window=15.0))
+    assert _run_loop(loose, frames, by_frame) == [] and loose.counts["ambiguous"] == 1 and loose.gate_decided == 0
+
+
+def test_a_match_into_a_view_of_the_same_pass_is_redone_with_the_groups_earlier_pass() -> None:
+    frames = _two_passes(40)
+    arrow = Marking(1, "arrow", (30.0, 0.5, 0.3))
+    first, again, query = (_view(frames[k], arrow) for k in (28, 66, 68))
+    by_frame = {
+        28: GroupAssignments((GroupAssignment(first, 1, True, 1.0, 0, 0.0, None, False),)),  # type: ignore[arg-type]
+        66: GroupAssignments((GroupAssignment(again, 1, False, 0.01, 0, 0.0, None, False),)),  # type: ignore[arg-type]
+        # the association matched the query to the group's closest member: the view 2 m back on this pass
+        68: GroupAssignments((GroupAssignment(query, 1, False, 0.01, 0, 0.0, again, False),)),  # type: ignore[arg-type]
+    }
+    stage = IcpLoopClosing(IcpLoopParams(min_support=0))
+    (loop,) = _run_loop(stage, frames, by_frame)
+    assert (loop.frame_from, loop.frame_to, loop.instance_ids) == (28, 68, (1, 1))
+    assert np.allclose(xy_yaw(loop.relative), xy_yaw(invert(frames[28].odometry) @ frames[68].odometry), atol=0.02)
+    assert stage.earlier_members == 1 and stage.counts["separation"] == 0
+    # without an earlier pass in the group, the same-pass match is refused as before
+    del by_frame[28]
+    alone = IcpLoopClosing(IcpLoopParams(min_support=0))
+    assert _run_loop(alone, frames, by_frame) == [] and alone.counts["separation"] == 1 and alone.earlier_members == 0

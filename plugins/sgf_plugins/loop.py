@@ -1,7 +1,8 @@
 """Loop closing with SGF factors (paper Sec. III-D): ICP between an SGF and its group's closest member.
 
-When a new SGF joins a group holding an SGF from an earlier pass (``GroupAssignment.matched``),
-their point sets are aligned by 2-D ICP seeded by the relative yaw of the best column shift
+When a new SGF joins a group holding an SGF from an earlier pass (``GroupAssignment.matched``;
+when the association matched a view of the same pass, the group's closest member from an earlier
+pass), their point sets are aligned by 2-D ICP seeded by the relative yaw of the best column shift
 (so reverse loops converge) and by the centroids. ``GroupAssignment.yaw`` is read as the
 rotation (rad, counter-clockwise) that turns the new SGF's points about their centroid onto
 the matched SGF's; with ``seed_both_signs`` the opposite sign is tried too, so the
@@ -46,7 +47,11 @@ query looks like (eq. 10 within ``consensus_distance``) while no SGF of any othe
 needs ``distinct_support`` agreeing neighbours (0 by default: ICP and the gate decide), so a route
 that revisits one marking only (campus_delivery) can close its loop. The risk it takes is the
 second copy of a repeated design met before any third copy made it look common; the gate is what
-stands against that. With ``consensus_wait``, a match that has too few
+stands against that. Once loops have anchored the estimate, the gate itself tells a design's copies
+apart: a match the gate predicts within ``gate_support_sigma`` metres needs no neighbours either,
+unless an SGF of another group that looks like the query was seen within the gate's reach of the
+matched one (:meth:`IcpLoopClosing._gate_decides`); a tie that the gate leaves one option of is
+resolved the same way. With ``consensus_wait``, a match that has too few
 agreeing neighbours so far waits while the robot drives ``consensus_window`` metres on, and the
 SGFs seen after it count too: the first marking of a revisit (a reverse one above all, entered
 from a stretch never driven before) has no neighbour behind it that both passes saw.
@@ -92,7 +97,7 @@ from sgf_pipeline.types import (
 from sgf_plugins.anchoring import anchored_distances
 from sgf_plugins.frame_log import FrameLog
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2, se2_params
-from sgf_plugins.sgf.polar import shifted_distances, yaw_to_shift
+from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, yaw_to_shift
 
 _MAP = -1  # the prior map as one node of the anchoring graph
 #: Two ICP fits that put the query's points further apart than this (RMS, m) are distinct fits of one match.
@@ -213,6 +218,13 @@ class IcpLoopParams(StageParams):
     )
     distinct_distance: float = Field(
         0.15, ge=0.0, le=1.0, description="eq. 10: an SGF of another group this close makes a marking not distinct"
+    )
+    gate_support_sigma: float | None = Field(
+        2.0,
+        gt=0.0,
+        description="a match the gate predicts within this position sigma (m) needs no agreeing neighbours, unless an "
+        "SGF of another group that looks like the query (eq. 10 at most consensus_distance) was seen within the "
+        "gate's reach of the matched one: ICP and the gate decide (null = min_support always)",
     )
     consensus_wait: bool = Field(
         False,
@@ -361,12 +373,16 @@ class IcpLoopClosing(Stage):
         self.ties_resolved = 0
         self.aliases_resolved = 0
         self.distinct = 0
+        self.gate_decided = 0
+        self.earlier_members = 0
         self.decisions: list[dict[str, Any]] = []  # every candidate's outcome: loop_candidates.csv
         self._sgf_group: list[int] = []
         self._sgf_xy: list[np.ndarray] = []
         self._sgf_distance: list[float] = []
         self._sgf_matrix: list[np.ndarray] = []
         self._sgf_yaw: list[float] = []
+        self._sgf_frame: list[int] = []
+        self._sgf_centroid: list[np.ndarray] = []
 
     # -- per frame --------------------------------------------------------------------------
 
@@ -405,6 +421,11 @@ class IcpLoopClosing(Stage):
         if a.ambiguous:
             return self._resolve_tie(a, estimate)
         candidate = self._evaluate(a, estimate)
+        if candidate == "separation":
+            earlier = self._earlier_member(a)
+            if earlier is not None:
+                a, candidate = earlier, self._evaluate(earlier, estimate)
+                self.earlier_members += 1
         if isinstance(candidate, str):
             self._refuse(a, candidate, self._reading)
             return []
@@ -412,9 +433,45 @@ class IcpLoopClosing(Stage):
         if self.p.distinct_support is not None and need > self.p.distinct_support and self._distinct(a):
             need = self.p.distinct_support
             self.distinct += 1
+        if need > 0 and candidate.map_pose is None and self._gate_decides(a, candidate, estimate):
+            need = 0
+            self.gate_decided += 1
         if need > 0 and candidate.map_pose is None:
             return self._consensus(((a, candidate),), need, False, "consensus", None, estimate)
         return self._accept(candidate, estimate)
+
+    def _gate_decides(self, a: GroupAssignment, candidate: _Candidate, estimate: PoseEstimate | None) -> bool:
+        """Whether the gate alone tells this match from every look-alike seen so far (``gate_support_sigma``).
+
+        The neighbour consensus exists because the drift can be larger than the spacing of a design's
+        copies. Once loops have anchored the estimate, the gate predicts the query's place within
+        ``sigma`` metres: a copy farther from the matched SGF than the gate's reach
+        (``sqrt(chi2 threshold) * sigma``) would have failed it. So the match needs no neighbours when
+        no SGF of another group that looks like the query lies within that reach of the matched SGF
+        (positions in the current estimate). A copy never seen is the risk left, as for a distinct marking.
+        """
+        limit, gate = self.p.gate_support_sigma, candidate.gate
+        if not self.p.gate or limit is None or gate is None or not (gate.sigma_xy <= limit):
+            return False
+        assert a.matched is not None
+        _, distances = self._other_groups_distances(np.asarray(a.descriptor.matrix), a.group_id)
+        others = np.flatnonzero(np.asarray(self._sgf_group, dtype=np.int64) != a.group_id)
+        alike = others[distances <= self.p.consensus_distance]
+        query_frame, query_centroid = a.descriptor.sgf.frame_index, np.asarray(a.descriptor.centroid)[:2]
+        reach = math.sqrt(self.threshold) * gate.sigma_xy + self.p.consensus_exclude
+        matched = self._estimate_xy(a.matched.sgf.frame_index, np.asarray(a.matched.centroid), estimate)
+        for k in alike:
+            if self._sgf_frame[k] == query_frame and np.allclose(self._sgf_centroid[k], query_centroid):
+                continue  # the query itself (remembered in the group it joined: another option's, in a tie)
+            here = self._estimate_xy(self._sgf_frame[k], self._sgf_centroid[k], estimate)
+            if float(np.hypot(*(here - matched))) <= reach:
+                return False
+        return True
+
+    def _estimate_xy(self, frame_index: int, centroid: np.ndarray, estimate: PoseEstimate | None) -> np.ndarray:
+        """An SGF's centroid (x, y) in the current estimate (odometry before the first)."""
+        pose = self._pose(frame_index, estimate)
+        return pose[:2, :2] @ np.asarray(centroid, dtype=np.float64)[:2] + pose[:2, 3]
 
     def _distinct(self, a: GroupAssignment) -> bool:
         """Whether the query looks like its match (eq. 10) and like no SGF of any other group seen so far.
@@ -467,6 +524,10 @@ class IcpLoopClosing(Stage):
         if not passed:
             self._refuse(a, "ambiguous")
             return []
+        if len(passed) == 1 and self._gate_decides(*passed[0], estimate):
+            self.gate_decided += 1
+            self.ties_resolved += 1
+            return self._accept(passed[0][1], estimate)
         need = max(self.p.tie_support, self.p.min_support)
         return self._consensus(tuple(passed), need, False, "ambiguous", "ties", estimate)
 
@@ -535,13 +596,7 @@ class IcpLoopClosing(Stage):
         i = matched.sgf.frame_index
         if not from_map:
             self._known(i)
-            p = self.p
-            if (
-                i >= j
-                or j - i < p.min_separation_frames
-                or self.frames.time(j) - self.frames.time(i) < p.min_separation_time
-                or self.frames.distance(j) - self.frames.distance(i) < p.min_separation_distance
-            ):
+            if not self._separated(i, j):
                 return "separation"
         if min(len(query.points), len(matched.points)) < self.p.min_points:
             return "too_few_points"
@@ -575,6 +630,45 @@ class IcpLoopClosing(Stage):
             best = passing[0]
         constraint = self._constraint(a, best, from_map)
         return _Candidate(constraint, map_pose, map_truth, a.group_id, anchored, self._reading)
+
+    def _separated(self, i: int, j: int) -> bool:
+        """Whether frame ``i`` is far enough before frame ``j`` (frames, time, path) to be another pass."""
+        p = self.p
+        return (
+            i < j
+            and j - i >= p.min_separation_frames
+            and self.frames.time(j) - self.frames.time(i) >= p.min_separation_time
+            and self.frames.distance(j) - self.frames.distance(i) >= p.min_separation_distance
+        )
+
+    def _earlier_member(self, a: GroupAssignment) -> GroupAssignment | None:
+        """The match redone with the group's closest member (eq. 10) from an earlier pass, when there is one.
+
+        The association matches the query to its group's closest member; when that is a view of
+        the same pass (the marking seen twice on the way), a member seen on an earlier pass may
+        still be in the group, and that pair is the loop.
+        """
+        query = a.descriptor
+        j = query.sgf.frame_index
+        members = [
+            m.descriptor
+            for m in self.assignments
+            if m.group_id == a.group_id
+            and m.descriptor.sgf.frame_index in self.frames
+            and self._separated(m.descriptor.sgf.frame_index, j)
+        ]
+        if not members:
+            return None
+        profiles = shifted_distances(np.asarray(query.matrix), np.stack([np.asarray(m.matrix) for m in members]))
+        k = int(np.argmin(profiles.min(axis=1)))
+        shift = best_shift(profiles[k])
+        return replace(
+            a,
+            matched=members[k],
+            distance=float(profiles[k, shift]),
+            shift=shift,
+            yaw=shift_to_yaw(shift, profiles.shape[1]),
+        )
 
     def _gate_chi2(
         self, a: GroupAssignment, r: IcpResult, from_map: bool, predicted: tuple[np.ndarray, np.ndarray]
@@ -640,6 +734,8 @@ class IcpLoopClosing(Stage):
         self._sgf_matrix.append(np.asarray(d.matrix))
         self._sgf_yaw.append(_odometry_yaw(d))
         self._sgf_group.append(a.group_id)
+        self._sgf_frame.append(d.sgf.frame_index)
+        self._sgf_centroid.append(np.asarray(d.centroid, dtype=np.float64)[:2])
 
     def _support(self, a: GroupAssignment, c: LoopConstraint, unlike: bool = False) -> float:
         """How many other markings near the query agree with the match: seen where it puts them, and alike.
@@ -973,6 +1069,8 @@ class IcpLoopClosing(Stage):
             "ties_resolved": self.ties_resolved,
             "aliases_resolved": self.aliases_resolved,
             "distinct": self.distinct,
+            "gate_decided": self.gate_decided,
+            "earlier_members": self.earlier_members,
         }
         truth = context.truth if context.truth is not None else self.truth
         if not self.accepted and (truth is not None or self.frames.has_truth()):
