@@ -810,3 +810,26 @@ def test_the_vectorised_gate_is_the_member_by_member_gate():
             dictionary[frame] = truth
     assert len(s.groups) > 5 and max(len(g.members) for g in s.groups) > 2
     assert min(seen.values()) > 0  # the comparison met repeats, groups left out and the seeded map group
+
+
+def _back_to_an_arrow_whose_group_took_in_an_unlike_sgf(**params):
+    """Arrow A; 74 m later an L 3 m from it joins A's group (the gate is 6 m wide, eq. 10 under 0.7); then A again."""
+    ell = ELL.placed(7.0, 3.0, 1.1, instance_id=4)
+    p1, p3, p4 = seen_from(ARROW, 3.0, 0.0), seen_from(ell, 3.0, 0.0), seen_from(ARROW, 3.0, 0.0, lateral=0.2)
+    s = stage(new_group_distance=0.95, **params)
+    (r1,) = feed(s, 1, p1, desc(ARROW, p1, 1))
+    feed(s, 2, pose_from_xy_yaw(40.0, 0.0, 0.0))
+    (r3,) = feed(s, 3, p3, desc(ell, p3, 3))
+    assert not r3.new_group and r3.group_id == r1.group_id  # the unlike SGF joined A's group
+    (r4,) = feed(s, 4, p4, desc(ARROW, p4, 4))
+    return r1, r4
+
+
+def test_a_revisit_is_no_copy_of_an_unlike_sgf_its_group_took_in_nearby():
+    # the L was seen 3.6 m of travel before the revisit, 3 m away: a member seen moments ago elsewhere. Judged by
+    # eq. 10 to the L itself (copy_member), it is no copy of the arrow, and the revisit joins its group
+    r1, r4 = _back_to_an_arrow_whose_group_took_in_an_unlike_sgf()
+    assert not r4.new_group and r4.group_id == r1.group_id and not r4.aliased and r4.distance < 0.1
+    # judged by the group's closest member (the first arrow), the revisit was a copy: a group of its own, aliased
+    r1, r4 = _back_to_an_arrow_whose_group_took_in_an_unlike_sgf(copy_member=False)
+    assert r4.new_group and r4.aliased and r4.group_id != r1.group_id

@@ -155,6 +155,12 @@ class OnlineGroupsParams(StageParams):
     copy_distance: float = Field(
         0.2, ge=0.0, description="...and a copy looks like the query: eq. 10 distance at most this (0 = no copies)"
     )
+    copy_member: bool = Field(
+        True,
+        description="a copy is judged by eq. 10 to the member seen moments ago elsewhere itself; false = to the "
+        "group's closest member (a group that once took in an unlike SGF seen nearby then turns every revisit of "
+        "its marking into a copy)",
+    )
     copies: Literal["apart", "new"] = Field(
         "new",
         description="a query whose best match is a neighbouring copy (ties it within tie_margin): joins the best "
@@ -192,6 +198,7 @@ class GatedGroup:
     repeated: bool
     ratio: float = 0.0
     members: np.ndarray | None = None  # indices of the members inside the gate (None: every member)
+    repeating: np.ndarray | None = None  # indices of the members seen moments ago elsewhere (when ``repeated``)
 
 
 class _MemberIndex:
@@ -489,18 +496,22 @@ class OnlineSgfGroups(Stage):
         inside = np.bincount(groups, weights=member_inside, minlength=count) > 0
         repeats = np.bincount(groups, weights=repeated, minlength=count) > 0
         members: list[np.ndarray | None] = [None] * count
-        if p.member_gate and p.spatial_gate and inside.any():
+        repeating: list[np.ndarray | None] = [None] * count
+        if inside.any() and ((p.member_gate and p.spatial_gate) or (repeats & inside).any()):
             # members sit in the index in the order they joined their group: rank within the group = member index
             order = np.argsort(groups, kind="stable")
             starts = np.concatenate([[0], np.cumsum(np.bincount(groups, minlength=count))[:-1]])
             rank = np.arange(n) - starts[groups[order]]  # of each member, in ``order``
-            kept = member_inside[order]
-            split = np.cumsum(np.bincount(groups[order][kept], minlength=count))[:-1]
-            for k, inside_members in enumerate(np.split(rank[kept], split)):
-                if inside[k]:
-                    members[k] = inside_members
+
+            def per_group(flags: np.ndarray) -> list[np.ndarray]:
+                kept = flags[order]
+                return np.split(rank[kept], np.cumsum(np.bincount(groups[order][kept], minlength=count))[:-1])
+
+            if p.member_gate and p.spatial_gate:
+                members = [m if inside[k] else None for k, m in enumerate(per_group(member_inside))]
+            repeating = [r if repeats[k] else None for k, r in enumerate(per_group(repeated))]
         return [
-            GatedGroup(group, float(nearest[k]), bool(repeats[k]), float(min(ratio[k], 1.0)), members[k])
+            GatedGroup(group, float(nearest[k]), bool(repeats[k]), float(min(ratio[k], 1.0)), members[k], repeating[k])
             for k, group in enumerate(self._groups)
             if inside[k]
         ]
@@ -658,7 +669,9 @@ class OnlineSgfGroups(Stage):
             self._rank_own_group(query, candidates, score)
             # A look-alike group just seen elsewhere is a neighbouring copy of a repeated pattern
             # (give-way triangles, dashes): the query may not join it, and neither gives loop factors.
-            copy = np.array([c.repeated for c in candidates]) & (eq10 <= p.copy_distance)
+            copy = np.array([c.repeated for c in candidates]) & (
+                self._copy_distances(query, candidates, eq10) <= p.copy_distance
+            )
             for i in np.flatnonzero(copy):
                 candidates[i].group.aliased = True
             copy_nearby = bool(copy.any())
@@ -740,6 +753,21 @@ class OnlineSgfGroups(Stage):
         if own.any() and not own.all():
             self._ranked[0] += 1
             self._ranked[1] += int(score[own].min() < score[~own].min())
+
+    def _copy_distances(self, query: SgfDescriptor, candidates: list[GatedGroup], eq10: np.ndarray) -> np.ndarray:
+        """Eq. 10 from the query to each repeating group's members seen moments ago elsewhere (``copy_member``).
+
+        Without ``copy_member``: the distance to the group (``eq10``), as the copy test had it before.
+        """
+        if not self.params.copy_member:
+            return eq10
+        out = np.full(len(candidates), math.inf)
+        p = self.params
+        for i, c in enumerate(candidates):
+            if c.repeated and c.repeating is not None and len(c.repeating):
+                profiles = shifted_distances(query.matrix, c.group.matrices[c.repeating], p.columns, p.min_overlap)
+                out[i] = float(profiles.min())
+        return out
 
     def _nearest_member_distances(
         self, query: SgfDescriptor, groups: list[SgfGroup], members: list[np.ndarray | None] | None = None
