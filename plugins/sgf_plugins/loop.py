@@ -446,7 +446,8 @@ class IcpLoopClosing(Stage):
         The neighbour consensus exists because the drift can be larger than the spacing of a design's
         copies. Once loops have anchored the estimate, the gate predicts the query's place within
         ``sigma`` metres: a copy farther from the matched SGF than the gate's reach
-        (``sqrt(chi2 threshold) * sigma``) would have failed it. So the match needs no neighbours when
+        (``sqrt(chi2 threshold) * sigma``, plus ``consensus_exclude`` for the markings' extent) would
+        have failed it. So the match needs no neighbours when
         no SGF of another group that looks like the query lies within that reach of the matched SGF
         (positions in the current estimate). A copy never seen is the risk left, as for a distinct marking.
         """
