@@ -455,8 +455,7 @@ class IcpLoopClosing(Stage):
         if not self.p.gate or limit is None or gate is None or not (gate.sigma_xy <= limit):
             return False
         assert a.matched is not None
-        _, distances = self._other_groups_distances(np.asarray(a.descriptor.matrix), a.group_id)
-        others = np.flatnonzero(np.asarray(self._sgf_group, dtype=np.int64) != a.group_id)
+        others, distances = self._other_groups_distances(np.asarray(a.descriptor.matrix), a.group_id)
         alike = others[distances <= self.p.consensus_distance]
         query_frame, query_centroid = a.descriptor.sgf.frame_index, np.asarray(a.descriptor.centroid)[:2]
         reach = math.sqrt(self.threshold) * gate.sigma_xy + self.p.consensus_exclude
@@ -490,13 +489,12 @@ class IcpLoopClosing(Stage):
         return bool(len(alike) and alike.min() > self.p.distinct_distance)
 
     def _other_groups_distances(self, matrix: np.ndarray, group_id: int) -> tuple[np.ndarray, np.ndarray]:
-        """The group of every SGF seen so far outside ``group_id``, and eq. 10 of ``matrix`` to it (best shift)."""
-        groups = np.asarray(self._sgf_group, dtype=np.int64)
-        others = np.flatnonzero(groups != group_id)
+        """Every SGF seen so far outside ``group_id`` (its index), and eq. 10 of ``matrix`` to it (best shift)."""
+        others = np.flatnonzero(np.asarray(self._sgf_group, dtype=np.int64) != group_id)
         if not len(others):
-            return groups[others], np.zeros(0)
+            return others, np.zeros(0)
         distances = shifted_distances(matrix, np.stack([self._sgf_matrix[m] for m in others])).min(axis=1)
-        return groups[others], distances
+        return others, distances
 
     def _resolve_tie(self, a: GroupAssignment, estimate: PoseEstimate | None) -> list[LoopConstraint]:
         """A match among look-alike groups: the one option whose neighbouring SGFs agree, else nothing."""
@@ -817,7 +815,8 @@ class IcpLoopClosing(Stage):
         limit = self.p.consensus_common_groups
         if limit is None:
             return 1.0
-        groups, distances = self._other_groups_distances(self._sgf_matrix[k], self._sgf_group[k])
+        others, distances = self._other_groups_distances(self._sgf_matrix[k], self._sgf_group[k])
+        groups = np.asarray(self._sgf_group, dtype=np.int64)[others]
         common = len(set(groups[distances <= self.p.consensus_distance].tolist()))
         return min(1.0, limit / common) if common else 1.0
 

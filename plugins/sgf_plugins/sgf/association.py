@@ -764,7 +764,7 @@ class OnlineSgfGroups(Stage):
         out = np.full(len(candidates), math.inf)
         p = self.params
         for i, c in enumerate(candidates):
-            if c.repeated and c.repeating is not None and len(c.repeating):
+            if c.repeating is not None and len(c.repeating):  # set for repeated groups only
                 profiles = shifted_distances(query.matrix, c.group.matrices[c.repeating], p.columns, p.min_overlap)
                 out[i] = float(profiles.min())
         return out
