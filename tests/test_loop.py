@@ -61,14 +61,19 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
     assert len(run.context.artifacts["group_assignments"]) == sum(len(v) for v in world.sgfs.values())
     # a loop also needs a neighbouring marking that agrees: the toy world's first two revisits of a stretch
     # have none behind them, and lose their loops when only earlier SGFs may vouch for them, but keep them
-    # when they wait for the markings seen after them; by default a distinct marking (like nothing else
-    # seen) vouches for itself: one of the two is (five matches in all are judged distinct)
-    for wait, distinct, expected in ((False, None, (6, 0, 2, 0)), (True, None, (8, 0, 0, 0)), (False, 0, (7, 0, 1, 5))):
-        consensus = run_stages(
-            world,
-            loop=IcpLoopClosing(IcpLoopParams(consensus_wait=wait, distinct_support=distinct)),
-            association=OracleAssociation(world, by="instance"),
-        )
+    # when they wait for the markings seen after them (the default); a distinct marking (like nothing else
+    # seen) vouches for itself: one of the two is (five matches in all are judged distinct). The tolerance's
+    # heading-bias term (on by default) lets a neighbour farther along the toy world's drifting odometry agree
+    cases = [
+        (False, None, None, (6, 0, 2, 0)),
+        (True, None, None, (8, 0, 0, 0)),
+        (False, 0, None, (7, 0, 1, 5)),
+        (False, None, 0.07, (7, 0, 1, 0)),
+        (True, None, 0.07, (8, 0, 0, 0)),
+    ]
+    for wait, distinct, bias, expected in cases:
+        params = IcpLoopParams(consensus_wait=wait, distinct_support=distinct, consensus_yaw_bias_deg_per_m=bias)
+        consensus = run_stages(world, loop=IcpLoopClosing(params), association=OracleAssociation(world, by="instance"))
         metrics = consensus.context.metrics["loops"]
         got = (metrics["closed"], metrics["false_closed"], metrics["rejected"]["consensus"], metrics["distinct"])
         assert got == expected
@@ -114,7 +119,10 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     # with the heading test and a manhole worth half a marking, the tee's revisit (only the manhole behind it)
     # is refused too
     headed = run_stages(
-        world, loop=IcpLoopClosing(IcpLoopParams(gate=False, consensus_heading_deg=15.0, distinct_support=None))
+        world,
+        loop=IcpLoopClosing(
+            IcpLoopParams(gate=False, consensus_heading_deg=15.0, distinct_support=None, consensus_wait=False)
+        ),
     )
     assert headed.context.metrics["loops"]["false_closed"] == 0
     assert headed.context.metrics["loops"]["rejected"]["consensus"] == 5
@@ -537,6 +545,47 @@ def test_a_neighbour_that_fixes_no_heading_counts_half() -> None:
     assert stage._support(by_frame[68].items[0], loop) == pytest.approx(2.0)
 
 
+def test_the_consensus_tolerance_counts_the_odometrys_heading_bias() -> None:
+    # the second pass's odometry turns by 0.25 deg per metre (the truth is straight): an L seen 40 m before
+    # the arrow's revisit lies 0.5 * b * 40**2 = 3.5 m off its first-pass view under the (true) match, beyond
+    # the random-walk tolerance (0.75 m + 2 cm per metre from both sightings, 40 m each: 2.35 m)
+    n, bias = 80, math.radians(0.25)
+    truth = [pose_from_xy_yaw(float(k % n), 0.0, 0.0) for k in range(2 * n)]
+    odometry = truth[:n] + [
+        pose_from_xy_yaw(math.sin(bias * k) / bias, (1.0 - math.cos(bias * k)) / bias, bias * k) for k in range(n)
+    ]
+    frames = [
+        Frame(k, 0.5 * k, np.zeros((2, 2), np.uint8), o, CALIBRATION, ground_truth=t)
+        for k, (o, t) in enumerate(zip(odometry, truth, strict=True))
+    ]
+
+    def seen(k: int, m: Marking) -> object:  # the marking as the camera sees it: from the true pose
+        inv = invert(truth[k])
+        return descriptor(frames[k], m, m.world_points() @ inv[:2, :2].T + inv[:2, 3])
+
+    arrow, ell = Marking(1, "arrow", (50.0, 0.5, 0.3)), Marking(2, "ell", (10.0, -1.0, 0.0))
+    first = {m.instance_id: seen(int(m.pose[0]) - 2, m) for m in (arrow, ell)}
+    by_frame = {
+        int(m.pose[0]) - 2: GroupAssignments(
+            (GroupAssignment(first[m.instance_id], m.instance_id, True, 1.0, 0, 0.0, None, False),)
+        )  # type: ignore[arg-type]
+        for m in (arrow, ell)
+    }
+    again = GroupAssignment(seen(n + 8, ell), 12, True, 1.0, 0, 0.0, None, False)  # type: ignore[arg-type]
+    by_frame[n + 8] = GroupAssignments((again,))
+    match = GroupAssignment(seen(n + 48, arrow), 1, False, 0.01, 0, 0.0, first[1], False)  # type: ignore[arg-type]
+    by_frame[n + 48] = GroupAssignments((match,))
+    plain = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None, consensus_yaw_bias_deg_per_m=None))
+    assert _run_loop(plain, frames, by_frame) == [] and plain.counts["consensus"] == 1
+    biased = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None, consensus_yaw_bias_deg_per_m=0.25))
+    (loop,) = _run_loop(biased, frames, by_frame)
+    assert loop.instance_ids == (1, 1) and np.allclose(xy_yaw(loop.relative), (0.0, 0.0, 0.0), atol=0.02)
+    assert biased._support(match, loop) == 1.0 and plain._support(match, loop) == 0.0
+    # an allowance for a smaller bias (0.02 deg/m: 0.5 * b * (40**2 + 40**2) = 0.56 m more) still refuses it
+    small = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None, consensus_yaw_bias_deg_per_m=0.02))
+    assert _run_loop(small, frames, by_frame) == [] and small.counts["consensus"] == 1
+
+
 def _repeated_arrows(matched_x: float):  # type: ignore[no-untyped-def]
     """Two passes along x over an L (x = 8), a T (x = 12) and a pattern of arrows every 4 m (x = 16 ... 28).
 
@@ -610,8 +659,8 @@ def test_a_match_waits_for_the_neighbours_seen_after_it() -> None:
     again = _view(frames[n + 22], ell)
     by_frame[n + 22] = GroupAssignments((GroupAssignment(again, 12, True, 1.0, 0, 0.0, None, False),))  # type: ignore[arg-type]
     at_once = IcpLoopClosing(
-        IcpLoopParams(gate=False, distinct_support=None)
-    )  # the default: decide on the SGFs seen before
+        IcpLoopParams(gate=False, distinct_support=None, consensus_wait=False)
+    )  # decide on the SGFs seen before
     assert _run_loop(at_once, frames, by_frame) == [] and at_once.counts["consensus"] == 1
     waits = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None, consensus_wait=True))
     emitted = {f.index: waits.process(frame=f, assignments=by_frame.get(f.index), estimate=None).items for f in frames}

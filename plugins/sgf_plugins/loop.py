@@ -51,10 +51,13 @@ stands against that. Once loops have anchored the estimate, the gate itself tell
 apart: a match the gate predicts within ``gate_support_sigma`` metres needs no neighbours either,
 unless an SGF of another group that looks like the query was seen within the gate's reach of the
 matched one (:meth:`IcpLoopClosing._gate_decides`); a tie that the gate leaves one option of is
-resolved the same way. With ``consensus_wait``, a match that has too few
+resolved the same way. With ``consensus_wait`` (the default), a match that has too few
 agreeing neighbours so far waits while the robot drives ``consensus_window`` metres on, and the
 SGFs seen after it count too: the first marking of a revisit (a reverse one above all, entered
-from a stretch never driven before) has no neighbour behind it that both passes saw.
+from a stretch never driven before) has no neighbour behind it that both passes saw. A neighbour
+tens of metres from its sighting lies off by the odometry's drift over that path; the consensus
+tolerance grows with it, linearly (``consensus_drift``) and, for the heading bias that bends each
+pass, quadratically (``consensus_yaw_bias_deg_per_m``).
 
 A match into an aliased group (a repeated pattern: dashes, chevrons, bars) may be with the wrong
 copy, one period away, where the pattern's other copies agree with it too; it needs
@@ -175,6 +178,11 @@ class IcpLoopParams(StageParams):
     consensus_drift: float = Field(
         0.02, ge=0.0, description="...plus this much per metre travelled from either sighting (local odometry drift)"
     )
+    consensus_yaw_bias_deg_per_m: float | None = Field(
+        0.07,
+        ge=0.0,
+        description="...plus the odometry's heading bias: 0.5 * bias * L**2 per sighting L m away (null: none)",
+    )
     consensus_exclude: float = Field(
         2.0, ge=0.0, description="neighbours this close (m) to the matched SGF are the same marking, not evidence"
     )
@@ -227,7 +235,7 @@ class IcpLoopParams(StageParams):
         "gate's reach of the matched one: ICP and the gate decide (null = min_support always)",
     )
     consensus_wait: bool = Field(
-        False,
+        True,
         description="a match short of agreeing neighbours waits while the robot drives consensus_window metres on: "
         "SGFs seen after it count too (false = decide on the SGFs seen before it)",
     )
@@ -744,11 +752,13 @@ class IcpLoopClosing(Stage):
         the query (and after it so far, with ``consensus_wait``) into the earlier pass's odometry
         frame. A neighbour agrees when an SGF of the earlier pass (within the window around the
         matched SGF, and at least ``min_separation_distance`` of path before the neighbour) lies
-        within ``consensus_radius + consensus_drift * (path from the two sightings)`` of it and
-        looks like it (eq. 10 distance at most ``consensus_distance``); with ``consensus_heading_deg``
-        set, at the heading the match predicts for it, within that many degrees, and a neighbour
-        that looks alike at the opposite heading too (a bar, a disc) confirms the position but not
-        the heading, and counts ``consensus_unoriented_weight``. Agreeing neighbours closer than
+        within ``consensus_radius + consensus_drift * (path from the two sightings)`` of it (with
+        ``consensus_yaw_bias_deg_per_m``, plus ``0.5 * bias * L**2`` for each sighting ``L`` m away:
+        a heading bias bends each pass's odometry) and looks like it (eq. 10 distance at most
+        ``consensus_distance``); with ``consensus_heading_deg`` set, at the heading the match
+        predicts for it, within that many degrees, and a neighbour that looks alike at the opposite
+        heading too (a bar, a disc) confirms the position but not the heading, and counts
+        ``consensus_unoriented_weight``. Agreeing neighbours closer than
         ``consensus_exclude`` to each other, or to the query, are one marking; the count is of
         markings. A look-alike marking elsewhere on campus has other neighbours, so its match finds
         none. With ``unlike``, neighbours that look like the query (eq. 10 distance at most
@@ -782,7 +792,10 @@ class IcpLoopClosing(Stage):
             neighbours = neighbours[alike > p.consensus_distance]
         for k in neighbours:
             here = rot @ xy[k] + (x, y)
-            tolerance = p.consensus_radius + p.consensus_drift * (abs(d_j - dist[k]) + np.abs(dist[earlier] - d_i))
+            near, far = abs(d_j - dist[k]), np.abs(dist[earlier] - d_i)
+            tolerance = p.consensus_radius + p.consensus_drift * (near + far)
+            if p.consensus_yaw_bias_deg_per_m is not None:  # a heading bias bends each pass by 0.5 b L^2
+                tolerance = tolerance + 0.5 * math.radians(p.consensus_yaw_bias_deg_per_m) * (near**2 + far**2)
             close = earlier[
                 (np.hypot(*(xy[earlier] - here).T) <= tolerance)
                 & (dist[earlier] <= dist[k] - p.min_separation_distance)
