@@ -98,9 +98,10 @@ def test_the_command_writes_table_csv_and_plot(tmp_path: Path) -> None:
 
 def test_mc_plane_does_not_lock_onto_the_joints_of_a_slab_paving() -> None:
     """Seed 1 climbs over concrete slabs (frames 560-640): a repeated pattern whose joints, seen from views
-    a metre apart, also line up under a wrong plane. With a 1 m baseline the fit locks onto it (1.0 m of
-    mean BEV error, up to 2.8 m); the default 0.6 m baseline stays below plain IPM (measured 101 / 11.8
-    / 17.0 cm)."""
+    a metre apart, also line up under a wrong plane. With a 1 m baseline the fit locks onto it; the
+    default 0.6 m baseline stays below plain IPM. Measured (mean BEV error, metre / default / plain):
+    101 / 11.8 / 17.0 cm, up to 2.8 m, on one machine; 45 / 12.9 / 17.0 cm, up to 1.6 m, on an AMD EPYC,
+    whose floating point takes the lock elsewhere: the test asks for the lock, not its size."""
     world = build_world("campus_reverse_slope", seed=1, scale=0.3, occluders=False, sensor_noise=False)
     variants = {
         "plain": InversePerspectiveMapping(IpmParams()),
@@ -110,5 +111,5 @@ def test_mc_plane_does_not_lock_onto_the_joints_of_a_slab_paving() -> None:
         "default": PlaneMotionCompensatedIPM(PlaneMotionCompensatedIpmParams(**AHEAD_MC)),
     }
     result = evaluate(world, variants, range(560, 640))
-    assert result.mean("metre") > 0.5
+    assert result.mean("metre") > 2.0 * result.mean("plain") and max(result.errors["metre"]) > 1.0
     assert result.mean("default") < result.mean("plain") < 0.25

@@ -6,7 +6,8 @@ def test_lattice_noise_is_seamless_across_tiles_and_resolutions():
     a = lattice_noise(3, 0.0, 8.0, 800, 800, 0.01, 0.64)
     b = lattice_noise(3, 8.0, 8.0, 800, 800, 0.01, 0.64)
     ab = lattice_noise(3, 0.0, 8.0, 1600, 800, 0.01, 0.64)
-    assert np.array_equal(np.hstack([a, b]), ab)
+    # to float32 rounding: OpenCV's resize may take another SIMD path for another width (seen on an AMD EPYC)
+    assert np.abs(np.hstack([a, b]) - ab).max() < 1e-6
     coarse = lattice_noise(3, 0.0, 8.0, 200, 200, 0.04, 0.64)
     assert np.abs(coarse - a.reshape(200, 4, 200, 4).mean(axis=(1, 3))).max() < 0.01
     # a region that is not aligned with the texel grid gives the same field (the exact matrix path)
