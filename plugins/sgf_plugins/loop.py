@@ -790,12 +790,14 @@ class IcpLoopClosing(Stage):
         if unlike and len(neighbours):
             alike = shifted_distances(query.matrix, np.stack([self._sgf_matrix[k] for k in neighbours])).min(axis=1)
             neighbours = neighbours[alike > p.consensus_distance]
+        far = np.abs(dist[earlier] - d_i)  # path from the matched sighting to each earlier SGF
+        bias = None if p.consensus_yaw_bias_deg_per_m is None else math.radians(p.consensus_yaw_bias_deg_per_m)
         for k in neighbours:
             here = rot @ xy[k] + (x, y)
-            near, far = abs(d_j - dist[k]), np.abs(dist[earlier] - d_i)
+            near = abs(d_j - dist[k])
             tolerance = p.consensus_radius + p.consensus_drift * (near + far)
-            if p.consensus_yaw_bias_deg_per_m is not None:  # a heading bias bends each pass by 0.5 b L^2
-                tolerance = tolerance + 0.5 * math.radians(p.consensus_yaw_bias_deg_per_m) * (near**2 + far**2)
+            if bias is not None:  # a heading bias bends each pass by 0.5 b L^2
+                tolerance = tolerance + 0.5 * bias * (near**2 + far**2)
             close = earlier[
                 (np.hypot(*(xy[earlier] - here).T) <= tolerance)
                 & (dist[earlier] <= dist[k] - p.min_separation_distance)
