@@ -109,6 +109,9 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     assert consensus.context.metrics["loops"]["rejected"]["consensus"] == 4
     refused = [d for d in consensus.context.artifacts["loop_candidates"] if d["outcome"] == "consensus"]
     assert len(refused) == 4 and all(d["instance_from"] != d["instance_to"] for d in refused)  # the look-alikes
+    assert [d["detail"] for d in refused] == ["support 0 of 1 needed"] * 3 + [
+        "support 0 of 1 needed when the run ended"
+    ]
     assert consensus.context.metrics["loops"]["closed"] == 5
     # ...but not when a distinct marking vouches for itself: the two arrows share their group, so nothing in
     # another group looks like them; that default leans on the gate, which keeps them out (above)
@@ -354,6 +357,7 @@ def test_ambiguous_matches_never_give_loop_factors() -> None:
     found += stage.process(frame=frames[-1], assignments=GroupAssignments((ambiguous,)), estimate=None).items
     assert found == []
     assert stage.counts["ambiguous"] == 1 and stage.counts["icp"] == 0
+    assert stage.decisions[-1]["detail"] == "tie with an aliased group"  # ambiguous, and nothing handed on
 
 
 def _two_passes(n: int) -> list[Frame]:
@@ -430,6 +434,7 @@ def test_a_tie_without_neighbours_stays_ambiguous() -> None:
     # within 15 m before the query nothing else was seen (B is 20 m back): both options have no support
     assert _run_loop(stage, frames, by_frame) == []
     assert stage.counts["ambiguous"] == 1 and stage.ties_resolved == 0
+    assert stage.decisions[-1]["detail"] == "support 0, 0 of 1 needed when the run ended"
 
 
 def test_min_support_refuses_a_lone_match_that_no_neighbour_confirms() -> None:
@@ -640,6 +645,7 @@ def test_a_match_into_a_repeated_pattern_needs_neighbours_unlike_it() -> None:
     frames, by_frame = _repeated_arrows(28.0)
     strict = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=0))
     assert _run_loop(strict, frames, by_frame) == [] and strict.counts["ambiguous"] == 1
+    assert strict.decisions[-1]["detail"] == "aliased"
 
 
 def test_a_match_waits_for_the_neighbours_seen_after_it() -> None:

@@ -511,25 +511,28 @@ class IcpLoopClosing(Stage):
             for alt in a.alternatives
         ]
         if any(isinstance(o.matched, MapDescriptor) for o in options):
-            self._refuse(a, "ambiguous")
+            self._refuse(a, "ambiguous", detail="tie with a map group")
             return []
         if a.aliased and not a.alternatives and self.p.aliased_support > 0:
             # a repeated pattern: only markings unlike the query may vouch for which copy it is
             candidate = self._evaluate(a, estimate)
             if isinstance(candidate, str):
-                self._refuse(a, "ambiguous")
+                self._refuse(a, "ambiguous", detail=f"aliased: {candidate}")
                 return []
             return self._consensus(((a, candidate),), self.p.aliased_support, True, "ambiguous", "aliases", estimate)
         if a.aliased or not a.alternatives or self.p.tie_support == 0:
-            self._refuse(a, "ambiguous")
+            why = "aliased" if a.aliased else "tie with an aliased group" if not a.alternatives else "tie_support 0"
+            self._refuse(a, "ambiguous", detail=why)
             return []
-        passed = []
+        passed, failed = [], []
         for option in options:
             candidate = self._evaluate(option, estimate)
-            if not isinstance(candidate, str):
+            if isinstance(candidate, str):
+                failed.append(candidate)
+            else:
                 passed.append((option, candidate))
         if not passed:
-            self._refuse(a, "ambiguous")
+            self._refuse(a, "ambiguous", detail="tie: every option failed (" + ", ".join(failed) + ")")
             return []
         if len(passed) == 1 and self._gate_decides(*passed[0], estimate):
             self.gate_decided += 1
@@ -560,7 +563,8 @@ class IcpLoopClosing(Stage):
 
     def _settle(self, w: _Waiting, estimate: PoseEstimate | None, final: bool) -> list[LoopConstraint] | None:
         """The constraint of the one option with enough agreeing neighbours, [] when refused, None to wait on."""
-        supported = [c for a, c in w.options if self._support(a, c.constraint, unlike=w.unlike) >= w.need]
+        support = [self._support(a, c.constraint, unlike=w.unlike) for a, c in w.options]
+        supported = [c for (_, c), n in zip(w.options, support, strict=True) if n >= w.need]
         if len(supported) == 1:
             if w.resolved == "ties":
                 self.ties_resolved += 1
@@ -568,7 +572,8 @@ class IcpLoopClosing(Stage):
                 self.aliases_resolved += 1
             return self._accept(supported[0], estimate)
         if len(supported) > 1 or final:
-            self._refuse(w.options[0][0], "ambiguous" if len(supported) > 1 else w.refused, w.options[0][1].gate)
+            outcome = "ambiguous" if len(supported) > 1 else w.refused
+            self._refuse(w.options[0][0], outcome, w.options[0][1].gate, _support_detail(support, w.need))
             return []
         return None
 
@@ -693,13 +698,13 @@ class IcpLoopClosing(Stage):
         self._decided(candidate.constraint, candidate.group_id, "accepted", candidate.gate)
         return [candidate.constraint]
 
-    def _refuse(self, a: GroupAssignment, reason: str, gate: _GateReading | None = None) -> None:
-        """Count a refused candidate under ``reason`` and log it (with what the gate saw, when it was reached)."""
+    def _refuse(self, a: GroupAssignment, reason: str, gate: _GateReading | None = None, detail: str = "") -> None:
+        """Count a refused candidate under ``reason`` and log it (with what the gate saw, and why, when known)."""
         assert a.matched is not None
         self.counts[reason] += 1
         ends = (a.matched.sgf.frame_index, a.descriptor.sgf.frame_index)
         ids = (a.matched.sgf.instance_id, a.descriptor.sgf.instance_id)
-        self._log(ends, ids, a.group_id, isinstance(a.matched, MapDescriptor), reason, gate)
+        self._log(ends, ids, a.group_id, isinstance(a.matched, MapDescriptor), reason, gate, detail)
 
     def _decided(self, k: LoopConstraint, group_id: int, outcome: str, gate: _GateReading | None) -> None:
         self._log((k.frame_from, k.frame_to), k.instance_ids, group_id, k.from_map, outcome, gate)
@@ -712,6 +717,7 @@ class IcpLoopClosing(Stage):
         from_map: bool,
         outcome: str,
         gate: _GateReading | None,
+        detail: str = "",
     ) -> None:
         """One row of ``loop_candidates.csv``: a match the loop stage decided on, and the outcome."""
         self.decisions.append(
@@ -728,6 +734,7 @@ class IcpLoopClosing(Stage):
                 "anchored_distance": None if gate is None else round(gate.distance, 2),
                 "gate_sigma_xy": None if gate is None else round(gate.sigma_xy, 3),
                 "gate_chi2": None if gate is None else round(gate.chi2, 3),
+                "detail": detail,
             }
         )
 
@@ -1069,7 +1076,9 @@ class IcpLoopClosing(Stage):
     def finalize(self, context: RunContext) -> None:
         """Loop metrics (Table 3: loops closed, reverse ones, false ones) and the accepted loops for plots."""
         for w in self.waiting:  # the run ended before they were settled
-            self._refuse(w.options[0][0], w.refused, w.options[0][1].gate)
+            support = [self._support(a, c.constraint, unlike=w.unlike) for a, c in w.options]
+            detail = _support_detail(support, w.need) + " when the run ended"
+            self._refuse(w.options[0][0], w.refused, w.options[0][1].gate, detail)
         self.waiting = []
         errors = [self._truth_error(c) for c in self.accepted]
         truths = [self._true(c, e) for c, e in zip(self.accepted, errors, strict=True)]
@@ -1135,6 +1144,11 @@ class IcpLoopClosing(Stage):
             ):
                 return True
         return False
+
+
+def _support_detail(support: list[float], need: float) -> str:
+    """The agreeing neighbours of each option (weighted) against the number needed, for ``loop_candidates.csv``."""
+    return "support " + ", ".join(f"{n:.3g}" for n in support) + f" of {need:g} needed"
 
 
 def _odometry_xy(descriptor: SgfDescriptor) -> np.ndarray:
