@@ -384,6 +384,7 @@ class IcpLoopClosing(Stage):
         self.gate_decided = 0
         self.earlier_members = 0
         self.decisions: list[dict[str, Any]] = []  # every candidate's outcome: loop_candidates.csv
+        self._icp_detail = ""  # what the last failed ICP missed
         self._sgf_group: list[int] = []
         self._sgf_xy: list[np.ndarray] = []
         self._sgf_distance: list[float] = []
@@ -435,7 +436,7 @@ class IcpLoopClosing(Stage):
                 a, candidate = earlier, self._evaluate(earlier, estimate)
                 self.earlier_members += 1
         if isinstance(candidate, str):
-            self._refuse(a, candidate, self._reading)
+            self._refuse(a, candidate, self._reading, self._icp_detail if candidate == "icp" else "")
             return []
         need = self.p.min_support
         if self.p.distinct_support is not None and need > self.p.distinct_support and self._distinct(a):
@@ -517,7 +518,8 @@ class IcpLoopClosing(Stage):
             # a repeated pattern: only markings unlike the query may vouch for which copy it is
             candidate = self._evaluate(a, estimate)
             if isinstance(candidate, str):
-                self._refuse(a, "ambiguous", detail=f"aliased: {candidate}")
+                why = f"icp, {self._icp_detail}" if candidate == "icp" else candidate
+                self._refuse(a, "ambiguous", detail=f"aliased: {why}")
                 return []
             return self._consensus(((a, candidate),), self.p.aliased_support, True, "ambiguous", "aliases", estimate)
         if a.aliased or not a.alternatives or self.p.tie_support == 0:
@@ -528,11 +530,11 @@ class IcpLoopClosing(Stage):
         for option in options:
             candidate = self._evaluate(option, estimate)
             if isinstance(candidate, str):
-                failed.append(candidate)
+                failed.append(f"icp, {self._icp_detail}" if candidate == "icp" else candidate)
             else:
                 passed.append((option, candidate))
         if not passed:
-            self._refuse(a, "ambiguous", detail="tie: every option failed (" + ", ".join(failed) + ")")
+            self._refuse(a, "ambiguous", detail="tie: every option failed (" + "; ".join(failed) + ")")
             return []
         if len(passed) == 1 and self._gate_decides(*passed[0], estimate):
             self.gate_decided += 1
@@ -859,18 +861,31 @@ class IcpLoopClosing(Stage):
                 seeds.append(y)
         icp = Icp2d(np.asarray(matched.points, dtype=np.float64), self.settings)
         source = np.asarray(query.points, dtype=np.float64)
-        good = []
+        good, tried = [], []
         for yaw in seeds:
             r = icp.align(source, centroid_seed(query.centroid, matched.centroid, yaw))
+            tried.append(r)
             if (
                 r.converged
                 and r.fitness <= self.p.max_fitness
                 and r.inlier_ratio >= self.p.min_inlier_ratio
                 and np.all(np.isfinite(r.covariance))
-                and math.sqrt(float(np.linalg.eigvalsh(r.covariance).max())) <= self.p.degenerate_sigma
+                and _largest_sigma(r) <= self.p.degenerate_sigma
             ):
                 good.append(r)
+        if not good:
+            self._icp_detail = self._failed_fit(tried)
         return good
+
+    def _failed_fit(self, tried: list[IcpResult]) -> str:
+        """What the fit with the most inliers of a failed ICP missed, for ``loop_candidates.csv``."""
+        r = max(tried, key=lambda r: r.inlier_ratio)
+        sigma = _largest_sigma(r)
+        return (
+            f"best fit: inliers {r.inlier_ratio:.2f} ({self.p.min_inlier_ratio:g} needed), "
+            f"rms {r.fitness:.3f} m ({self.p.max_fitness:g}), sigma {sigma:.3f} ({self.p.degenerate_sigma:g})"
+            + ("" if r.converged else ", not converged")
+        )
 
     def _fits(self, results: list[IcpResult], points: np.ndarray) -> list[IcpResult]:
         """The distinct near-equal fits of a match (RMS within ``ambiguity_ratio`` of the best), best first.
@@ -1144,6 +1159,13 @@ class IcpLoopClosing(Stage):
             ):
                 return True
         return False
+
+
+def _largest_sigma(r: IcpResult) -> float:
+    """The largest standard deviation of an ICP fit's covariance (inf when it is not finite)."""
+    if not np.all(np.isfinite(r.covariance)):
+        return math.inf
+    return math.sqrt(float(np.linalg.eigvalsh(r.covariance).max()))
 
 
 def _support_detail(support: list[float], need: float) -> str:
