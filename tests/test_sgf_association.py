@@ -688,6 +688,41 @@ def test_a_closed_loop_the_estimate_meets_narrows_the_gate():
     assert back.group_id == first_b.group_id and back.ambiguous and len(back.alternatives) == 1
 
 
+def _arrow_back_on_a_round_marking(query_shape: GroundShape):
+    """An arrow (x = 5 m) and a disc 2 m beyond it, 440 m of travel, then ``query_shape`` seen again.
+
+    The revisit's odometry has drifted 2 m: it places the query on the other marking, whose group
+    is nearest on the map. Everything gated ties (``tie_margin`` 1).
+    """
+    disc = DISC.placed(7.0, 0.0, 0.0, instance_id=8)
+    s = stage(position_weight=0.0, tie_margin=1.0)
+    p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(disc, 3.0, 0.0)
+    (arrow,) = feed(s, 1, p1, desc(ARROW, p1, 1))
+    (round_,) = feed(s, 2, p2, desc(disc, p2, 2))
+    feed(s, 3, pose_from_xy_yaw(220.0, 0.0, 0.0))
+    shape = ARROW if query_shape is ARROW else disc
+    p4 = seen_from(shape, 3.0, math.pi)
+    drift = 2.0 if query_shape is ARROW else -2.0
+    drifted = pose_from_xy_yaw(drift, 0.0, 0.0) @ p4
+    (back,) = feed(s, 4, drifted, desc(shape, p4, 4, drifted))
+    return arrow, round_, back
+
+
+def test_a_shaped_query_tied_with_a_round_marking_joins_the_group_it_can_close_with():
+    # the disc's group is nearest on the map, but a match of the arrow into it would be symmetric
+    # (no loop factor): the tie goes to the arrow's own group, and the disc is no alternative
+    arrow, round_, back = _arrow_back_on_a_round_marking(ARROW)
+    assert round_.symmetric and not arrow.symmetric
+    assert back.group_id == arrow.group_id and not back.new_group
+    assert not back.symmetric and not back.ambiguous and back.alternatives == ()
+    assert abs(abs(back.yaw) - math.pi) < math.radians(8.0)
+    # a round query keeps the nearest rule: drifted onto the arrow, it joins the arrow's group, and the
+    # tie with its own group stays (handed on as the alternative)
+    arrow, round_, back = _arrow_back_on_a_round_marking(DISC)
+    assert back.group_id == arrow.group_id and back.ambiguous
+    assert [alt.group_id for alt in back.alternatives] == [round_.group_id]
+
+
 def test_a_tie_with_an_aliased_group_has_no_alternatives():
     """When a tied look-alike is a repeated pattern, no neighbour test can resolve the tie: nothing is handed on."""
     s = stage(position_weight=0.0)

@@ -283,7 +283,8 @@ class OnlineSgfGroups(Stage):
     ``matched.points``. Shifts within ``yaw_tolerance`` of the best (2- or 4-fold symmetric
     markings) are resolved by the relative yaw of the two poses, and groups within ``tie_margin``
     of the best distance (identical standard markings, which eq. 10 cannot tell apart) are
-    resolved by the nearest member on the map.
+    resolved by the nearest member on the map; a query whose own profile is not flat leaves the
+    symmetric groups among them out (a match into one gives no loop factor).
 
     The group descriptor is the mean of its members after turning each by its shift into the
     first member's orientation: averaging unaligned descriptors of a feature seen from different
@@ -681,6 +682,7 @@ class OnlineSgfGroups(Stage):
                 opened_distance = float(eq10.min())
             elif not copy.all():
                 ties = np.flatnonzero(~copy & (score <= best_kept + p.tie_margin))
+                ties = self._closable_ties(query, candidates, ties)
                 i = int(min(ties, key=lambda t: candidates[t].nearest))
                 best = (candidates[i].group, float(eq10[i]))
                 # Look-alike groups inside the gate (identical standard markings) cannot be told apart
@@ -738,6 +740,29 @@ class OnlineSgfGroups(Stage):
             aliased=group.aliased,
             alternatives=alternatives,
         )
+
+    def _closable_ties(self, query: SgfDescriptor, candidates: list[GatedGroup], ties: np.ndarray) -> np.ndarray:
+        """The tied groups a match could close a loop with: a shaped query leaves out the symmetric ones.
+
+        A query whose own profile is not flat matched into a symmetric group (a round manhole
+        whose closest member is flat) gives no loop factor. When it ties with a group it could
+        close with (its own marking, ranked level by the position weight), that group takes it.
+        """
+        p = self.params
+        if len(ties) < 2 or symmetry_spread(query.matrix, p.columns) < p.symmetry_threshold:
+            return ties
+        closable = [t for t in ties if not self._symmetric_match(query, candidates[t])]
+        return np.asarray(closable, dtype=np.int64) if closable else ties
+
+    def _symmetric_match(self, query: SgfDescriptor, gated: GatedGroup) -> bool:
+        """Whether a match of a shaped query into this gated group would be symmetric (its closest member flat)."""
+        if not gated.group.symmetric:
+            return False
+        p = self.params
+        members = np.arange(len(gated.group.members)) if gated.members is None else gated.members
+        profiles = shifted_distances(query.matrix, gated.group.matrices[members], p.columns, p.min_overlap)
+        closest = gated.group.members[int(members[int(np.argmin(profiles.min(axis=1)))])]
+        return symmetry_spread(closest.matrix, p.columns) < p.symmetry_threshold
 
     def _rank_own_group(self, query: SgfDescriptor, candidates: list[GatedGroup], score: np.ndarray) -> None:
         """Count whether the ranking ranks the group of the query's own marking (its members' majority) first.
