@@ -658,6 +658,27 @@ def test_a_match_into_a_repeated_pattern_needs_neighbours_unlike_it() -> None:
     assert strict.decisions[-1]["detail"] == "aliased"
 
 
+def test_unlike_neighbours_are_held_to_half_the_patterns_period() -> None:
+    # with a 5 m consensus radius the L and the T would agree with the copy one period (4 m) back as well;
+    # held to half the period (2 m), they vouch for the right copy only
+    frames, by_frame = _repeated_arrows(24.0)
+    stage = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2, consensus_radius=5.0))
+    assert _run_loop(stage, frames, by_frame) == [] and stage.counts["ambiguous"] == 1
+    assert stage.decisions[-1]["detail"] == "support 0 of 2 needed when the run ended"
+    wrong = by_frame[66].items[0]
+    assert stage._copy_spacing(wrong) == pytest.approx(4.0, abs=0.05)  # the arrows' period, seen on either pass
+    c = stage._evaluate(wrong, None)
+    assert not isinstance(c, str)
+    uncapped = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2, consensus_radius=5.0))
+    _run_loop(uncapped, frames, by_frame)
+    uncapped._copy_spacing = lambda a: math.inf  # type: ignore[method-assign]
+    assert uncapped._support(wrong, c.constraint, unlike=True) == pytest.approx(2.0)  # the L and the T, 4 m off
+    frames, by_frame = _repeated_arrows(28.0)
+    right = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2, consensus_radius=5.0))
+    (loop,) = _run_loop(right, frames, by_frame)
+    assert right.aliases_resolved == 1 and (loop.frame_from, loop.frame_to) == (26, 66)
+
+
 def test_a_match_waits_for_the_neighbours_seen_after_it() -> None:
     # an arrow at x = 10 opens the second pass; its only neighbour, an L at x = 24, comes 14 m after it
     n = 40

@@ -61,10 +61,11 @@ pass, quadratically (``consensus_yaw_bias_deg_per_m``).
 
 A match into an aliased group (a repeated pattern: dashes, chevrons, bars) may be with the wrong
 copy, one period away, where the pattern's other copies agree with it too; it needs
-``aliased_support`` agreeing markings that do not look like the query (0: aliased groups never
-give loop factors). When ICP finds several distinct near-equal fits (a twofold symmetric
-shape turned by 180 degrees, a row laid on itself one period on), the gate must leave exactly
-one, else the match is ``not_unique`` (:meth:`IcpLoopClosing._fits`).
+``aliased_support`` agreeing markings that do not look like the query, each within half the
+period of the copies seen around it (0: aliased groups never give loop factors). When ICP
+finds several distinct near-equal fits (a twofold symmetric shape turned by 180 degrees, a row
+laid on itself one period on), the gate must leave exactly one, else the match is
+``not_unique`` (:meth:`IcpLoopClosing._fits`).
 
 On a prior SGF map (``matched`` is a :class:`~sgf_pipeline.sgf_map.MapDescriptor`), a match is
 an inter-session constraint (``from_map``). Before the run is anchored in the map frame there is
@@ -105,6 +106,8 @@ from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, y
 _MAP = -1  # the prior map as one node of the anchoring graph
 #: Two ICP fits that put the query's points further apart than this (RMS, m) are distinct fits of one match.
 FIT_TOLERANCE_M = 0.25
+#: Look-alike SGFs nearer each other than this (m) are one marking seen twice, not two copies of a pattern.
+COPY_MIN_SPACING_M = 0.5
 
 
 class IcpLoopParams(StageParams):
@@ -243,8 +246,8 @@ class IcpLoopParams(StageParams):
         0,
         ge=0,
         description="a match into an aliased group (a repeated pattern) needs this many agreeing neighbours that do "
-        "not look like the query, so that no copy of the pattern vouches for another (0 = aliased groups never give "
-        "loop factors)",
+        "not look like the query, so that no copy of the pattern vouches for another, each within half the pattern's "
+        "period (0 = aliased groups never give loop factors)",
     )
     map_anchor_matches: int = Field(
         2, ge=1, description="consistent map matches (different groups) needed before a run is placed in the map"
@@ -772,7 +775,9 @@ class IcpLoopClosing(Stage):
         markings. A look-alike marking elsewhere on campus has other neighbours, so its match finds
         none. With ``unlike``, neighbours that look like the query (eq. 10 distance at most
         ``consensus_distance``) do not count: in a repeated pattern they are its other copies, which
-        agree with a match shifted by a period. A neighbour's weight is scaled by :meth:`_rarity`.
+        agree with a match shifted by a period; and the tolerance is capped at half the pattern's
+        period (:meth:`_copy_spacing`), since a neighbour allowed more would agree with the match
+        one period off too. A neighbour's weight is scaled by :meth:`_rarity`.
         """
         p = self.p
         assert a.matched is not None
@@ -801,12 +806,14 @@ class IcpLoopClosing(Stage):
             neighbours = neighbours[alike > p.consensus_distance]
         far = np.abs(dist[earlier] - d_i)  # path from the matched sighting to each earlier SGF
         bias = None if p.consensus_yaw_bias_deg_per_m is None else math.radians(p.consensus_yaw_bias_deg_per_m)
+        cap = 0.5 * self._copy_spacing(a) if unlike else math.inf
         for k in neighbours:
             here = rot @ xy[k] + (x, y)
             near = abs(d_j - dist[k])
             tolerance = p.consensus_radius + p.consensus_drift * (near + far)
             if bias is not None:  # a heading bias bends each pass by 0.5 b L^2
                 tolerance = tolerance + 0.5 * bias * (near**2 + far**2)
+            tolerance = np.minimum(tolerance, cap)
             close = earlier[
                 (np.hypot(*(xy[earlier] - here).T) <= tolerance)
                 & (dist[earlier] <= dist[k] - p.min_separation_distance)
@@ -828,6 +835,31 @@ class IcpLoopClosing(Stage):
             else:
                 agreeing.append((xy[k], weight))
         return float(sum(w for _, w in agreeing))
+
+    def _copy_spacing(self, a: GroupAssignment) -> float:
+        """The period of a repeated pattern: the nearest copy of the query's design seen around either sighting.
+
+        Copies are SGFs of other groups that look like the query (eq. 10 at most
+        ``consensus_distance``), seen within ``consensus_window`` of path of the matched SGF or of
+        the query, and farther than ``COPY_MIN_SPACING_M`` from it (nearer is the same marking seen
+        again); distances in that pass's odometry frame, exact over such short paths. Infinite when
+        no copy was seen.
+        """
+        assert a.matched is not None
+        others, distances = self._other_groups_distances(np.asarray(a.descriptor.matrix), a.group_id)
+        copies = others[distances <= self.p.consensus_distance]
+        if not len(copies):
+            return math.inf
+        xy = np.asarray(self._sgf_xy)[copies]
+        travelled = np.asarray(self._sgf_distance)[copies]
+        spacing = math.inf
+        for sighting in (a.matched, a.descriptor):
+            around = np.abs(travelled - self.frames.distance(sighting.sgf.frame_index)) <= self.p.consensus_window
+            gaps = np.hypot(*(xy[around] - _odometry_xy(sighting)).T)
+            gaps = gaps[gaps > COPY_MIN_SPACING_M]
+            if len(gaps):
+                spacing = min(spacing, float(gaps.min()))
+        return spacing
 
     def _rarity(self, k: int) -> float:
         """How much an agreeing neighbour (SGF ``k``) counts for its design's commonness (``consensus_common_groups``).
