@@ -651,7 +651,7 @@ def test_a_match_into_a_repeated_pattern_needs_neighbours_unlike_it() -> None:
     every = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2, consensus_common_groups=None))
     _run_loop(every, frames, by_frame)
     assert every._support(wrong, c.constraint) == pytest.approx(2.0)
-    # aliased_support = 0 (the default): a repeated pattern never gives loop factors
+    # aliased_support = 0: a repeated pattern never gives loop factors
     frames, by_frame = _repeated_arrows(28.0)
     strict = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=0))
     assert _run_loop(strict, frames, by_frame) == [] and strict.counts["ambiguous"] == 1

@@ -243,7 +243,7 @@ class IcpLoopParams(StageParams):
         "SGFs seen after it count too (false = decide on the SGFs seen before it)",
     )
     aliased_support: int = Field(
-        0,
+        2,
         ge=0,
         description="a match into an aliased group (a repeated pattern) needs this many agreeing neighbours that do "
         "not look like the query, so that no copy of the pattern vouches for another, each within half the pattern's "
