@@ -521,8 +521,7 @@ class IcpLoopClosing(Stage):
             # a repeated pattern: only markings unlike the query may vouch for which copy it is
             candidate = self._evaluate(a, estimate)
             if isinstance(candidate, str):
-                why = f"icp, {self._icp_detail}" if candidate == "icp" else candidate
-                self._refuse(a, "ambiguous", detail=f"aliased: {why}")
+                self._refuse(a, "ambiguous", detail=f"aliased: {self._failure(candidate)}")
                 return []
             return self._consensus(((a, candidate),), self.p.aliased_support, True, "ambiguous", "aliases", estimate)
         if a.aliased or not a.alternatives or self.p.tie_support == 0:
@@ -533,7 +532,7 @@ class IcpLoopClosing(Stage):
         for option in options:
             candidate = self._evaluate(option, estimate)
             if isinstance(candidate, str):
-                failed.append(f"icp, {self._icp_detail}" if candidate == "icp" else candidate)
+                failed.append(self._failure(candidate))
             else:
                 passed.append((option, candidate))
         if not passed:
@@ -901,13 +900,16 @@ class IcpLoopClosing(Stage):
                 r.converged
                 and r.fitness <= self.p.max_fitness
                 and r.inlier_ratio >= self.p.min_inlier_ratio
-                and np.all(np.isfinite(r.covariance))
                 and _largest_sigma(r) <= self.p.degenerate_sigma
             ):
                 good.append(r)
         if not good:
             self._icp_detail = self._failed_fit(tried)
         return good
+
+    def _failure(self, test: str) -> str:
+        """A failed test's name, with what ICP's best fit missed when it was ICP."""
+        return f"icp, {self._icp_detail}" if test == "icp" else test
 
     def _failed_fit(self, tried: list[IcpResult]) -> str:
         """What the fit with the most inliers of a failed ICP missed, for ``loop_candidates.csv``."""

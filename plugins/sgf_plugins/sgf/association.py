@@ -758,11 +758,8 @@ class OnlineSgfGroups(Stage):
         """Whether a match of a shaped query into this gated group would be symmetric (its closest member flat)."""
         if not gated.group.symmetric:
             return False
-        p = self.params
-        members = np.arange(len(gated.group.members)) if gated.members is None else gated.members
-        profiles = shifted_distances(query.matrix, gated.group.matrices[members], p.columns, p.min_overlap)
-        closest = gated.group.members[int(members[int(np.argmin(profiles.min(axis=1)))])]
-        return symmetry_spread(closest.matrix, p.columns) < p.symmetry_threshold
+        m, _ = self._nearest_member(query, gated.group, gated.members)
+        return symmetry_spread(gated.group.members[m].matrix, self.params.columns) < self.params.symmetry_threshold
 
     def _rank_own_group(self, query: SgfDescriptor, candidates: list[GatedGroup], score: np.ndarray) -> None:
         """Count whether the ranking ranks the group of the query's own marking (its members' majority) first.
@@ -809,14 +806,20 @@ class OnlineSgfGroups(Stage):
         self, query: SgfDescriptor, group: SgfGroup, estimate: PoseEstimate | None, members: np.ndarray | None = None
     ) -> tuple[int, SgfDescriptor, int]:
         """The group member (of ``members``, when given) closest to the query by eq. 10, its index, and the shift."""
+        m, profile = self._nearest_member(query, group, members)
+        matched = group.members[m]
+        prior = None if group.anchors[m] is not None else self._prior_shift(query, matched, estimate)
+        return m, matched, best_shift(profile, prior, self.params.yaw_tolerance)
+
+    def _nearest_member(
+        self, query: SgfDescriptor, group: SgfGroup, members: np.ndarray | None = None
+    ) -> tuple[int, np.ndarray]:
+        """The index of the group member (of ``members``, when given) closest by eq. 10, and its shift profile."""
         p = self.params
         candidates = np.arange(len(group.members)) if members is None else members
         profiles = shifted_distances(query.matrix, group.matrices[candidates], p.columns, p.min_overlap)
         k = int(np.argmin(profiles.min(axis=1)))
-        m = int(candidates[k])
-        matched = group.members[m]
-        prior = None if group.anchors[m] is not None else self._prior_shift(query, matched, estimate)
-        return m, matched, best_shift(profiles[k], prior, p.yaw_tolerance)
+        return int(candidates[k]), profiles[k]
 
     def _look_alike(self, query: SgfDescriptor, gated: GatedGroup, estimate: PoseEstimate | None) -> LookAlike:
         """A tied group's closest member, as an alternative match of the query."""
