@@ -315,11 +315,12 @@ def bench_ground_lift(quick: bool) -> None:
     params = PolarContextParams()
     repeat = 3 if quick else 20
     t_plane = best_of(lambda: describe(sgf, params), repeat)
-    t_driven = best_of(lambda: describe(sgf, params, lift_driven(sgf, calibration, driven, 3.0, 3.0)), repeat)
+    contacts = params.ground_contacts
+    t_driven = best_of(lambda: describe(sgf, params, lift_driven(sgf, calibration, driven, 3.0, 3.0, contacts)), repeat)
     print("| lift | per SGF (ms) |")
     print("|---|---|")
     print(f"| plane (eq. 9) | {1e3 * t_plane:.2f} |")
-    print(f"| driven ground | {1e3 * t_driven:.2f} |")
+    print(f"| driven ground (wheel tracks {contacts}, marched rays) | {1e3 * t_driven:.2f} |")
     print(f"({len(pixels)} pixels, {len(driven)} poses; driven / plane = {t_driven / t_plane:.1f}x)")
 
 

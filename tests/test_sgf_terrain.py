@@ -9,7 +9,9 @@ import pytest
 from sgf_plugins.ipm.geometry import bev_to_image_homography
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams, lift, lift_driven
 from sgf_plugins.sgf.synthetic import DEFAULT_GRID, toy_calibration
-from sgf_plugins.sgf.terrain import driven_ground, intersect_ground, pixel_rays
+from sgf_plugins.sgf.terrain import driven_ground, intersect_ground, march_ground, pixel_rays, wheel_ground
+from sgf_plugins.world.layout import SpeedBump
+from sgf_plugins.world.terrain import Terrain
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.geometry import pose_from_xy_yaw
@@ -167,3 +169,98 @@ def test_planar_odometry_with_a_tilted_imu_is_warned_about_once(caplog):
             SgfDetections(),
         )
     assert not caplog.records
+
+
+def bump_paint(terrain: Terrain, x0: float, x1: float) -> tuple[np.ndarray, np.ndarray]:
+    """BEV pixels whose camera rays (from the base at the origin) first meet the ground in [x0, x1] x [-0.3, 0.3].
+
+    Returns the pixels and where the rays meet the true ground (a 2 mm march against its height).
+    """
+    pixels = patch(x0 - 1.0, DEFAULT_GRID.x_max)
+    origin, directions = pixel_rays(pixels, HOMOGRAPHY, CALIBRATION)
+    across = np.hypot(directions[:, 0], directions[:, 1])
+    s = np.arange(1.0, 8.0, 0.002)
+    ray = origin + (s[None, :] / across[:, None])[..., None] * directions[:, None, :]
+    ground = terrain.height_and_gradient(ray[..., 0], ray[..., 1], gradient=False)[0]
+    k = np.argmax(ray[..., 2] <= ground, axis=1)
+    truth = ray[np.arange(len(ray)), k]
+    paint = (truth[:, 0] >= x0) & (truth[:, 0] <= x1) & (np.abs(truth[:, 1]) <= 0.3)
+    return pixels[paint], truth[paint]
+
+
+def test_paint_on_a_speed_bump_lands_where_the_wheels_measured_the_ground():
+    # A 10 cm, 60 cm long cos^2 bump 4 m ahead, and the robot's base poses on its four wheels as it drives over it.
+    terrain = Terrain(bumps=[SpeedBump(np.array([4.0, 0.0]), np.array([1.0, 0.0]), 0.3, 1.5, 0.1)])
+    x = np.arange(0.0, 6.01, 0.1)
+    poses = terrain.base_poses(x, np.zeros_like(x), np.zeros_like(x))
+    pixels, truth = bump_paint(terrain, 3.7, 4.3)
+    assert len(pixels) > 1000 and truth[:, 0].max() > 4.0  # the near slope and the crest are in view
+    origin, directions = pixel_rays(pixels, HOMOGRAPHY, CALIBRATION)
+
+    points, normals = wheel_ground(poses, ahead=3.0, step=0.25, contacts=(0.25, -0.25))
+    wheels, covered = march_ground(origin, directions, points, normals, radius=1.5)
+    assert covered.all()
+    kept = np.isfinite(wheels[:, 0])
+    # The wheels lie on the bump; the base origin, their average, passes under its crest.
+    error = np.abs(wheels[kept, 0] - truth[kept, 0])
+    assert np.median(error) < 0.005 and error.max() < 0.03
+    base = lift_driven(sgf(pixels), CALIBRATION, poses, ahead=3.0, radius=1.5)  # ground_model=base
+    assert base is not None and np.median(np.abs(base[:, 0] - truth[:, 0])) > 0.15
+    assert np.median(np.abs(lift(sgf(pixels))[:, 0] - truth[:, 0])) > 0.3  # eq. 9 on the plane
+    # Rays that skimmed the crest (the far slope hides behind it) are left out: a few, the misplaced ones.
+    assert 0.95 < kept.mean() < 1.0
+    driven = lift_driven(sgf(pixels), CALIBRATION, poses, ahead=3.0, radius=1.5, contacts=(0.25, -0.25))
+    assert driven is not None and len(driven) == kept.sum()
+
+
+def test_an_sgf_waits_until_the_robot_has_driven_past_its_paint():
+    poses = [pose_from_xy_yaw(0.1 * k, 0.0, 0.0) for k in range(60)]
+    feature = sgf(patch(4.0, 4.6), frame=2)  # seen at frame 2 (x = 0.2 m), selected at frame 5
+    stage = PolarContext(PolarContextParams(ground="driven", ground_model="wheels", ground_past=0.5))
+    stage.begin(RunContext(None))
+    emitted = []
+    for k, pose in enumerate(poses):
+        out = stage.process(
+            Frame(k, 0.1 * k, np.zeros((2, 2), np.uint8), pose, CALIBRATION),
+            SgfDetections((feature,) if k == 5 else ()),
+        )
+        emitted += [k] * len(out.items)
+    # Farthest pixel 4.6 m ahead of the view, plus 0.5 m: due at 0.2 + 5.1 = 5.3 m of travel.
+    assert emitted == [53]
+    context = RunContext(None)
+    stage.begin(context)
+    for k, pose in enumerate(poses[:30]):  # the run ends before the robot gets there
+        stage.process(
+            Frame(k, 0.1 * k, np.zeros((2, 2), np.uint8), pose, CALIBRATION),
+            SgfDetections((feature,) if k == 5 else ()),
+        )
+    stage.finalize(context)
+    assert context.metrics["sgf"]["waiting_for_ground_at_end"] == 1
+
+
+def test_the_wheels_model_is_eq_9_on_flat_ground_and_follows_a_ramp():
+    flat = np.array([pose_from_xy_yaw(0.25 * k, 0.02 * k, 0.01 * k) for k in range(20)])
+    pixels = patch(2.0, 4.5, -1.0, 1.0)
+    driven = lift_driven(sgf(pixels), CALIBRATION, flat, ahead=3.0, radius=1.5, contacts=(0.25, -0.25))
+    assert driven is not None and len(driven) == len(pixels)
+    assert np.abs(driven - lift(sgf(pixels))).max() < 1e-6
+    grade = math.radians(3.0)
+    pixels = patch(4.0, 4.6)
+    on_ramp = lift_driven(sgf(pixels), CALIBRATION, ramp(2.0, grade), ahead=3.0, radius=1.5, contacts=(0.25, -0.25))
+    assert on_ramp is not None
+    on_plane = lift(sgf(pixels))
+    for x_flat in (4.01, 4.59):
+        rows = np.isclose(on_plane[:, 0], x_flat)
+        assert on_ramp[rows, 0] == pytest.approx(ray_meets_ramp(x_flat, 2.0, grade), abs=0.01)
+
+
+def test_marched_rays_that_never_reach_the_ground_are_not_covered():
+    origin = np.array([0.0, 0.0, 0.5])
+    directions = np.array([[1.0, 0.0, -0.1], [1.0, 0.0, 0.1]])
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    points, normals = wheel_ground(np.array([np.eye(4)]), ahead=10.0, step=0.25, contacts=(0.25,))
+    hit, covered = march_ground(origin, directions, points, normals, radius=1.0)
+    assert covered.tolist() == [True, False]
+    assert hit[0] == pytest.approx([5.0, 0.0, 0.0], abs=1e-9)
+    with pytest.raises(ValueError, match="contacts"):
+        wheel_ground(np.array([np.eye(4)]), ahead=1.0, step=0.25, contacts=())

@@ -14,7 +14,7 @@ from sgf_pipeline.geometry import invert
 from sgf_pipeline.types import Frame, SalientGroundFeature, SgfDescriptor, SgfDescriptors, SgfDetections
 from sgf_plugins.frame_log import FrameLog
 from sgf_plugins.sgf.polar import polar_context, ring_key, voxel_downsample
-from sgf_plugins.sgf.terrain import driven_ground, intersect_ground, pixel_rays
+from sgf_plugins.sgf.terrain import driven_ground, intersect_ground, march_ground, pixel_rays, wheel_ground
 
 #: Frames of odometry the driven-ground lift remembers (a feature's valid range is far shorter).
 TERRAIN_FRAMES = 2_000
@@ -45,6 +45,23 @@ class PolarContextParams(StageParams):
     ground_radius: float = Field(
         3.0, gt=0.0, description="driven: an SGF with a pixel farther (m) from every ground sample stays on the plane"
     )
+    ground_model: Literal["base", "wheels"] = Field(
+        "base",
+        description="driven: the ground is the base poses' tangent planes, each ray meeting its nearest one (base), "
+        "or the wheels' contact tracks, each ray marched to its first crossing, the SGF lifted once the robot has "
+        "driven past its paint (wheels: paint on a speed bump lands on the bump)",
+    )
+    ground_contacts: tuple[float, ...] = Field(
+        (0.25, -0.25),
+        min_length=1,
+        description="wheels: where the wheels touch the ground (m ahead of the base origin; the world's robot: "
+        "wheelbase 0.5 m, centred)",
+    )
+    ground_past: float | None = Field(
+        0.5,
+        description="wheels: an SGF waits until the robot has driven this far (m) past its farthest pixel, so the "
+        "ground under the marking is measured before the lift; null = lift at selection",
+    )
 
 
 def lift(sgf: SalientGroundFeature) -> np.ndarray:
@@ -55,22 +72,34 @@ def lift(sgf: SalientGroundFeature) -> np.ndarray:
 
 
 def lift_driven(
-    sgf: SalientGroundFeature, calibration: Calibration, driven: np.ndarray, ahead: float, radius: float
+    sgf: SalientGroundFeature,
+    calibration: Calibration,
+    driven: np.ndarray,
+    ahead: float,
+    radius: float,
+    contacts: tuple[float, ...] | None = None,
 ) -> np.ndarray | None:
     """The SGF's pixels where their camera rays meet the driven ground (M, 2), or None where it does not cover them.
 
     ``driven``: odometry poses (N, 4, 4) from the SGF's frame on (the first is its frame's).
+    ``contacts``: None for the base poses' tangent planes (``ground_model=base``), else the wheels'
+    positions ahead of the base origin (``ground_model=wheels``); then pixels whose rays skimmed a
+    crest before meeting the ground are left out (fewer rows than pixels).
     """
     if sgf.homography is None or len(driven) == 0:
         return None
     view = np.asarray(driven[0], dtype=np.float64)
     local = invert(view) @ np.asarray(driven, dtype=np.float64)  # poses in the view's base frame
-    points, normals = driven_ground(local, ahead, step=0.25)
     origin, directions = pixel_rays(np.asarray(sgf.pixels), sgf.homography, calibration)
-    hit, covered = intersect_ground(origin, directions, points, normals, radius)
+    if contacts is None:
+        points, normals = driven_ground(local, ahead, step=0.25)
+        hit, covered = intersect_ground(origin, directions, points, normals, radius)
+    else:
+        points, normals = wheel_ground(local, ahead, step=0.25, contacts=contacts)
+        hit, covered = march_ground(origin, directions, points, normals, radius)
     if not covered.all():
         return None
-    return hit[:, :2]
+    return hit[np.isfinite(hit[:, 0]), :2]
 
 
 def describe(
@@ -126,6 +155,7 @@ class PolarContext(Stage):
         self._frames = FrameLog(keep=TERRAIN_FRAMES)
         self._ground: dict[str, int] = {}
         self._warned = False
+        self._waiting: list[tuple[float, SalientGroundFeature]] = []
 
     def begin(self, context: RunContext) -> None:
         """Reset the counts and the odometry; announce the descriptor's shape (N_r, N_s) to later stages."""
@@ -133,21 +163,26 @@ class PolarContext(Stage):
         self._frames = FrameLog(keep=TERRAIN_FRAMES)
         self._ground = {"driven": 0, "plane": 0}
         self._warned = False
+        self._waiting = []
         context.artifacts["descriptor_shape"] = (self.params.num_rings, self.params.num_sectors)
 
     def process(self, frame: Frame, sgfs: SgfDetections) -> SgfDescriptors:
         """The descriptors of this frame's selected SGFs."""
         p = self.params
+        items: list[SalientGroundFeature] = list(sgfs.items)
         if p.ground == "driven":
             self._frames.append(frame)
             self._check_attitude(frame)
+            if p.ground_model == "wheels" and p.ground_past is not None:
+                items = self._ready(items, p.ground_past)
         out = []
-        for sgf in sgfs.items:
+        for sgf in items:
             ground = None
             if p.ground == "driven":
                 if sgf.frame_index in self._frames:  # the view's odometry, and all since, are remembered
                     driven = self._frames.odometry_since(sgf.frame_index)
-                    ground = lift_driven(sgf, frame.calibration, driven, p.ground_ahead, p.ground_radius)
+                    contacts = p.ground_contacts if p.ground_model == "wheels" else None
+                    ground = lift_driven(sgf, frame.calibration, driven, p.ground_ahead, p.ground_radius, contacts)
                 self._ground["plane" if ground is None else "driven"] += 1
             descriptor = describe(sgf, p, ground)
             if descriptor is None:
@@ -155,6 +190,19 @@ class PolarContext(Stage):
             else:
                 out.append(descriptor)
         return SgfDescriptors(tuple(out))
+
+    def _ready(self, new: list[SalientGroundFeature], past: float) -> list[SalientGroundFeature]:
+        """The SGFs whose ground has been driven: ``past`` metres beyond their farthest pixel since their view."""
+        travelled = self._frames.travelled
+        for sgf in new:
+            since = self._frames.get_distance(sgf.frame_index)
+            if since is None:
+                self._waiting.append((-np.inf, sgf))  # its view is forgotten: lifted on the plane at once
+            else:
+                self._waiting.append((since + float(lift(sgf)[:, 0].max()) + past, sgf))
+        ready = [sgf for due, sgf in self._waiting if due <= travelled]
+        self._waiting = [(due, sgf) for due, sgf in self._waiting if due > travelled]
+        return ready
 
     def _check_attitude(self, frame: Frame) -> None:
         """Warn once when the odometry is level while the IMU is not: planar odometry gives the lift no attitude."""
@@ -178,6 +226,8 @@ class PolarContext(Stage):
         """Report how many SGFs had too few points to describe."""
         sgf = context.metrics.setdefault("sgf", {})
         sgf["too_few_points"] = self._dropped
+        if self._waiting:
+            sgf["waiting_for_ground_at_end"] = len(self._waiting)
         if self.params.ground == "driven":
             sgf["lifted_on_driven_ground"] = self._ground["driven"]
             sgf["lifted_on_plane"] = self._ground["plane"]
