@@ -151,7 +151,9 @@ def test_the_column_shift_yaw_is_tried_with_both_signs(both_signs: bool, expecte
     first, last = _view(frames[0], marking), _view(frames[-1], marking)
     # the association's shift convention is the opposite of ours: it reports -100 degrees
     assignment = GroupAssignment(last, 0, False, 0.1, -25, math.radians(-100), first, False)  # type: ignore[arg-type]
-    stage = IcpLoopClosing(IcpLoopParams(seed_both_signs=both_signs, min_separation_distance=5.0, min_support=0))
+    stage = IcpLoopClosing(
+        IcpLoopParams(seed_both_signs=both_signs, extra_yaw_seeds=0, min_separation_distance=5.0, min_support=0)
+    )
     out = [stage.process(frame=f, assignments=None, estimate=None) for f in frames[:-1]]
     out.append(stage.process(frame=frames[-1], assignments=GroupAssignments((assignment,)), estimate=None))
     loops = [c for o in out for c in o.items]
@@ -738,6 +740,32 @@ def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
     arrow = Marking(1, "arrow", (12.0, 0.3, 0.2))
     single = GroupAssignment(_view(frames[49], arrow), 1, False, 0.01, 0, 0.0, _view(frames[9], arrow), False)  # type: ignore[arg-type]
     assert len(tight._fits(tight._align(single), np.asarray(single.descriptor.points))) == 1
+
+
+@pytest.mark.parametrize("extra", [None, 0])
+def test_a_twofold_marking_whose_shift_came_out_half_a_turn_off_is_still_closed(extra: int | None) -> None:
+    # a zebra's stripes look the same turned by 180 degrees, so eq. 10's best shift may be half a turn
+    # off; both column-shift seeds then lead ICP to the flipped fit, which the gate refuses
+    frames = _two_passes(40)
+    bars = Marking(7, "disc", (12.0, 0.3, 0.4))
+    points = np.array([(x, y) for x in np.linspace(-0.6, 0.6, 41) for y in np.linspace(-0.09, 0.09, 7)])
+    rng = np.random.default_rng(5)
+
+    def view(frame: Frame) -> object:
+        c, s = math.cos(0.4), math.sin(0.4)
+        world = points @ np.array([[c, -s], [s, c]]).T + (12.0, 0.3) + rng.normal(0.0, 0.004, points.shape)
+        inv = invert(frame.odometry)
+        return descriptor(frame, bars, world @ inv[:2, :2].T + inv[:2, 3])
+
+    match = GroupAssignment(view(frames[49]), 7, False, 0.01, 45, math.pi, view(frames[9]), False)  # type: ignore[arg-type]
+    stage = IcpLoopClosing(IcpLoopParams() if extra is None else IcpLoopParams(extra_yaw_seeds=extra))
+    for f in frames[:50]:
+        stage.process(frame=f, assignments=None, estimate=None)
+    c = stage._evaluate(match, None)
+    if extra == 0:
+        assert c == "gate"
+    else:  # the default seeds also try the shift's half-turn alternative
+        assert not isinstance(c, str) and np.allclose(xy_yaw(c.constraint.relative), (0.0, 0.0, 0.0), atol=0.02)
 
 
 def test_fits_are_told_apart_on_the_marking_not_at_the_robot() -> None:

@@ -136,7 +136,9 @@ class IcpLoopParams(StageParams):
     seed_both_signs: bool = Field(
         True, description="also seed ICP with the negated column-shift yaw (robust to the shift's sign convention)"
     )
-    extra_yaw_seeds: int = Field(0, ge=0, le=16, description="further seeds evenly spaced in yaw around the first")
+    extra_yaw_seeds: int = Field(
+        1, ge=0, le=16, description="further seeds evenly spaced in yaw around the first (1: its half-turn alternative)"
+    )
     ambiguity_ratio: float = Field(
         1.25,
         ge=1.0,
