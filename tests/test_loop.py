@@ -711,9 +711,8 @@ def test_a_match_waits_for_the_neighbours_seen_after_it() -> None:
     assert _run_loop(short, frames, by_frame) == [] and short.counts["consensus"] == 1 and short.waiting == []
 
 
-def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
-    # a bar (twofold symmetric) fits itself turned by 180 degrees as well: two distinct near-equal fits
-    frames = _two_passes(40)
+def _bar_match(frames: list[Frame], shift: int, yaw: float) -> GroupAssignment:
+    """A bar (twofold symmetric, 1.2 x 0.18 m at (12, 0.3), turned 0.4 rad) seen at frames 9 and 49, matched."""
     bar = Marking(7, "disc", (12.0, 0.3, 0.4))
     points = np.array([(x, y) for x in np.linspace(-0.6, 0.6, 41) for y in np.linspace(-0.09, 0.09, 7)])
     rng = np.random.default_rng(5)
@@ -724,7 +723,13 @@ def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
         inv = invert(frame.odometry)
         return descriptor(frame, bar, world @ inv[:2, :2].T + inv[:2, 3])
 
-    match = GroupAssignment(view(frames[49]), 7, False, 0.01, 0, 0.0, view(frames[9]), False)  # type: ignore[arg-type]
+    return GroupAssignment(view(frames[49]), 7, False, 0.01, shift, yaw, view(frames[9]), False)  # type: ignore[arg-type]
+
+
+def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
+    # a bar (twofold symmetric) fits itself turned by 180 degrees as well: two distinct near-equal fits
+    frames = _two_passes(40)
+    match = _bar_match(frames, 0, 0.0)
     # a second yaw seed half a turn on (the association's shift of a bar could be either)
     loose = IcpLoopClosing(IcpLoopParams(extra_yaw_seeds=1, gate_floor_yaw_deg=120.0))  # heading too uncertain
     tight = IcpLoopClosing(IcpLoopParams(extra_yaw_seeds=1))  # the default floors: 3 degrees
@@ -747,17 +752,7 @@ def test_a_twofold_marking_whose_shift_came_out_half_a_turn_off_is_still_closed(
     # a zebra's stripes look the same turned by 180 degrees, so eq. 10's best shift may be half a turn
     # off; both column-shift seeds then lead ICP to the flipped fit, which the gate refuses
     frames = _two_passes(40)
-    bars = Marking(7, "disc", (12.0, 0.3, 0.4))
-    points = np.array([(x, y) for x in np.linspace(-0.6, 0.6, 41) for y in np.linspace(-0.09, 0.09, 7)])
-    rng = np.random.default_rng(5)
-
-    def view(frame: Frame) -> object:
-        c, s = math.cos(0.4), math.sin(0.4)
-        world = points @ np.array([[c, -s], [s, c]]).T + (12.0, 0.3) + rng.normal(0.0, 0.004, points.shape)
-        inv = invert(frame.odometry)
-        return descriptor(frame, bars, world @ inv[:2, :2].T + inv[:2, 3])
-
-    match = GroupAssignment(view(frames[49]), 7, False, 0.01, 45, math.pi, view(frames[9]), False)  # type: ignore[arg-type]
+    match = _bar_match(frames, 45, math.pi)
     stage = IcpLoopClosing(IcpLoopParams() if extra is None else IcpLoopParams(extra_yaw_seeds=extra))
     for f in frames[:50]:
         stage.process(frame=f, assignments=None, estimate=None)
