@@ -19,9 +19,14 @@ average, passes under a speed bump's crest, and marches each ray to its first cr
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from sgf_pipeline.calibration import Calibration
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 #: Ray-ground iterations: each picks every ray's nearest ground sample, then meets its tangent plane.
 ITERATIONS = 5
@@ -49,17 +54,27 @@ def driven_ground(poses: np.ndarray, ahead: float, step: float) -> tuple[np.ndar
     Each pose's base origin is a point of the ground and its z axis the ground's normal there;
     the newest pose's tangent plane is sampled every ``step`` metres up to ``ahead`` metres on.
     """
+    poses = _base_poses(poses)
+    ahead_points, ahead_normals = _ahead(poses[-1], 0.0, ahead, step)
+    points = np.vstack([poses[:, :3, 3], ahead_points])
+    normals = np.vstack([poses[:, :3, 2], ahead_normals])
+    return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def _base_poses(poses: np.ndarray) -> np.ndarray:
+    """Base poses as a float (N, 4, 4) array, N >= 1, or a ValueError that says what came instead."""
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
         raise ValueError(f"expected base poses of shape (N, 4, 4), got {poses.shape}")
-    points = poses[:, :3, 3]
-    normals = poses[:, :3, 2]
-    last = poses[-1]
-    if ahead > 0.0 and step > 0.0:
-        offsets = np.arange(step, ahead + 0.5 * step, step)
-        points = np.vstack([points, last[:3, 3] + offsets[:, None] * last[:3, 0]])
-        normals = np.vstack([normals, np.repeat(last[None, :3, 2], len(offsets), axis=0)])
-    return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    return poses
+
+
+def _ahead(last: np.ndarray, start: float, ahead: float, step: float) -> tuple[np.ndarray, np.ndarray]:
+    """The newest pose's tangent plane sampled every ``step`` m from ``start`` m ahead of its origin for ``ahead`` m."""
+    if ahead <= 0.0 or step <= 0.0:
+        return np.empty((0, 3)), np.empty((0, 3))
+    offsets = start + np.arange(step, ahead + 0.5 * step, step)
+    return last[:3, 3] + offsets[:, None] * last[:3, 0], np.repeat(last[None, :3, 2], len(offsets), axis=0)
 
 
 def pixel_rays(pixels: np.ndarray, homography: np.ndarray, calibration: Calibration) -> tuple[np.ndarray, np.ndarray]:
@@ -115,9 +130,7 @@ def wheel_ground(
     newest pose's tangent plane is sampled every ``step`` metres up to ``ahead`` metres past its
     foremost contact.
     """
-    poses = np.asarray(poses, dtype=np.float64)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or len(poses) == 0:
-        raise ValueError(f"expected base poses of shape (N, 4, 4), got {poses.shape}")
+    poses = _base_poses(poses)
     if not contacts:
         raise ValueError("contacts must name at least one wheel position (metres ahead of the base origin)")
     points, normals = [], []
@@ -125,12 +138,9 @@ def wheel_ground(
         track = poses[:, :3, 3] + offset * poses[:, :3, 0]
         points.append(track)
         normals.append(_track_normals(track, poses))
-    last = poses[-1]
-    if ahead > 0.0 and step > 0.0:
-        front = last[:3, 3] + max(contacts) * last[:3, 0]
-        offsets = np.arange(step, ahead + 0.5 * step, step)
-        points.append(front + offsets[:, None] * last[:3, 0])
-        normals.append(np.repeat(last[None, :3, 2], len(offsets), axis=0))
+    ahead_points, ahead_normals = _ahead(poses[-1], max(contacts), ahead, step)
+    points.append(ahead_points)
+    normals.append(ahead_normals)
     n = np.vstack(normals)
     return np.vstack(points), n / np.linalg.norm(n, axis=1, keepdims=True)
 
@@ -223,12 +233,12 @@ class _GroundRaster:
     instead of one per march step. ``start`` and ``ends`` (M, 2): where the rays enter and leave it.
     """
 
-    def __init__(self, tree: object, points: np.ndarray, normals: np.ndarray, start: np.ndarray, ends: np.ndarray):
+    def __init__(self, tree: cKDTree, points: np.ndarray, normals: np.ndarray, start: np.ndarray, ends: np.ndarray):
         lo = np.minimum(start.min(axis=0), ends.min(axis=0)) - 2 * RASTER_CELL
         hi = np.maximum(start.max(axis=0), ends.max(axis=0)) + 2 * RASTER_CELL
         shape = np.ceil((hi - lo) / RASTER_CELL).astype(int) + 1
         gx, gy = np.meshgrid(lo[0] + RASTER_CELL * np.arange(shape[0]), lo[1] + RASTER_CELL * np.arange(shape[1]))
-        _, idx = tree.query(np.column_stack([gx.ravel(), gy.ravel()]))  # type: ignore[attr-defined]
+        _, idx = tree.query(np.column_stack([gx.ravel(), gy.ravel()]))
         p, n = points[idx], normals[idx]
         heights = p[:, 2] - (n[:, 0] * (gx.ravel() - p[:, 0]) + n[:, 1] * (gy.ravel() - p[:, 1])) / n[:, 2]
         self.lo = lo
