@@ -59,6 +59,7 @@ class PolarContextParams(StageParams):
     )
     ground_past: float | None = Field(
         0.5,
+        ge=0.0,
         description="wheels: an SGF waits until the robot has driven this far (m) past its farthest pixel, so the "
         "ground under the marking is measured before the lift; null = lift at selection",
     )
