@@ -468,3 +468,17 @@ def test_the_odometry_heading_bias_is_estimated_from_loops_and_corrects_the_driv
 
 def rmse_xy(poses: np.ndarray, gt: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.sum((poses[:, :2, 3] - gt[:, :2, 3]) ** 2, axis=1))))
+
+
+@pytest.mark.parametrize(
+    "backend",
+    [GtsamLmBackend(LmParams(save_map=False)), Isam2Backend(Isam2Params(save_map=False))],
+    ids=["lm", "isam2"],
+)
+def test_loops_closed_at_the_end_of_the_run_enter_the_final_optimisation(world, backend) -> None:  # type: ignore[no-untyped-def]
+    context = RunContext(run_dir=None, calibration=CALIBRATION)
+    final = [loop for loops in true_loops(world).values() for loop in loops]
+    context.artifacts["final_loops"] = LoopConstraints(tuple(final))
+    context, _ = feed(world, backend, {}, context)
+    assert context.metrics["backend"]["loop_factors"] == len(world.truth.revisits) == backend.loops_received
+    assert ate(context.trajectories["sgf"].poses, world.gt) < 0.15 * ate(world.odometry, world.gt)

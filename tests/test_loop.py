@@ -13,10 +13,11 @@ from backend_world import CALIBRATION, Marking, OracleAssociation, descriptor, m
 from sgf_plugins.backend import GtsamLmBackend, LmParams
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, se2
 from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, drift_covariance
+from sgf_plugins.sgf.association import SgfGroup
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, wrap_angle, xy_yaw
-from sgf_pipeline.types import Frame, GroupAssignment, GroupAssignments, LookAlike
+from sgf_pipeline.types import Frame, GroupAssignment, GroupAssignments, LookAlike, PoseEstimate
 
 
 @pytest.fixture(scope="module")
@@ -855,3 +856,53 @@ def test_a_match_into_a_view_of_the_same_pass_is_redone_with_the_groups_earlier_
     del by_frame[28]
     alone = IcpLoopClosing(IcpLoopParams(min_support=0))
     assert _run_loop(alone, frames, by_frame) == [] and alone.counts["separation"] == 1 and alone.earlier_members == 0
+
+
+def _final_groups(seen: dict[int, object], query: object, merged: bool) -> list[SgfGroup]:
+    """The groups the association ends with: A's revisit back in A's group (merged) or still in B's."""
+    a, b = SgfGroup(1), SgfGroup(2)
+    a.add(seen[28], 0)  # type: ignore[arg-type]
+    b.add(seen[8], 0)  # type: ignore[arg-type]
+    (a if merged else b).add(query, 0)  # type: ignore[arg-type]
+    return [a, b]
+
+
+@pytest.mark.parametrize(("merged", "final_pass", "closed"), [(True, True, 1), (False, True, 0), (True, False, 0)])
+def test_a_revisit_the_association_regrouped_at_the_end_is_closed_by_the_final_pass(
+    merged: bool, final_pass: bool, closed: int
+) -> None:
+    # Online, the revisit of arrow A ties with its look-alike B 20 m away (no estimate yet: the odometry's
+    # gate passes both) and no neighbour tells them apart: refused. The final estimate (exact here, 78 m
+    # of path from the first pass: sigma 4.14 m) puts B beyond the gate's reach of A (4.03 x 4.14 + 2 m =
+    # 18.7 m), so once the association's merge has put the revisit in A's group, the final pass closes it;
+    # left in B's group, ICP against B fails the gate.
+    frames, by_frame, seen = _tied_arrows(neighbour=False)
+    stage = IcpLoopClosing(IcpLoopParams(consensus_window=15.0, gate_support_sigma=5.0, final_pass=final_pass))
+    exact = PoseEstimate(frames[-1].index, {f.index: f.odometry for f in frames})
+    online = [
+        c
+        for f in frames
+        for c in stage.process(
+            frame=f, assignments=by_frame.get(f.index), estimate=exact if f is frames[-1] else None
+        ).items
+    ]
+    assert online == []
+    query = by_frame[68].items[0].descriptor
+    context = RunContext(None)
+    context.artifacts["sgf_groups"] = _final_groups(seen, query, merged)
+    tracks = {k: v.sgf.track_id for k, v in seen.items()} | {68: query.sgf.track_id}
+    group_of = {(8, tracks[8]): 2, (28, tracks[28]): 1, (68, tracks[68]): 1 if merged else 2}
+    context.artifacts["sgf_group_of"] = group_of
+    stage.finalize(context)
+    assert stage.counts["ambiguous"] == 1  # the online match, refused when the run ended
+    final = context.artifacts["final_loops"].items
+    assert len(final) == closed and context.metrics["loops"]["final_pass"]["accepted"] == closed
+    assert context.metrics["loops"]["accepted"] == closed
+    if closed:
+        (loop,) = final
+        assert (loop.frame_from, loop.frame_to, loop.instance_ids, loop.group_id) == (28, 68, (1, 1), 1)
+        assert np.allclose(xy_yaw(loop.relative), (0.0, 0.0, 0.0), atol=0.02)
+        (row,) = [d for d in stage.decisions if d["outcome"] == "accepted"]
+        assert row["detail"] == "final pass" and row["gate_sigma_xy"] == pytest.approx(4.144, abs=1e-3)
+    # Not tried twice: a pair of drive-bys that a loop joins is left alone.
+    assert context.metrics["loops"]["final_pass"]["tried"] == (1 if final_pass else 0)

@@ -358,6 +358,81 @@ def test_a_group_the_final_estimate_spreads_beyond_the_gate_is_split_at_the_end(
     assert "groups_split" not in context.metrics["sgf"]
 
 
+def _a_revisit_joined_a_look_alike(shape_back=ARROW, **params):
+    """Arrow A at x = 5 and its look-alike B at x = 65 m (each its own group); 350 m on, A is seen again
+    (reverse) with odometry 58 m off, which puts it 2 m from B, beyond A's gate: it joins B's group."""
+    far = ARROW.placed(65.0, 0.0, 0.3, instance_id=9)
+    back = shape_back.placed(*ARROW.pose, instance_id=shape_back.instance_id)
+    s = stage(**params)
+    p1, p4, p6 = seen_from(ARROW, 3.0, 0.0), seen_from(far, 3.0, 0.0), seen_from(back, 3.0, math.pi)
+    (a,) = feed(s, 1, p1, desc(ARROW, p1, 1))
+    feed(s, 2, pose_from_xy_yaw(150.0, 0.0, 0.0))
+    (b,) = feed(s, 4, p4, desc(far, p4, 4))
+    assert b.new_group
+    feed(s, 5, pose_from_xy_yaw(160.0, 0.0, 0.0))
+    drifted = pose_from_xy_yaw(58.0, 0.0, 0.0) @ p6
+    (c,) = feed(s, 6, drifted, desc(back, p6, 6, odometry=drifted))
+    return s, a, b, c, (p1, p4, p6)
+
+
+def _finish(s: OnlineSgfGroups, estimate: PoseEstimate, truth: SequenceTruth) -> RunContext:
+    s._estimate = estimate
+    context = RunContext(None)
+    context.truth = truth
+    s.finalize(context)
+    return context
+
+
+def _revisit_of(instance: int) -> SequenceTruth:
+    first, second = MarkingPass(instance, 1, 1, 1, 0.0), MarkingPass(instance, 2, 6, 6, math.pi)
+    return SequenceTruth(passes=[first, second], revisits=[RevisitPair(instance, first, second, True)])
+
+
+def test_a_revisit_that_joined_a_look_alike_is_merged_into_its_own_group_at_the_end():
+    s, a, b, c, (p1, p4, p6) = _a_revisit_joined_a_look_alike()
+    assert not c.new_group and c.group_id == b.group_id  # the premise: the revisit joined B's group
+    # The loops put every frame where it truly was: the split takes the revisit out of B's group,
+    # the merge puts it into A's, turned into A's orientation (a reverse revisit: half a turn).
+    context = _finish(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: p6}), _revisit_of(1))
+    sgf, loops = context.metrics["sgf"], context.metrics["loops"]
+    assert sgf["groups_split"] == 1 and sgf["groups_merged"] == 1
+    assert sgf["purity_online"] == pytest.approx(2 / 3) and sgf["purity"] == 1.0
+    assert loops["pairs_found_online"] == 0 and loops["pairs_found"] == 1
+    own, other = s.groups
+    assert own.group_id == a.group_id and [m.sgf.frame_index for m in own.members] == [1, 6]
+    assert other.group_id == b.group_id and [m.sgf.frame_index for m in other.members] == [4]
+    assert context.artifacts["sgf_group_of"] == {(1, 1): a.group_id, (6, 6): a.group_id, (4, 4): b.group_id}
+    assert abs(own.offsets[1] - 45) <= 2  # 90 sectors: half a turn
+    turned = align(own.members[1].matrix, own.offsets[1])
+    assert shifted_distances(turned, own.members[0].matrix[None])[0, 0] < 0.05
+    assert np.allclose(own.descriptor, (own.members[0].matrix + turned) / 2)
+    # The merged group's members index where they are: a new SGF there meets A's group once.
+    s._record(Frame(7, 0.7, np.zeros((2, 2), np.uint8), p1, toy_calibration()))
+    gated = s.gated(desc(ARROW, p1, 7), PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: p6}))
+    assert [g.group.group_id for g in gated] == [a.group_id] and len(gated[0].group.members) == 2
+
+
+def test_the_end_merge_needs_a_look_alike_at_the_predicted_heading():
+    # Off: the split leaves the revisit in a group of its own.
+    s, *_, (p1, p4, p6) = _a_revisit_joined_a_look_alike(merge_at_end=False)
+    context = _finish(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: p6}), _revisit_of(1))
+    assert context.metrics["loops"]["pairs_found"] == 0 and len(s.groups) == 3
+    assert "groups_merged" not in context.metrics["sgf"]
+    # An L where A lies is another marking: no merge.
+    s, *_, (p1, p4, p6) = _a_revisit_joined_a_look_alike(ELL.placed(*ELL.pose, instance_id=1))
+    context = _finish(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: p6}), _revisit_of(1))
+    assert context.metrics["sgf"]["groups_merged"] == 0 and len(s.groups) == 3
+    # An estimate that turns the revisit by half a turn predicts the wrong shift: the arrows do not merge...
+    s, *_, (p1, p4, p6) = _a_revisit_joined_a_look_alike()
+    turned = p6 @ pose_from_xy_yaw(6.0, 0.0, math.pi)  # half a turn about the arrow, 3 m ahead
+    context = _finish(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: turned}), _revisit_of(1))
+    assert context.metrics["sgf"]["groups_merged"] == 0
+    # ...unless the heading window is opened to any shift.
+    s, *_, (p1, p4, p6) = _a_revisit_joined_a_look_alike(merge_yaw_deg=180.0)
+    context = _finish(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: turned}), _revisit_of(1))
+    assert context.metrics["sgf"]["groups_merged"] == 1
+
+
 def test_a_member_seen_long_after_the_last_loop_does_not_chain_two_places():
     """Marking A at x = 0 and its look-alike B 30 m on, 20 m of travel apart (gate 2.6 m); C, seen 500 m later
     (gate 76.5 m), lies between them: it may join either, but the two stay apart (complete linkage)."""

@@ -277,6 +277,16 @@ class _GraphBackend(_Backend):
         self.loops_received += count
         return count, anchored
 
+    def _add_final_loops(self, context: RunContext) -> int:
+        """Add the loops a loop stage closed at the end of the run (``artifacts['final_loops']``); their number."""
+        final = context.artifacts.get("final_loops")
+        count = 0
+        for loop in final.items if isinstance(final, LoopConstraints) else ():
+            self.graph.add_loop(loop)
+            count += 1
+        self.loops_received += count
+        return count
+
     def estimate(self) -> PoseEstimate:
         """The current estimate of every processed frame."""
         return PoseEstimate(self.graph.store.frames[-1], self.graph.store.snapshot(), self._yaw_bias())
@@ -354,8 +364,10 @@ class GtsamLmBackend(_GraphBackend):
         return self.estimate()
 
     def finalize(self, context: RunContext) -> None:
-        """Final batch optimisation, then the trajectory, metrics and map."""
+        """The loops closed at the end, a final batch optimisation, then the trajectory, metrics and map."""
         if self.graph.timestamps:
+            self._add_final_loops(context)
+            self.graph.take_new()
             self.batch_optimize()
         super().finalize(context)
 
@@ -445,9 +457,12 @@ class Isam2Backend(_GraphBackend):
         return out
 
     def finalize(self, context: RunContext) -> None:
-        """The final iSAM2 estimate (optionally refined by batch LM), then the trajectory, metrics and map."""
+        """The loops closed at the end, the final iSAM2 estimate (optionally refined by batch LM), then the rest."""
         if self.graph.timestamps:
             t0 = time.perf_counter()
+            if self._add_final_loops(context):
+                factors, values = self.graph.take_new()
+                self.isam.update(factors, values)
             self.isam.update()
             self.graph.set_values(self.isam.calculateEstimate())
             self.optimize_seconds += time.perf_counter() - t0

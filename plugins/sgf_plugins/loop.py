@@ -244,6 +244,12 @@ class IcpLoopParams(StageParams):
         description="a match short of agreeing neighbours waits while the robot drives consensus_window metres on: "
         "SGFs seen after it count too (false = decide on the SGFs seen before it)",
     )
+    final_pass: bool = Field(
+        True,
+        description="at the end of the run, match once more the members of each final SGF group (after the "
+        "association's split and merge) from two drive-bys that no loop joins yet, against the final estimate; "
+        "a match is closed when ICP passes and the gate alone decides it (gate_support_sigma)",
+    )
     aliased_support: int = Field(
         2,
         ge=0,
@@ -397,6 +403,9 @@ class IcpLoopClosing(Stage):
         self._sgf_yaw: list[float] = []
         self._sgf_frame: list[int] = []
         self._sgf_centroid: list[np.ndarray] = []
+        self._sgf_track: list[int] = []
+        self._estimate: PoseEstimate | None = None  # the newest estimate (for the final pass)
+        self.final_tried = 0
 
     # -- per frame --------------------------------------------------------------------------
 
@@ -405,6 +414,8 @@ class IcpLoopClosing(Stage):
     ) -> LoopConstraints:
         """Loop constraints of the SGFs assigned to groups on this frame."""
         self.frames.append(frame)
+        if estimate is not None:
+            self._estimate = estimate
         if assignments is None:
             return LoopConstraints(tuple(self._settle_waiting(estimate, new_sgfs=False)))
         earlier, self.waiting = self.waiting, []  # this frame's matches were just decided: they wait untested
@@ -756,6 +767,7 @@ class IcpLoopClosing(Stage):
         self._sgf_group.append(a.group_id)
         self._sgf_frame.append(d.sgf.frame_index)
         self._sgf_centroid.append(np.asarray(d.centroid, dtype=np.float64)[:2])
+        self._sgf_track.append(d.sgf.track_id)
 
     def _support(self, a: GroupAssignment, c: LoopConstraint, unlike: bool = False) -> float:
         """How many other markings near the query agree with the match: seen where it puts them, and alike.
@@ -1131,6 +1143,11 @@ class IcpLoopClosing(Stage):
             detail = _support_detail(support, w.need) + " when the run ended"
             self._refuse(w.options[0][0], w.refused, w.options[0][1].gate, detail)
         self.waiting = []
+        final: list[LoopConstraint] = []
+        groups = context.artifacts.get("sgf_groups")
+        if self.p.final_pass and groups is not None and self._estimate is not None:
+            final = self._final_pass(groups, context.artifacts.get("sgf_group_of", {}), self._estimate)
+        context.artifacts["final_loops"] = LoopConstraints(tuple(final))
         errors = [self._truth_error(c) for c in self.accepted]
         truths = [self._true(c, e) for c, e in zip(self.accepted, errors, strict=True)]
         known = [t for t in truths if t is not None]
@@ -1146,6 +1163,7 @@ class IcpLoopClosing(Stage):
             "distinct": self.distinct,
             "gate_decided": self.gate_decided,
             "earlier_members": self.earlier_members,
+            "final_pass": {"tried": self.final_tried, "accepted": len(final)},
         }
         truth = context.truth if context.truth is not None else self.truth
         if not self.accepted and (truth is not None or self.frames.has_truth()):
@@ -1160,6 +1178,85 @@ class IcpLoopClosing(Stage):
         ]
         context.artifacts["group_assignments"] = list(self.assignments)
         context.artifacts["loop_candidates"] = list(self.decisions)
+
+    def _final_pass(
+        self, groups: list[Any], group_of: dict[tuple[int, int], int], estimate: PoseEstimate
+    ) -> list[LoopConstraint]:
+        """Close the drive-bys each final group joins that no loop joins yet, against the final estimate.
+
+        The association's split and merge at the end (with the estimate the loops made) put some
+        revisits into their marking's group only then: one seen before any loop, while the gate
+        reached several look-alikes, may have joined another's group. For each group, each member
+        and its closest earlier member (eq. 10) of another drive-by (``min_separation_distance``)
+        are matched once more when no accepted loop joins the two drive-bys (both ends within that
+        distance of path); the match is closed when it passes ICP and the gate, and the gate alone
+        decides it (:meth:`_gate_decides`, with every SGF counted in its final group). One loop
+        per pair of drive-bys and group.
+        """
+        saved = self._sgf_group
+        self._sgf_group = [
+            group_of.get((f, t), g) for f, t, g in zip(self._sgf_frame, self._sgf_track, saved, strict=True)
+        ]
+        try:
+            out: list[LoopConstraint] = []
+            for group in groups:
+                if group.symmetric or len(group.members) < 2:
+                    continue
+                members = sorted(
+                    (m for m in group.members if m.sgf.frame_index in self.frames), key=lambda m: m.sgf.frame_index
+                )
+                for k, query in enumerate(members):
+                    j = query.sgf.frame_index
+                    earlier = [m for m in members[:k] if self._separated(m.sgf.frame_index, j)]
+                    earlier = [m for m in earlier if not self._joined(m.sgf.frame_index, j)]
+                    if not earlier:
+                        continue
+                    profiles = shifted_distances(
+                        np.asarray(query.matrix), np.stack([np.asarray(m.matrix) for m in earlier])
+                    )
+                    m = int(np.argmin(profiles.min(axis=1)))
+                    shift = best_shift(profiles[m])
+                    a = GroupAssignment(
+                        query,
+                        group.group_id,
+                        False,
+                        float(profiles[m, shift]),
+                        shift,
+                        shift_to_yaw(shift, profiles.shape[1]),
+                        earlier[m],
+                        False,
+                    )
+                    self.final_tried += 1
+                    candidate = self._evaluate(a, estimate)
+                    if isinstance(candidate, str) or not self._gate_decides(a, candidate, estimate):
+                        continue
+                    self.accepted.append(candidate)
+                    self._log(
+                        (earlier[m].sgf.frame_index, j),
+                        candidate.constraint.instance_ids,
+                        group.group_id,
+                        False,
+                        "accepted",
+                        candidate.gate,
+                        "final pass",
+                    )
+                    out.append(candidate.constraint)
+            return out
+        finally:
+            self._sgf_group = saved
+
+    def _joined(self, i: int, j: int) -> bool:
+        """Whether an accepted loop joins the drive-bys of frames ``i`` and ``j`` (ends within the separation)."""
+        near = self.p.min_separation_distance
+        di, dj = self.frames.distance(i), self.frames.distance(j)
+        for c in self.accepted:
+            k = c.constraint
+            if k.from_map:
+                continue
+            a, b = self.frames.distance(k.frame_from), self.frames.distance(k.frame_to)
+            if (abs(a - di) < near and abs(b - dj) < near) or (abs(a - dj) < near and abs(b - di) < near):
+                return True
+        return False
 
     def _loop_entry(self, c: _Candidate, error: tuple[float, float] | None, true: bool | None) -> dict[str, Any]:
         """One accepted loop as the run reports it (``artifacts['loops']``, ``loops.csv``)."""

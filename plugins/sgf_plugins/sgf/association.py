@@ -187,6 +187,18 @@ class OnlineGroupsParams(StageParams):
         description="at the end of the run, split each group into the parts that the final estimate puts within "
         "the spatial gate of each other (identical markings joined while the gate was tens of metres wide)",
     )
+    merge_at_end: bool = Field(
+        True,
+        description="at the end of the run, after the split, merge groups whose members the final estimate puts at "
+        "one place and that look alike there (a revisit that joined another group while the gate was wide)",
+    )
+    merge_radius: float = Field(1.0, gt=0.0, description="...at one place: member centroids this close on the map (m)")
+    merge_distance: float = Field(
+        0.15, ge=0.0, le=1.0, description="...and look alike: eq. 10 at most this, at the shift the estimate predicts"
+    )
+    merge_yaw_deg: float = Field(
+        10.0, ge=0.0, le=180.0, description="...within this many degrees of it (symmetric groups: at any shift)"
+    )
 
 
 @dataclass(frozen=True)
@@ -608,6 +620,94 @@ class OnlineSgfGroups(Stage):
             group.refresh(self.params.columns, self.params.symmetry_threshold)
         return made
 
+    def merge_groups(self, estimate: PoseEstimate | None) -> int:
+        """Merge groups whose members the estimate puts at one place and that look alike there; merges made.
+
+        The counterpart of :meth:`split_groups`: a revisit seen before any loop, while the gate
+        reached several look-alike markings (a dash, a tactile bar), may have joined the wrong one's
+        group and been split off at the end. Candidates are member pairs of two groups within
+        ``merge_radius`` on the map whose eq. 10 distance, at the column shift the estimate
+        predicts (within ``merge_yaw_deg``; any shift when both groups are symmetric), is at most
+        ``merge_distance``. The closest pairs merge first, and only when every member of the
+        merged group stays within the spatial gate of every other (the split would not undo it)
+        and no two of the groups' members were seen within ``repeat_window`` of travel (one
+        drive-by: two copies of a repeated pattern, kept apart online).
+        Groups seeded from a map are left alone.
+        """
+        from scipy.spatial import cKDTree
+
+        p, index = self.params, self._index
+        n = index.size
+        if len(self._groups) < 2 or n < 2:
+            return 0
+        positions = self._member_positions(estimate)
+        slots = index.group[:n].copy()
+        free = np.array([all(a is None for a in g.anchors) for g in self._groups])
+        rows = np.flatnonzero(free[slots] & ~np.isnan(index.travelled[:n]))
+        if len(rows) < 2:
+            return 0
+        near = cKDTree(positions[rows]).query_pairs(p.merge_radius, output_type="ndarray")
+        first, second = rows[near[:, 0]], rows[near[:, 1]]
+        apart = slots[first] != slots[second]
+        member_at = np.zeros(n, dtype=np.int64)  # a row's index among its group's members (rows keep member order)
+        for slot in np.unique(slots):
+            member_at[slots == slot] = np.arange(int((slots == slot).sum()))
+        candidates: list[tuple[float, int, int, int]] = []
+        n_s = index.members[0].matrix.shape[1]
+        window = round(math.radians(p.merge_yaw_deg) * n_s / (2.0 * math.pi))
+        for a, b in zip(first[apart].tolist(), second[apart].tolist(), strict=True):
+            if index.frame[b] < index.frame[a]:
+                a, b = b, a
+            ga, gb = self._groups[slots[a]], self._groups[slots[b]]
+            if ga.symmetric != gb.symmetric:
+                continue
+            profile = shifted_distances(index.members[b].matrix, index.members[a].matrix[None], p.columns)[0]
+            if not ga.symmetric:
+                yaw = xy_yaw(self.map_pose(index.members[b], estimate))[2]
+                yaw -= xy_yaw(self.map_pose(index.members[a], estimate))[2]
+                predicted = round(yaw_to_shift(yaw, n_s))
+                allowed = np.full(n_s, np.inf)
+                shifts = np.arange(predicted - window, predicted + window + 1) % n_s
+                allowed[shifts] = profile[shifts]
+                profile = allowed
+            shift = int(np.argmin(profile))
+            if profile[shift] <= p.merge_distance:
+                candidates.append((float(profile[shift]), a, b, shift))
+        shortcuts = self._anchoring(estimate) if p.anchored_gate else []
+        made = 0
+        for _, a, b, shift in sorted(candidates):
+            sa, sb = int(slots[a]), int(slots[b])
+            if sa == sb:
+                continue
+            both = np.flatnonzero((slots == sa) | (slots == sb))
+            seen_a, seen_b = index.travelled[:n][slots == sa], index.travelled[:n][slots == sb]
+            if np.abs(seen_a[:, None] - seen_b[None, :]).min() < p.repeat_window:
+                continue  # seen on one drive-by: two markings (a repeated pattern's copies), not a revisit
+            if self._parts(positions[both], index.travelled[both], shortcuts).max() > 0:
+                continue
+            ga, gb = self._groups[sa], self._groups[sb]
+            # Member b turned by ``shift`` lies on member a: B's members turn into A's orientation so.
+            rebase = shift + ga.offsets[member_at[a]] - gb.offsets[member_at[b]]
+            members = [(ga if slots[r] == sa else gb).members[member_at[r]] for r in both]
+            offsets = [ga.offsets[member_at[r]] if slots[r] == sa else gb.offsets[member_at[r]] + rebase for r in both]
+            ga.members = members
+            ga.offsets = [o % n_s for o in offsets]
+            ga.anchors = [None] * len(both)
+            ga.aliased = ga.aliased or gb.aliased
+            gb.members, gb.offsets, gb.anchors = [], [], []
+            slots[both] = sa
+            member_at[both] = np.arange(len(both))
+            ga.refresh(p.columns, p.symmetry_threshold)
+            made += 1
+        if made:
+            kept = [k for k, g in enumerate(self._groups) if g.members]
+            renumber = np.full(len(self._groups), -1, dtype=np.int64)
+            renumber[kept] = np.arange(len(kept))
+            index.group[:n] = renumber[slots]
+            self._groups = [self._groups[k] for k in kept]
+            self._slot = {g.group_id: k for k, g in enumerate(self._groups)}
+        return made
+
     def _parts(self, positions: np.ndarray, travelled: np.ndarray, shortcuts: list[tuple[float, float]]) -> np.ndarray:
         """Parts (labels from 0, in order of first member) whose members are all within the gate of each other.
 
@@ -845,14 +945,18 @@ class OnlineSgfGroups(Stage):
     def finalize(self, context: RunContext) -> None:
         """Publish the groups (``artifacts['sgf_groups']``) and write purity and loop-pair metrics.
 
-        With ``split_at_end`` the groups are first split by the newest estimate (:meth:`split_groups`);
+        With ``split_at_end`` the groups are first split by the newest estimate (:meth:`split_groups`),
+        and with ``merge_at_end`` look-alikes it puts at one place merged (:meth:`merge_groups`);
         ``artifacts['sgf_group_of']`` maps each run member's ``(frame_index, track_id)`` to its final
-        group, for the SGF map. ``purity_online`` is the purity before the split.
+        group, for the SGF map. ``purity_online`` and ``pairs_found_online`` are from before both.
         """
         sgf: dict[str, Any] = context.metrics.setdefault("sgf", {})
         online = group_purity(self._groups) if context.truth is not None else None
+        online_pairs = loop_pairs(self._groups, context.truth) if context.truth is not None else None
         if self.params.split_at_end and self.params.spatial_gate:
             sgf["groups_split"] = self.split_groups(self._estimate)
+        if self.params.merge_at_end:
+            sgf["groups_merged"] = self.merge_groups(self._estimate)
         context.artifacts["sgf_groups"] = list(self._groups)
         context.artifacts["sgf_group_of"] = {
             (m.sgf.frame_index, m.sgf.track_id): g.group_id
@@ -875,6 +979,8 @@ class OnlineSgfGroups(Stage):
             sgf["own_group_ranked_first"] = {"decisions": decisions, "share": first / decisions if decisions else None}
             sgf["mixed_groups"] = sum(1 for g in self._groups if len(_instance_counts(g)[0]) > 1)
             loops.update(loop_pairs(self._groups, context.truth))
+            assert online_pairs is not None
+            loops["pairs_found_online"] = online_pairs["pairs_found"]
 
 
 def _odometry_position(member: SgfDescriptor) -> np.ndarray:
