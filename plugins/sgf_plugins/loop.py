@@ -245,7 +245,7 @@ class IcpLoopParams(StageParams):
         "SGFs seen after it count too (false = decide on the SGFs seen before it)",
     )
     final_pass: bool = Field(
-        True,
+        False,
         description="at the end of the run, match once more the members of each final SGF group (after the "
         "association's split and merge) from two drive-bys that no loop joins yet, against the final estimate; "
         "a match is closed when ICP passes and the gate alone decides it (gate_support_sigma)",
@@ -1188,10 +1188,10 @@ class IcpLoopClosing(Stage):
         revisits into their marking's group only then: one seen before any loop, while the gate
         reached several look-alikes, may have joined another's group. For each group, each member
         and its closest earlier member (eq. 10) of another drive-by (``min_separation_distance``)
-        are matched once more when no accepted loop joins the two drive-bys (both ends within that
-        distance of path); the match is closed when it passes ICP and the gate, and the gate alone
-        decides it (:meth:`_gate_decides`, with every SGF counted in its final group). One loop
-        per pair of drive-bys and group.
+        are matched once more when no accepted loop between members of the group joins the two
+        drive-bys (both ends within that distance of path); the match is closed when it passes
+        ICP and the gate, and the gate alone decides it (:meth:`_gate_decides`, with every SGF
+        counted in its final group).
         """
         saved = self._sgf_group
         self._sgf_group = [
@@ -1205,10 +1205,11 @@ class IcpLoopClosing(Stage):
                 members = sorted(
                     (m for m in group.members if m.sgf.frame_index in self.frames), key=lambda m: m.sgf.frame_index
                 )
+                frames = {m.sgf.frame_index for m in members}
                 for k, query in enumerate(members):
                     j = query.sgf.frame_index
                     earlier = [m for m in members[:k] if self._separated(m.sgf.frame_index, j)]
-                    earlier = [m for m in earlier if not self._joined(m.sgf.frame_index, j)]
+                    earlier = [m for m in earlier if not self._joined(m.sgf.frame_index, j, frames)]
                     if not earlier:
                         continue
                     profiles = shifted_distances(
@@ -1228,30 +1229,30 @@ class IcpLoopClosing(Stage):
                     )
                     self.final_tried += 1
                     candidate = self._evaluate(a, estimate)
-                    if isinstance(candidate, str) or not self._gate_decides(a, candidate, estimate):
+                    ends = (earlier[m].sgf.frame_index, j)
+                    ids = (earlier[m].sgf.instance_id, query.sgf.instance_id)
+                    if isinstance(candidate, str):
+                        detail = "final pass" + (f": {self._icp_detail}" if candidate == "icp" else "")
+                        self._log(ends, ids, group.group_id, False, candidate, self._reading, detail)
+                        continue
+                    if not self._gate_decides(a, candidate, estimate):
+                        detail = "final pass: a look-alike within the gate's reach"
+                        self._log(ends, ids, group.group_id, False, "consensus", candidate.gate, detail)
                         continue
                     self.accepted.append(candidate)
-                    self._log(
-                        (earlier[m].sgf.frame_index, j),
-                        candidate.constraint.instance_ids,
-                        group.group_id,
-                        False,
-                        "accepted",
-                        candidate.gate,
-                        "final pass",
-                    )
+                    self._log(ends, ids, group.group_id, False, "accepted", candidate.gate, "final pass")
                     out.append(candidate.constraint)
             return out
         finally:
             self._sgf_group = saved
 
-    def _joined(self, i: int, j: int) -> bool:
-        """Whether an accepted loop joins the drive-bys of frames ``i`` and ``j`` (ends within the separation)."""
+    def _joined(self, i: int, j: int, frames: set[int]) -> bool:
+        """Whether an accepted loop between two of ``frames`` (a group's) joins the drive-bys of ``i`` and ``j``."""
         near = self.p.min_separation_distance
         di, dj = self.frames.distance(i), self.frames.distance(j)
         for c in self.accepted:
             k = c.constraint
-            if k.from_map:
+            if k.from_map or k.frame_from not in frames or k.frame_to not in frames:
                 continue
             a, b = self.frames.distance(k.frame_from), self.frames.distance(k.frame_to)
             if (abs(a - di) < near and abs(b - dj) < near) or (abs(a - dj) < near and abs(b - di) < near):
