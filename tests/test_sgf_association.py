@@ -617,6 +617,7 @@ def test_a_repeated_pattern_is_aliased_and_never_joins_its_neighbour():
     context = RunContext(None)
     s.finalize(context)
     assert context.metrics["sgf"]["aliased_groups"] == 2
+    assert context.metrics["sgf"]["groups_merged"] == 0  # 1 m apart and alike, but copies seen on one drive-by
     # without the repeat test the neighbouring copy joins the first arrow's group (a false loop)
     naive = stage(repeat_window=0.0)
     (q1,) = feed(naive, 1, p1, desc(ARROW, p1, 1))
