@@ -269,23 +269,21 @@ class _GraphBackend(_Backend):
             self.prior.check_calibration(frame.calibration)
             self._map_checked = True
         self.graph.add_frame(frame)
+        return self._add_loops(loops)
+
+    def _add_loops(self, loops: LoopConstraints | None) -> tuple[int, bool]:
+        """Add loop factors; their number and whether one anchored the run in the map."""
         anchored = False
-        count = 0
-        for loop in loops.items if loops is not None else ():
+        items = loops.items if loops is not None else ()
+        for loop in items:
             anchored |= self.graph.add_loop(loop)
-            count += 1
-        self.loops_received += count
-        return count, anchored
+        self.loops_received += len(items)
+        return len(items), anchored
 
     def _add_final_loops(self, context: RunContext) -> int:
         """Add the loops a loop stage closed at the end of the run (``artifacts['final_loops']``); their number."""
         final = context.artifacts.get("final_loops")
-        count = 0
-        for loop in final.items if isinstance(final, LoopConstraints) else ():
-            self.graph.add_loop(loop)
-            count += 1
-        self.loops_received += count
-        return count
+        return self._add_loops(final if isinstance(final, LoopConstraints) else None)[0]
 
     def estimate(self) -> PoseEstimate:
         """The current estimate of every processed frame."""

@@ -688,16 +688,7 @@ class IcpLoopClosing(Stage):
         ]
         if not members:
             return None
-        profiles = shifted_distances(np.asarray(query.matrix), np.stack([np.asarray(m.matrix) for m in members]))
-        k = int(np.argmin(profiles.min(axis=1)))
-        shift = best_shift(profiles[k])
-        return replace(
-            a,
-            matched=members[k],
-            distance=float(profiles[k, shift]),
-            shift=shift,
-            yaw=shift_to_yaw(shift, profiles.shape[1]),
-        )
+        return _match_closest(a, members)
 
     def _gate_chi2(
         self, a: GroupAssignment, r: IcpResult, from_map: bool, predicted: tuple[np.ndarray, np.ndarray]
@@ -1193,58 +1184,44 @@ class IcpLoopClosing(Stage):
         ICP and the gate, and the gate alone decides it (:meth:`_gate_decides`, with every SGF
         counted in its final group).
         """
-        saved = self._sgf_group
+        # The run is over: every SGF counts in its final group from now on (the look-alike test).
         self._sgf_group = [
-            group_of.get((f, t), g) for f, t, g in zip(self._sgf_frame, self._sgf_track, saved, strict=True)
+            group_of.get((f, t), g) for f, t, g in zip(self._sgf_frame, self._sgf_track, self._sgf_group, strict=True)
         ]
-        try:
-            out: list[LoopConstraint] = []
-            for group in groups:
-                if group.symmetric or len(group.members) < 2:
+        out: list[LoopConstraint] = []
+        for group in groups:
+            if group.symmetric or len(group.members) < 2:
+                continue
+            members = sorted(
+                (m for m in group.members if m.sgf.frame_index in self.frames), key=lambda m: m.sgf.frame_index
+            )
+            frames = {m.sgf.frame_index for m in members}
+            for k, query in enumerate(members):
+                j = query.sgf.frame_index
+                earlier = [
+                    m
+                    for m in members[:k]
+                    if self._separated(m.sgf.frame_index, j) and not self._joined(m.sgf.frame_index, j, frames)
+                ]
+                if not earlier:
                     continue
-                members = sorted(
-                    (m for m in group.members if m.sgf.frame_index in self.frames), key=lambda m: m.sgf.frame_index
-                )
-                frames = {m.sgf.frame_index for m in members}
-                for k, query in enumerate(members):
-                    j = query.sgf.frame_index
-                    earlier = [m for m in members[:k] if self._separated(m.sgf.frame_index, j)]
-                    earlier = [m for m in earlier if not self._joined(m.sgf.frame_index, j, frames)]
-                    if not earlier:
-                        continue
-                    profiles = shifted_distances(
-                        np.asarray(query.matrix), np.stack([np.asarray(m.matrix) for m in earlier])
-                    )
-                    m = int(np.argmin(profiles.min(axis=1)))
-                    shift = best_shift(profiles[m])
-                    a = GroupAssignment(
-                        query,
-                        group.group_id,
-                        False,
-                        float(profiles[m, shift]),
-                        shift,
-                        shift_to_yaw(shift, profiles.shape[1]),
-                        earlier[m],
-                        False,
-                    )
-                    self.final_tried += 1
-                    candidate = self._evaluate(a, estimate)
-                    ends = (earlier[m].sgf.frame_index, j)
-                    ids = (earlier[m].sgf.instance_id, query.sgf.instance_id)
-                    if isinstance(candidate, str):
-                        detail = "final pass" + (f": {self._icp_detail}" if candidate == "icp" else "")
-                        self._log(ends, ids, group.group_id, False, candidate, self._reading, detail)
-                        continue
-                    if not self._gate_decides(a, candidate, estimate):
-                        detail = "final pass: a look-alike within the gate's reach"
-                        self._log(ends, ids, group.group_id, False, "consensus", candidate.gate, detail)
-                        continue
+                a = _match_closest(GroupAssignment(query, group.group_id, False, 1.0, 0, 0.0, None, False), earlier)
+                assert a.matched is not None
+                self.final_tried += 1
+                candidate = self._evaluate(a, estimate)
+                ends = (a.matched.sgf.frame_index, j)
+                ids = (a.matched.sgf.instance_id, query.sgf.instance_id)
+                if isinstance(candidate, str):
+                    detail = "final pass" + (f": {self._icp_detail}" if candidate == "icp" else "")
+                    self._log(ends, ids, group.group_id, False, candidate, self._reading, detail)
+                elif not self._gate_decides(a, candidate, estimate):
+                    detail = "final pass: a look-alike within the gate's reach"
+                    self._log(ends, ids, group.group_id, False, "consensus", candidate.gate, detail)
+                else:
                     self.accepted.append(candidate)
                     self._log(ends, ids, group.group_id, False, "accepted", candidate.gate, "final pass")
                     out.append(candidate.constraint)
-            return out
-        finally:
-            self._sgf_group = saved
+        return out
 
     def _joined(self, i: int, j: int, frames: set[int]) -> bool:
         """Whether an accepted loop between two of ``frames`` (a group's) joins the drive-bys of ``i`` and ``j``."""
@@ -1293,6 +1270,16 @@ class IcpLoopClosing(Stage):
             ):
                 return True
         return False
+
+
+def _match_closest(a: GroupAssignment, members: list[SgfDescriptor]) -> GroupAssignment:
+    """The match redone with the closest of ``members`` (eq. 10 at its best shift) as the matched SGF."""
+    query = np.asarray(a.descriptor.matrix)
+    profiles = shifted_distances(query, np.stack([np.asarray(m.matrix) for m in members]))
+    k = int(np.argmin(profiles.min(axis=1)))
+    shift = best_shift(profiles[k])
+    yaw = shift_to_yaw(shift, profiles.shape[1])
+    return replace(a, matched=members[k], distance=float(profiles[k, shift]), shift=shift, yaw=yaw)
 
 
 def _largest_sigma(r: IcpResult) -> float:

@@ -663,9 +663,7 @@ class OnlineSgfGroups(Stage):
                 continue
             profile = shifted_distances(index.members[b].matrix, index.members[a].matrix[None], p.columns)[0]
             if not ga.symmetric:
-                yaw = xy_yaw(self.map_pose(index.members[b], estimate))[2]
-                yaw -= xy_yaw(self.map_pose(index.members[a], estimate))[2]
-                predicted = round(yaw_to_shift(yaw, n_s))
+                predicted = round(self._predicted_shift(index.members[b], index.members[a], estimate))
                 allowed = np.full(n_s, np.inf)
                 shifts = np.arange(predicted - window, predicted + window + 1) % n_s
                 allowed[shifts] = profile[shifts]
@@ -679,8 +677,9 @@ class OnlineSgfGroups(Stage):
             sa, sb = int(slots[a]), int(slots[b])
             if sa == sb:
                 continue
-            both = np.flatnonzero((slots == sa) | (slots == sb))
-            seen_a, seen_b = index.travelled[:n][slots == sa], index.travelled[:n][slots == sb]
+            in_a, in_b = slots == sa, slots == sb
+            both = np.flatnonzero(in_a | in_b)
+            seen_a, seen_b = index.travelled[:n][in_a], index.travelled[:n][in_b]
             if np.abs(seen_a[:, None] - seen_b[None, :]).min() < p.repeat_window:
                 continue  # seen on one drive-by: two markings (a repeated pattern's copies), not a revisit
             if self._parts(positions[both], index.travelled[both], shortcuts).max() > 0:
@@ -739,6 +738,10 @@ class OnlineSgfGroups(Stage):
         """The column shift that the pose estimate predicts between two sightings (None for map members)."""
         if self.params.yaw_tolerance <= 0.0:
             return None
+        return self._predicted_shift(query, member, estimate)
+
+    def _predicted_shift(self, query: SgfDescriptor, member: SgfDescriptor, estimate: PoseEstimate | None) -> float:
+        """The (fractional) column shift of the query against the member that their map poses predict."""
         yaw = xy_yaw(self.map_pose(query, estimate))[2] - xy_yaw(self.map_pose(member, estimate))[2]
         return yaw_to_shift(yaw, query.matrix.shape[1])
 
