@@ -275,6 +275,19 @@ class LoopConstraints:
 
 
 @dataclass(frozen=True)
+class OdometryScale:
+    """A factor on the odometry's distances (true distance = factor x odometry distance), as estimated so far.
+
+    ``sigma`` is the factor's standard deviation (inf while too few measurements); ``pairs`` the
+    measurements behind it. The back-end multiplies each new odometry step's translation by ``factor``.
+    """
+
+    factor: float
+    sigma: float
+    pairs: int
+
+
+@dataclass(frozen=True)
 class YawBiasCorrection:
     """A heading bias per metre the back-end takes off the odometry after frame ``since``.
 

@@ -211,6 +211,28 @@ def test_symmetric_groups_never_give_loop_factors() -> None:
     assert stage.counts["symmetric"] == 1
 
 
+@pytest.mark.parametrize("ahead", [2.5, 5.0])
+def test_a_loops_translation_sigma_grows_as_the_square_of_its_views_range(ahead: float) -> None:
+    frames = _straight_run(20, 0.0)
+    marking = Marking(1, "arrow", (ahead, 0.0, 0.0))
+    a, b = _view(frames[0], marking), _view(frames[-1], marking)
+    ranges = [math.hypot(*np.asarray(d.centroid)[:2]) for d in (a, b)]  # type: ignore[attr-defined]
+    assert ranges[0] == pytest.approx(ahead, abs=0.1)
+    covariances = []
+    for per_m2 in (0.0, 0.0052):
+        stage = IcpLoopClosing(IcpLoopParams(min_separation_distance=5.0, min_support=0, covariance_range_xy=per_m2))
+        for f in frames[:-1]:
+            stage.process(frame=f, assignments=None, estimate=None)
+        assignment = GroupAssignment(b, 0, False, 0.1, 0, 0.0, a, False)  # type: ignore[arg-type]
+        (loop,) = stage.process(frame=frames[-1], assignments=GroupAssignments((assignment,)), estimate=None).items
+        covariances.append(np.asarray(loop.covariance))
+    added = covariances[1] - covariances[0]
+    expected = 0.0052**2 * (ranges[0] ** 4 + ranges[1] ** 4)
+    np.testing.assert_allclose(np.diag(added), [expected, expected, 0.0], atol=1e-12)
+    # two views at 2.5 m add about the 5 cm floor; at 5 m, about four times it
+    assert math.sqrt(expected) == pytest.approx(0.0052 * math.sqrt(2.0) * ahead**2, rel=0.2)
+
+
 def test_anchored_distance_shrinks_once_the_estimate_has_absorbed_a_loop(world) -> None:  # type: ignore[no-untyped-def]
     stage = IcpLoopClosing(IcpLoopParams())
     run = run_stages(world, loop=stage, backend=GtsamLmBackend(LmParams(save_map=False)))

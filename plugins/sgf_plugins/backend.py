@@ -27,7 +27,7 @@ from sgf_pipeline import RunContext, Stage, StageParams, StageRegistry, hookimpl
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.sgf_map import SgfMap, build_map, load_map, save_map
 from sgf_pipeline.trajectory import Trajectory
-from sgf_pipeline.types import Frame, LoopConstraints, PoseEstimate, YawBiasCorrection
+from sgf_pipeline.types import Frame, LoopConstraints, OdometryScale, PoseEstimate, YawBiasCorrection
 from sgf_plugins.pose_graph import FRAME_SYMBOL, MAP_SYMBOL, NoiseSettings, PoseGraph, PoseStore, X
 
 log = logging.getLogger("sgf_pipeline")
@@ -221,7 +221,7 @@ class OdometryBackend(_Backend):
         self.timestamps: list[float] = []
 
     def process(self, frame: Frame, loops: LoopConstraints | None) -> PoseEstimate:
-        """The odometry of every processed frame so far."""
+        """The odometry of every processed frame so far (the odometry's scale left as it is: the baseline)."""
         t0 = time.perf_counter()
         self._note(frame)
         self.store.append(frame.index, np.asarray(frame.odometry, dtype=np.float64))
@@ -262,13 +262,15 @@ class _GraphBackend(_Backend):
         self.optimizations = 0
         self.optimize_seconds = 0.0
 
-    def _add(self, frame: Frame, loops: LoopConstraints | None) -> tuple[int, bool]:
-        """Add the frame and its loops to the graph; the number of loops and whether the run was anchored."""
+    def _add(
+        self, frame: Frame, loops: LoopConstraints | None, odometry_scale: OdometryScale | None
+    ) -> tuple[int, bool]:
+        """Add the frame (its odometry scaled) and its loops; the number of loops and whether the run was anchored."""
         self._note(frame)
         if self.prior is not None and not self._map_checked:
             self.prior.check_calibration(frame.calibration)
             self._map_checked = True
-        self.graph.add_frame(frame)
+        self.graph.add_frame(frame, 1.0 if odometry_scale is None else odometry_scale.factor)
         return self._add_loops(loops)
 
     def _add_loops(self, loops: LoopConstraints | None) -> tuple[int, bool]:
@@ -349,10 +351,12 @@ class GtsamLmBackend(_GraphBackend):
     name = "gtsam_lm"
     Params = LmParams
 
-    def process(self, frame: Frame, loops: LoopConstraints | None) -> PoseEstimate:
+    def process(
+        self, frame: Frame, loops: LoopConstraints | None, odometry_scale: OdometryScale | None = None
+    ) -> PoseEstimate:
         """Add the frame's odometry and loop factors; re-optimize on new loops if configured."""
         t0 = time.perf_counter()
-        count, _ = self._add(frame, loops)
+        count, _ = self._add(frame, loops, odometry_scale)
         self.graph.take_new()  # batch optimisation uses the whole graph
         params = self.params
         assert isinstance(params, LmParams)
@@ -408,10 +412,12 @@ class Isam2Backend(_GraphBackend):
         settings.setFactorization(params.factorization.upper())
         return gtsam.ISAM2(settings)
 
-    def process(self, frame: Frame, loops: LoopConstraints | None) -> PoseEstimate:
+    def process(
+        self, frame: Frame, loops: LoopConstraints | None, odometry_scale: OdometryScale | None = None
+    ) -> PoseEstimate:
         """One iSAM2 update with the frame's factors; the full estimate is refreshed when loops arrive."""
         t0 = time.perf_counter()
-        count, anchored = self._add(frame, loops)
+        count, anchored = self._add(frame, loops, odometry_scale)
         if anchored:
             self.isam = self._solver()  # the run moved into the map frame: start the solver over
         factors, values = self.graph.take_new()

@@ -149,6 +149,12 @@ class IcpLoopParams(StageParams):
     min_separation_distance: float = Field(10.0, ge=0.0, description="...and this far back along the odometry path (m)")
     covariance_floor_xy: float = Field(0.05, gt=0.0, description="added to ICP's translation sigma (m): IPM, sampling")
     covariance_floor_yaw_deg: float = Field(1.0, gt=0.0, description="added to ICP's yaw sigma (deg)")
+    covariance_range_xy: float = Field(
+        0.0,
+        ge=0.0,
+        description="added translation sigma per axis (m) per squared metre of each view's range from the robot: "
+        "the BEV's ground error grows as the square of the distance (0 = the floor alone)",
+    )
     gate: bool = Field(True, description="chi-square test of the ICP pose against the estimate's prediction")
     gate_probability: float = Field(0.999, gt=0.0, lt=1.0, description="chi-square (3 dof) acceptance probability")
     gate_floor_xy: float = Field(0.5, gt=0.0, description="prediction sigma when freshly anchored (m)")
@@ -957,15 +963,16 @@ class IcpLoopClosing(Stage):
         return min(results, key=lambda r: mahalanobis2(pose_error(target, _pose4(r)), cov + r.covariance))
 
     def _constraint(self, a: GroupAssignment, r: IcpResult, from_map: bool) -> LoopConstraint:
-        """The relative pose of the query's frame in the matched frame, with the floored ICP covariance."""
+        """The relative pose of the query's frame in the matched frame, with the floored ICP covariance.
+
+        The floor adds the BEV's own error, which ICP cannot see: a constant, plus a term growing
+        as the square of each view's range (a pitch error moves ground seen at distance d by about
+        d^2 / h times it).
+        """
         assert a.matched is not None
-        floor = np.diag(
-            [
-                self.p.covariance_floor_xy**2,
-                self.p.covariance_floor_xy**2,
-                math.radians(self.p.covariance_floor_yaw_deg) ** 2,
-            ]
-        )
+        ranges = [float(np.hypot(*np.asarray(d.centroid, dtype=np.float64)[:2])) for d in (a.matched, a.descriptor)]
+        xy2 = self.p.covariance_floor_xy**2 + self.p.covariance_range_xy**2 * sum(d**4 for d in ranges)
+        floor = np.diag([xy2, xy2, math.radians(self.p.covariance_floor_yaw_deg) ** 2])
         relative = _pose4(r)
         return LoopConstraint(
             frame_from=a.matched.sgf.frame_index,

@@ -150,3 +150,32 @@ class HeadingBias:
             self.since = None
         elif self.since is None:
             self.since = int(self._frames[self._size - 1])
+
+
+class ScaledOdometry:
+    """Odometry whose steps' translations are multiplied by the scale factor known when each step is taken.
+
+    The factor comes from ``odometry_scale`` (:mod:`sgf_plugins.odometry_scale`). Like the heading
+    bias, a new factor corrects the steps that follow; earlier steps keep the factor of their time.
+    Until a factor other than 1 arrives, the odometry passes through unchanged.
+    """
+
+    def __init__(self) -> None:
+        self._raw: np.ndarray | None = None
+        self._path: np.ndarray | None = None
+        self.scaled = False
+
+    def correct(self, odometry: np.ndarray, factor: float) -> np.ndarray:
+        """The frame's odometry pose with every step's translation scaled by the factor of its time."""
+        if not (math.isfinite(factor) and factor > 0.0):
+            raise ValueError(f"an odometry scale factor must be finite and positive, got {factor!r}")
+        raw = np.asarray(odometry, dtype=np.float64)
+        self.scaled = self.scaled or factor != 1.0
+        if self._raw is None or self._path is None or not self.scaled:
+            path = raw
+        else:
+            step = invert(self._raw) @ raw
+            step[:3, 3] *= factor
+            path = self._path @ step
+        self._raw, self._path = raw, path
+        return path

@@ -22,7 +22,7 @@ import numpy as np
 
 from sgf_pipeline.geometry import invert, rotation_rpy, xy_yaw
 from sgf_pipeline.types import Frame, LoopConstraint
-from sgf_plugins.odometry_bias import HeadingBias
+from sgf_plugins.odometry_bias import HeadingBias, ScaledOdometry
 
 PoseKind = Literal["pose2", "pose3"]
 FREE_ROLL_PITCH = 0.1  # rad, first-pose prior on roll and pitch (observed by the IMU, not a gauge)
@@ -239,6 +239,7 @@ class PoseGraph:
         self._pending_distance = 0.0
         self._pending_steps = 0
         self._pending_imu: tuple[float, float] | None = None
+        self.scaled_odometry = ScaledOdometry()
         self.heading_bias = (
             None
             if noise.yaw_bias_sigma is None
@@ -304,10 +305,11 @@ class PoseGraph:
         rp = math.sqrt(steps * n.odometry_floor_yaw**2 + n.odometry_sigma_roll_pitch**2 * d)
         return self._diagonal(xy, yaw, z, rp)
 
-    def add_frame(self, frame: Frame) -> None:
+    def add_frame(self, frame: Frame, scale: float = 1.0) -> None:
         """Add a processed frame: a node (odometry factor of eq. 11, IMU attitude), or a pose riding on the last one.
 
         A frame gets a node once ``node_distance`` of travel has passed since the last node.
+        ``scale`` multiplies the odometry's step to this frame (the odometry's scale factor known now).
         """
         index = frame.index
         if index in self.store.rows:
@@ -315,6 +317,7 @@ class PoseGraph:
         odometry = np.asarray(frame.odometry, dtype=np.float64)
         if odometry.shape != (4, 4) or not np.all(np.isfinite(odometry)):
             raise ValueError(f"frame {index}: odometry must be a finite 4x4 pose")
+        odometry = self.scaled_odometry.correct(odometry, scale)
         if self.heading_bias is not None:
             odometry = self.heading_bias.correct(index, odometry)
         lift = None

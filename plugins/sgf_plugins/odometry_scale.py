@@ -1,0 +1,210 @@
+"""The wheel odometry's scale error, measured from the camera (``odometry_scale=bev_motion``; extension).
+
+Wheel odometry counts distance with a steady relative error (tyre radius, load, slip): the
+campus robot's over-counts by about 1 %. Loop closures cannot see it: a lap drawn 1 % too large
+still closes on itself, so eq. 11 keeps the error and a route 130 m across ends up to a metre off
+everywhere (docs/results.md: it is most of Table 2's remaining ATE). The camera can: the ground in
+a bird's-eye view is metric, so two views of it one metre apart are related by the robot's true
+motion. :class:`BevMotionScale` resamples the near ground of every keyframe with the fixed
+homography of plain IPM (eq. 3-4 without compensation, so MC-IPM's per-frame attitude noise stays
+out), warps the view from about ``baseline`` metres back onto it with the odometry's motion, and
+fits the small remaining shift by Gauss-Newton on the photometric difference (Lucas-Kanade, Huber
+weights). Besides the shift and a turn, the fit takes a change of the view's pitch and roll (a
+ground point moves by ``(x, y) (a x + b y)`` under them), which would otherwise pass for a change
+of scale. The shift along the motion, over the distance, is one measurement of the odometry's
+relative error; their running median is the estimate, and the back-end multiplies every
+odometry step that follows by ``1 / (1 + median)`` (:class:`sgf_pipeline.types.OdometryScale`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from sgf_pipeline import RunContext, Stage, StageParams, StageRegistry, hookimpl
+from sgf_pipeline.calibration import Calibration
+from sgf_pipeline.geometry import xy_yaw
+from sgf_pipeline.types import BevGrid, CameraImage, Frame, OdometryScale
+from sgf_plugins.ipm.geometry import bev_to_image_homography, visible_mask
+
+#: Parameters of the fit: shift (x, y) in metres, turn (rad), pitch-like a and roll-like b (1/m).
+_PARAMS = 5
+
+
+class BevMotionParams(StageParams):
+    """The near-ground view, the pairing of views and the robust estimate."""
+
+    resolution: float = Field(0.02, gt=0.0, description="m per pixel of the near-ground view")
+    x_min: float = Field(0.5, ge=0.0, description="m ahead: nearest ground resampled")
+    x_max: float = Field(3.5, gt=0.0, description="m ahead: farthest (a view's attitude error grows with the square)")
+    y_half_width: float = Field(1.5, gt=0.0, description="m to each side")
+    baseline: float = Field(1.0, gt=0.0, description="m driven between the two views of a measurement")
+    max_baseline: float = Field(1.6, gt=0.0, description="no measurement when the nearest view far enough is older")
+    max_turn_deg: float = Field(15.0, gt=0.0, description="no measurement across a sharper turn")
+    iterations: int = Field(4, ge=1, description="Gauss-Newton iterations of one fit")
+    huber: float = Field(0.5, gt=0.0, description="Huber width, in standard deviations of the view's intensity")
+    min_pixels: int = Field(2000, ge=10, description="ground pixels both views must share")
+    max_error: float = Field(0.1, gt=0.0, description="a measured relative error beyond this is refused (a bad fit)")
+    min_pairs: int = Field(20, ge=1, description="measurements before the estimate is applied")
+
+
+class BevMotionScale(Stage):
+    """The odometry's scale factor from the metric ground motion between keyframes (see the module docstring)."""
+
+    kind = "odometry_scale"
+    name = "bev_motion"
+    output = "odometry_scale"
+    Params = BevMotionParams
+
+    def __init__(self, params: BevMotionParams) -> None:
+        super().__init__(params)
+        self.p = params
+        if params.x_max <= params.x_min:
+            raise ValueError(f"odometry_scale.x_max ({params.x_max}) must be larger than x_min ({params.x_min})")
+        if params.max_baseline <= params.baseline:
+            raise ValueError("odometry_scale.max_baseline must be larger than baseline")
+        self.grid = BevGrid(params.resolution, params.x_min, params.x_max, -params.y_half_width, params.y_half_width)
+        v, u = np.mgrid[0 : self.grid.height, 0 : self.grid.width].astype(np.float64)
+        self._x, self._y = self.grid.pixel_to_ground(u, v)
+        one, zero = np.ones_like(self._x), np.zeros_like(self._x)
+        # d(shift)/d(params) per pixel: shift, turn about the robot, then the attitude terms (x, y)(a x + b y)
+        self._bx = np.stack([one, zero, -self._y, self._x * self._x, self._x * self._y])
+        self._by = np.stack([zero, one, self._x, self._y * self._x, self._y * self._y])
+        self._calibration: Calibration | None = None
+        self._homography = np.eye(3)
+        self._valid = np.zeros(0, dtype=bool)
+
+    def begin(self, context: RunContext) -> None:
+        """Forget the previous sequence."""
+        self._views: deque[tuple[float, np.ndarray, np.ndarray]] = deque()  # travelled, planar odometry, view
+        self._travelled = 0.0
+        self._last: np.ndarray | None = None
+        self.errors: list[float] = []
+        self.refused = 0
+
+    def process(self, frame: Frame, image: CameraImage) -> OdometryScale:
+        """Measure the odometry's error against the view ``baseline`` back; the estimate so far."""
+        odometry = _planar(np.asarray(frame.odometry, dtype=np.float64))
+        if self._last is not None:
+            self._travelled += float(np.hypot(*(odometry[:2, 2] - self._last[:2, 2])))
+        self._last = odometry
+        view = self._view(frame.calibration, image.pixels)
+        earlier = None
+        while self._views and self._travelled - self._views[0][0] > self.p.max_baseline:
+            self._views.popleft()
+        for travelled, pose, old in reversed(self._views):
+            if self._travelled - travelled >= self.p.baseline:
+                earlier = (pose, old)
+                break
+        self._views.append((self._travelled, odometry, view))
+        if earlier is not None:
+            error = self.measure(view, earlier[1], np.linalg.inv(earlier[0]) @ odometry)
+            if error is None:
+                self.refused += 1
+            else:
+                self.errors.append(error)
+        return self.estimate()
+
+    def estimate(self) -> OdometryScale:
+        """The running median of the measured errors as a factor on the odometry (1 before ``min_pairs``)."""
+        n = len(self.errors)
+        if n < self.p.min_pairs:
+            return OdometryScale(1.0, math.inf, n)
+        errors = np.asarray(self.errors)
+        median = float(np.median(errors))
+        # the median's standard error: 1.2533 sigma / sqrt(n), sigma from the median absolute deviation
+        sigma = 1.2533 * 1.4826 * float(np.median(np.abs(errors - median))) / math.sqrt(n)
+        return OdometryScale(1.0 / (1.0 + median), sigma / (1.0 + median) ** 2, n)
+
+    def measure(self, view: np.ndarray, earlier: np.ndarray, motion: np.ndarray) -> float | None:
+        """The odometry's relative error over ``motion`` (this view's pose in the earlier one's); None if unfit."""
+        length = float(np.hypot(motion[0, 2], motion[1, 2]))
+        if length <= 0.0 or abs(math.atan2(motion[1, 0], motion[0, 0])) > math.radians(self.p.max_turn_deg):
+            return None
+        xi = np.zeros(_PARAMS)
+        for _ in range(self.p.iterations):
+            dx, dy = np.tensordot(xi, self._bx, 1), np.tensordot(xi, self._by, 1)
+            warped = self._warp(earlier, motion, self._x + dx, self._y + dy)
+            gv, gu = np.gradient(warped)
+            use = np.isfinite(view) & np.isfinite(warped) & np.isfinite(gv) & np.isfinite(gu)
+            if int(use.sum()) < self.p.min_pixels:
+                return None
+            a, b = view[use], warped[use]
+            sa, sb = float(a.std()) + 1e-6, float(b.std()) + 1e-6
+            residual = (a - a.mean()) / sa - (b - b.mean()) / sb
+            gx, gy = -gv[use] / (self.grid.resolution * sb), -gu[use] / (self.grid.resolution * sb)
+            jac = gx[:, None] * self._bx[:, use].T + gy[:, None] * self._by[:, use].T
+            weight = 1.0 / np.maximum(1.0, np.abs(residual) / self.p.huber)
+            hessian = jac.T @ (jac * weight[:, None])
+            if np.linalg.cond(hessian) > 1e10:
+                return None
+            xi += np.linalg.solve(hessian, jac.T @ (weight * residual))
+        # The earlier view sampled at motion (p + shift) matches: the true motion is the odometry's less R shift.
+        error = -float(xi[:2] @ (motion[:2, :2].T @ motion[:2, 2])) / length**2
+        return error if abs(error) <= self.p.max_error else None
+
+    def _view(self, calibration: Calibration, pixels: np.ndarray) -> np.ndarray:
+        """The near ground resampled by plain IPM, grey, NaN outside the camera's view."""
+        if calibration is not self._calibration:
+            self._homography = bev_to_image_homography(calibration, self.grid)
+            intr = calibration.intrinsics
+            self._valid = visible_mask(self._homography, self.grid, intr.width, intr.height)
+            self._calibration = calibration
+        grey = pixels if pixels.ndim == 2 else cv2.cvtColor(pixels, cv2.COLOR_RGB2GRAY)
+        view = cv2.warpPerspective(
+            grey.astype(np.float32),
+            self._homography,
+            (self.grid.width, self.grid.height),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+        )
+        view[~self._valid] = np.nan
+        return view
+
+    def _warp(self, earlier: np.ndarray, motion: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The earlier view sampled at ground points ``(x, y)`` of this frame (NaN where it did not see them)."""
+        qx = motion[0, 0] * x + motion[0, 1] * y + motion[0, 2]
+        qy = motion[1, 0] * x + motion[1, 1] * y + motion[1, 2]
+        u, v = self.grid.ground_to_pixel(qx, qy)
+        return cv2.remap(
+            earlier, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR, borderValue=float("nan")
+        )
+
+    def finalize(self, context: RunContext) -> None:
+        """Write the estimate into ``metrics.json`` (``odometry_scale``)."""
+        final = self.estimate()
+        context.metrics["odometry_scale"] = {
+            "factor": final.factor,
+            "sigma": final.sigma if math.isfinite(final.sigma) else None,
+            "pairs": final.pairs,
+            "refused": self.refused,
+        }
+
+
+class NoOdometryScale(Stage):
+    """The odometry's distances as they are (the paper)."""
+
+    kind = "odometry_scale"
+    name = "none"
+    output = "odometry_scale"
+
+    def process(self, frame: Frame) -> OdometryScale:
+        """Always the factor 1."""
+        return OdometryScale(1.0, 0.0, 0)
+
+
+def _planar(pose: np.ndarray) -> np.ndarray:
+    """The 3x3 planar pose (x, y, heading) of a 4x4 pose."""
+    x, y, yaw = xy_yaw(pose)
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
+
+
+@hookimpl
+def sgf_register_stages(registry: StageRegistry) -> None:
+    """Register the odometry scale variants."""
+    registry.add(BevMotionScale)
+    registry.add(NoOdometryScale)

@@ -1,0 +1,123 @@
+"""The odometry's scale error measured from the camera (``odometry_scale=bev_motion``) and applied by the back-end."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+from sgf_plugins.backend import GtsamLmBackend, LmParams
+from sgf_plugins.odometry_bias import ScaledOdometry
+from sgf_plugins.odometry_scale import BevMotionParams, BevMotionScale, NoOdometryScale
+from sgf_plugins.world import build_world
+
+from sgf_pipeline import RunContext
+from sgf_pipeline.geometry import pose_from_xy_yaw
+from sgf_pipeline.types import CameraImage, OdometryScale
+
+
+def _texture(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """A ground texture (sum of sines, like asphalt grain at several scales), any real (x, y) in metres."""
+    rng = np.random.default_rng(7)
+    out = np.zeros_like(x)
+    for _ in range(40):
+        k = rng.uniform(2.0, 25.0)
+        a = rng.uniform(0.0, 2.0 * math.pi)
+        out += np.sin(k * (math.cos(a) * x + math.sin(a) * y) + rng.uniform(0, 2 * math.pi)) / math.sqrt(k)
+    return (128.0 + 40.0 * out).astype(np.float32)
+
+
+def _view(stage: BevMotionScale, pose: np.ndarray, attitude: float = 0.0) -> np.ndarray:
+    """The stage's near-ground view from a planar pose (3x3); ``attitude``: a pitch-like error (x, y)(1 + a x)."""
+    x, y = stage._x * (1.0 + attitude * stage._x), stage._y * (1.0 + attitude * stage._x)
+    return _texture(pose[0, 0] * x + pose[0, 1] * y + pose[0, 2], pose[1, 0] * x + pose[1, 1] * y + pose[1, 2])
+
+
+def _planar(x: float, y: float, yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize(("error", "turn_deg", "attitude"), [(0.02, 0.0, 0.0), (-0.015, 4.0, 0.0), (0.01, 2.0, 0.002)])
+def test_the_odometrys_relative_error_is_measured_from_two_views(
+    error: float, turn_deg: float, attitude: float
+) -> None:
+    stage = BevMotionScale(BevMotionParams())
+    start, end = _planar(3.0, -1.0, 0.3), _planar(3.0, -1.0, 0.3) @ _planar(1.0, 0.05, math.radians(turn_deg))
+    true = np.linalg.inv(start) @ end
+    odometry = true.copy()
+    odometry[:2, 2] *= 1.0 + error  # the wheels counted this much too far
+    measured = stage.measure(_view(stage, end, attitude), _view(stage, start), odometry)
+    assert measured is not None
+    assert measured == pytest.approx(error, abs=0.002)
+
+
+def test_a_blank_ground_gives_no_measurement() -> None:
+    stage = BevMotionScale(BevMotionParams())
+    blank = np.full(stage._x.shape, 90.0, dtype=np.float32)
+    assert stage.measure(blank, blank, _planar(1.0, 0.0, 0.0)) is None
+
+
+def test_the_estimate_is_the_median_once_enough_measurements_agree() -> None:
+    stage = BevMotionScale(BevMotionParams(min_pairs=5))
+    stage.begin(RunContext(run_dir=None))
+    stage.errors = [0.012, 0.011, 0.013]
+    assert stage.estimate() == OdometryScale(1.0, math.inf, 3)  # too few: the odometry as it is
+    stage.errors += [0.012, 0.5, 0.010]  # one bad fit among them does not move the median
+    final = stage.estimate()
+    assert final.factor == pytest.approx(1.0 / 1.012)
+    assert 0.0 < final.sigma < 0.002
+    assert final.pairs == 6
+
+
+def test_bad_parameters_are_refused_before_any_frame() -> None:
+    with pytest.raises(ValueError, match="x_max"):
+        BevMotionScale(BevMotionParams(x_min=3.0, x_max=2.0))
+    with pytest.raises(ValueError, match="max_baseline"):
+        BevMotionScale(BevMotionParams(baseline=1.0, max_baseline=0.8))
+
+
+def test_the_world_robots_scale_error_is_recovered_from_its_camera() -> None:
+    """On the rendered campus (sensor noise and occluders on), 1.2 % of over-counted distance is seen."""
+    world = build_world("campus_delivery", seed=0, scale=0.3)
+    stage = BevMotionScale(BevMotionParams())
+    stage.begin(RunContext(run_dir=None))
+    travelled = truth = 0.0
+    previous = None
+    for k in range(0, 140, 2):  # about 0.25 m apart, like the pipeline's keyframes
+        frame = world.frame(k)
+        estimate = stage.process(frame, CameraImage(frame.image, k))
+        if previous is not None:
+            travelled += float(np.linalg.norm(frame.odometry[:2, 3] - previous.odometry[:2, 3]))
+            truth += float(np.linalg.norm(frame.ground_truth[:2, 3] - previous.ground_truth[:2, 3]))
+        previous = frame
+    assert estimate.pairs >= 40
+    true_factor = truth / travelled
+    assert true_factor < 0.995  # the world's odometry does over-count here
+    assert estimate.factor == pytest.approx(true_factor, abs=0.004)
+    assert NoOdometryScale(NoOdometryScale.Params()).process(frame) == OdometryScale(1.0, 0.0, 0)
+
+
+def test_scaled_odometry_scales_each_step_by_the_factor_of_its_time() -> None:
+    scaled = ScaledOdometry()
+    poses = [pose_from_xy_yaw(float(k), 0.0, 0.0) for k in range(4)]
+    assert np.array_equal(scaled.correct(poses[0], 1.0), poses[0])
+    assert np.array_equal(scaled.correct(poses[1], 1.0), poses[1])  # unchanged until a factor arrives
+    assert scaled.correct(poses[2], 0.5)[0, 3] == pytest.approx(1.5)
+    assert scaled.correct(poses[3], 0.8)[0, 3] == pytest.approx(2.3)
+    with pytest.raises(ValueError, match="finite and positive"):
+        scaled.correct(poses[3], float("nan"))
+
+
+def test_the_back_end_adds_the_odometry_scaled() -> None:
+    world = build_world("campus_delivery", seed=0, scale=0.3)
+    lengths = []
+    for factor in (1.0, 0.9):
+        backend = GtsamLmBackend(LmParams(save_map=False))
+        backend.begin(RunContext(run_dir=None))
+        for k in range(0, 40, 4):
+            estimate = backend.process(world.frame(k), None, OdometryScale(factor, 0.001, 50))
+        poses = [estimate.poses[k] for k in range(0, 40, 4)]
+        lengths.append(sum(float(np.linalg.norm(b[:2, 3] - a[:2, 3])) for a, b in itertools.pairwise(poses)))
+    assert lengths[1] == pytest.approx(0.9 * lengths[0], rel=1e-6)
