@@ -147,10 +147,10 @@ class IcpLoopParams(StageParams):
     min_separation_frames: int = Field(0, ge=0, description="the matched SGF must be at least this many frames earlier")
     min_separation_time: float = Field(0.0, ge=0.0, description="...and this many seconds earlier")
     min_separation_distance: float = Field(10.0, ge=0.0, description="...and this far back along the odometry path (m)")
-    covariance_floor_xy: float = Field(0.05, gt=0.0, description="added to ICP's translation sigma (m): IPM, sampling")
-    covariance_floor_yaw_deg: float = Field(1.0, gt=0.0, description="added to ICP's yaw sigma (deg)")
+    covariance_floor_xy: float = Field(0.025, gt=0.0, description="added to ICP's translation sigma (m): IPM, sampling")
+    covariance_floor_yaw_deg: float = Field(1.5, gt=0.0, description="added to ICP's yaw sigma (deg)")
     covariance_range_xy: float = Field(
-        0.0,
+        0.0052,
         ge=0.0,
         description="added translation sigma per axis (m) per squared metre of each view's range from the robot: "
         "the BEV's ground error grows as the square of the distance (0 = the floor alone)",
@@ -251,7 +251,7 @@ class IcpLoopParams(StageParams):
         "SGFs seen after it count too (false = decide on the SGFs seen before it)",
     )
     final_pass: bool = Field(
-        False,
+        True,
         description="at the end of the run, match once more the members of each final SGF group (after the "
         "association's split and merge) from two drive-bys that no loop joins yet, against the final estimate; "
         "a match is closed when ICP passes and the gate alone decides it (gate_support_sigma)",

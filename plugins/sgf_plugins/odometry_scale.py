@@ -40,12 +40,14 @@ class BevMotionParams(StageParams):
 
     resolution: float = Field(0.02, gt=0.0, description="m per pixel of the near-ground view")
     x_min: float = Field(0.5, ge=0.0, description="m ahead: nearest ground resampled")
-    x_max: float = Field(3.5, gt=0.0, description="m ahead: farthest (a view's attitude error grows with the square)")
-    y_half_width: float = Field(1.5, gt=0.0, description="m to each side")
+    x_max: float = Field(3.0, gt=0.0, description="m ahead: farthest (a view's attitude error grows with the square)")
+    y_half_width: float = Field(1.25, gt=0.0, description="m to each side")
     baseline: float = Field(1.0, gt=0.0, description="m driven between the two views of a measurement")
     max_baseline: float = Field(1.6, gt=0.0, description="no measurement when the nearest view far enough is older")
     max_turn_deg: float = Field(15.0, gt=0.0, description="no measurement across a sharper turn")
-    iterations: int = Field(4, ge=1, description="Gauss-Newton iterations of one fit")
+    highpass: float = Field(0.6, gt=0.0, description="m: texture coarser than this is taken off each view")
+    blur: float = Field(1.0, gt=0.0, description="pixels: Gaussian blur of each view (grain finer than this)")
+    iterations: int = Field(5, ge=1, description="Gauss-Newton iterations of one fit")
     huber: float = Field(0.5, gt=0.0, description="Huber width, in standard deviations of the view's intensity")
     min_pixels: int = Field(2000, ge=10, description="ground pixels both views must share")
     max_error: float = Field(0.1, gt=0.0, description="a measured relative error beyond this is refused (a bad fit)")
@@ -148,7 +150,7 @@ class BevMotionScale(Stage):
         return error if abs(error) <= self.p.max_error else None
 
     def _view(self, calibration: Calibration, pixels: np.ndarray) -> np.ndarray:
-        """The near ground resampled by plain IPM, grey, NaN outside the camera's view."""
+        """The near ground resampled by plain IPM, its fine texture only (log grey, high-passed), NaN outside the view."""
         if calibration is not self._calibration:
             self._homography = bev_to_image_homography(calibration, self.grid)
             intr = calibration.intrinsics
@@ -161,8 +163,19 @@ class BevMotionScale(Stage):
             (self.grid.width, self.grid.height),
             flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
         )
+        # Light that moves with the robot (the lens's vignetting, a headlight) would hold the fit at zero motion:
+        # the log image less its local mean keeps the ground's texture; a slight blur takes off the grain too
+        # fine for two views from different distances to agree on. Both by convolution normalised inside the view.
+        log = np.log1p(view)
+        view = self._smooth(log, self.p.blur) - self._smooth(log, self.p.highpass / self.grid.resolution)
         view[~self._valid] = np.nan
         return view
+
+    def _smooth(self, image: np.ndarray, sigma: float) -> np.ndarray:
+        """Gaussian smoothing (``sigma`` pixels) of the pixels inside the camera's view."""
+        inside = self._valid.astype(np.float32)
+        weight = cv2.GaussianBlur(inside, (0, 0), sigma)
+        return cv2.GaussianBlur(image * inside, (0, 0), sigma) / np.maximum(weight, 1e-3)
 
     def _warp(self, earlier: np.ndarray, motion: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """The earlier view sampled at ground points ``(x, y)`` of this frame (NaN where it did not see them)."""
