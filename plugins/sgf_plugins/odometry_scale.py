@@ -7,8 +7,10 @@ everywhere (docs/results.md: it is most of Table 2's remaining ATE). The camera 
 a bird's-eye view is metric, so two views of it one metre apart are related by the robot's true
 motion. :class:`BevMotionScale` resamples the near ground of every keyframe with the fixed
 homography of plain IPM (eq. 3-4 without compensation, so MC-IPM's per-frame attitude noise stays
-out), warps the view from about ``baseline`` metres back onto it with the odometry's motion, and
-fits the small remaining shift by Gauss-Newton on the photometric difference (Lucas-Kanade, Huber
+out), keeps its texture between the grain and 0.6 m (the log image less its local mean, so that
+light moving with the robot, the lens's vignetting or a headlight, does not hold the fit at zero
+motion), warps the view from about ``baseline`` metres back onto it with the odometry's motion,
+and fits the small remaining shift by Gauss-Newton on the difference (Lucas-Kanade, Huber
 weights). Besides the shift and a turn, the fit takes a change of the view's pitch and roll (a
 ground point moves by ``(x, y) (a x + b y)`` under them), which would otherwise pass for a change
 of scale. The shift along the motion, over the distance, is one measurement of the odometry's
@@ -46,6 +48,9 @@ class BevMotionParams(StageParams):
     max_baseline: float = Field(1.6, gt=0.0, description="no measurement when the nearest view far enough is older")
     max_turn_deg: float = Field(15.0, gt=0.0, description="no measurement across a sharper turn")
     highpass: float = Field(0.6, gt=0.0, description="m: texture coarser than this is taken off each view")
+    flat_field: float = Field(
+        20.0, ge=0.0, description="keyframes: memory of the running mean view, light fixed to the robot (0 = none)"
+    )
     blur: float = Field(1.0, gt=0.0, description="pixels: Gaussian blur of each view (grain finer than this)")
     iterations: int = Field(5, ge=1, description="Gauss-Newton iterations of one fit")
     huber: float = Field(0.5, gt=0.0, description="Huber width, in standard deviations of the view's intensity")
@@ -79,6 +84,7 @@ class BevMotionScale(Stage):
         self._calibration: Calibration | None = None
         self._homography = np.eye(3)
         self._valid = np.zeros(0, dtype=bool)
+        self._flat: np.ndarray | None = None
 
     def begin(self, context: RunContext) -> None:
         """Forget the previous sequence."""
@@ -87,6 +93,7 @@ class BevMotionScale(Stage):
         self._last: np.ndarray | None = None
         self.errors: list[float] = []
         self.refused = 0
+        self._flat = None
 
     def process(self, frame: Frame, image: CameraImage) -> OdometryScale:
         """Measure the odometry's error against the view ``baseline`` back; the estimate so far."""
@@ -150,7 +157,7 @@ class BevMotionScale(Stage):
         return error if abs(error) <= self.p.max_error else None
 
     def _view(self, calibration: Calibration, pixels: np.ndarray) -> np.ndarray:
-        """The near ground resampled by plain IPM, its fine texture only (log grey, high-passed), NaN outside the view."""
+        """The near ground by plain IPM, its fine texture only (log grey, band-passed), NaN outside the view."""
         if calibration is not self._calibration:
             self._homography = bev_to_image_homography(calibration, self.grid)
             intr = calibration.intrinsics
@@ -167,6 +174,14 @@ class BevMotionScale(Stage):
         # the log image less its local mean keeps the ground's texture; a slight blur takes off the grain too
         # fine for two views from different distances to agree on. Both by convolution normalised inside the view.
         log = np.log1p(view)
+        if self.p.flat_field > 0:
+            # Light fixed to the robot stays where it is in every view while the ground's texture moves on:
+            # the running mean of the views is that light (in log, a sum), taken off before the band-pass.
+            if self._flat is None:
+                self._flat = log.copy()
+            else:
+                self._flat += (log - self._flat) / self.p.flat_field
+            log = log - self._flat
         view = self._smooth(log, self.p.blur) - self._smooth(log, self.p.highpass / self.grid.resolution)
         view[~self._valid] = np.nan
         return view
