@@ -20,6 +20,9 @@ TOP_LEVEL_KEYS = ("pipeline", "run", "plugins", "map")
 #: The paper's pipeline, in data-flow order (DESIGN.md section 1).
 PAPER_STAGES = ("dataset", "enhance", "ipm", "saliency", "detector", "descriptor", "association", "loop", "backend")
 
+#: Stage kinds the shipped default config runs besides the paper's (extensions, docs/results.md).
+EXTENSION_STAGES = ("odometry_scale",)
+
 
 def config_dir() -> Path:
     """The ``conf/`` folder: inside the installed package, or at the top of a checkout."""
@@ -141,7 +144,8 @@ def _check_finite(node: Any, path: str) -> None:
 
 def check_keys(raw: Mapping[str, Any], kinds: Iterable[str]) -> None:
     """Refuse top-level keys that are neither runner options nor the node of a stage kind (typos)."""
-    known = set(TOP_LEVEL_KEYS) | set(kinds) | set(PAPER_STAGES) | {"hydra"}  # a blocked plugin's node may stay
+    # a blocked plugin's node of the default config may stay
+    known = set(TOP_LEVEL_KEYS) | set(kinds) | set(PAPER_STAGES) | set(EXTENSION_STAGES) | {"hydra"}
     unknown = sorted(str(k) for k in raw if k not in known)
     if unknown:
         raise ConfigError(
