@@ -179,10 +179,10 @@ def report(t: dict[str, float]) -> str:
     return "\n".join(lines)
 
 
-def write_section(section: str) -> None:
-    """Replace (or append) the ``## ipm`` section of bench/RESULTS.md atomically."""
+def write_section(section: str, name: str = "ipm") -> None:
+    """Replace (or append) the ``## <name>`` section of bench/RESULTS.md atomically."""
     text = RESULTS.read_text() if RESULTS.exists() else "# Benchmark results\n\n"
-    pattern = re.compile(r"^## ipm\n.*?(?=^## |\Z)", re.S | re.M)
+    pattern = re.compile(rf"^## {re.escape(name)}\n.*?(?=^## |\Z)", re.S | re.M)
     text = pattern.sub(section + "\n", text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + section + "\n"
     atomic_write_text(RESULTS, text)
 

@@ -11,19 +11,17 @@ once before timing.
 from __future__ import annotations
 
 import argparse
-import re
 import statistics
 import time
 from collections.abc import Callable
 
 import cv2
-from bench_ipm import RESULTS, machine
+from bench_ipm import RESULTS, machine, write_section
 from sgf_plugins.ipm import MotionCompensatedIPM, MotionCompensatedIpmParams
 from sgf_plugins.odometry_scale import BevMotionParams, BevMotionScale
 from sgf_plugins.world import build_world
 
 from sgf_pipeline import RunContext
-from sgf_pipeline.io import atomic_write_text
 from sgf_pipeline.types import CameraImage
 
 
@@ -84,14 +82,6 @@ def report(t: dict[str, float], factor: float, n: int) -> str:
     )
 
 
-def write_section(section: str) -> None:
-    """Replace (or append) the ``## odometry_scale`` section of bench/RESULTS.md atomically."""
-    text = RESULTS.read_text()
-    pattern = re.compile(r"^## odometry_scale\n.*?(?=^## |\Z)", re.S | re.M)
-    text = pattern.sub(section + "\n", text) if pattern.search(text) else text.rstrip("\n") + "\n\n" + section + "\n"
-    atomic_write_text(RESULTS, text)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=150, help="keyframes per batch")
@@ -102,7 +92,7 @@ def main() -> None:
     section = report(times, factor, args.frames)
     print(section)
     if args.write:
-        write_section(section)
+        write_section(section, "odometry_scale")
         print(f"written to {RESULTS}")
 
 
