@@ -31,6 +31,7 @@ from sgf_pipeline import RunContext, Stage, StageParams, StageRegistry, hookimpl
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.geometry import xy_yaw
 from sgf_pipeline.types import BevGrid, CameraImage, Frame, OdometryScale
+from sgf_plugins.icp import se2
 from sgf_plugins.ipm.geometry import bev_to_image_homography, visible_mask
 
 #: Parameters of the fit: shift (x, y) in metres, turn (rad), pitch-like a and roll-like b (1/m).
@@ -85,6 +86,8 @@ class BevMotionScale(Stage):
         self._homography = np.eye(3)
         self._valid = np.zeros(0, dtype=bool)
         self._flat: np.ndarray | None = None
+        self._weights: dict[float, np.ndarray] = {}
+        self._inside = np.zeros(0, dtype=np.float32)
 
     def begin(self, context: RunContext) -> None:
         """Forget the previous sequence."""
@@ -97,7 +100,7 @@ class BevMotionScale(Stage):
 
     def process(self, frame: Frame, image: CameraImage) -> OdometryScale:
         """Measure the odometry's error against the view ``baseline`` back; the estimate so far."""
-        odometry = _planar(np.asarray(frame.odometry, dtype=np.float64))
+        odometry = se2(*xy_yaw(np.asarray(frame.odometry, dtype=np.float64)))
         if self._last is not None:
             self._travelled += float(np.hypot(*(odometry[:2, 2] - self._last[:2, 2])))
         self._last = odometry
@@ -162,6 +165,12 @@ class BevMotionScale(Stage):
             self._homography = bev_to_image_homography(calibration, self.grid)
             intr = calibration.intrinsics
             self._valid = visible_mask(self._homography, self.grid, intr.width, intr.height)
+            # the normalising weights of both smoothings depend on the view's outline only: once per calibration
+            self._inside = self._valid.astype(np.float32)
+            self._weights = {
+                sigma: np.maximum(cv2.GaussianBlur(self._inside, (0, 0), sigma), 1e-3)
+                for sigma in (self.p.blur, self.p.highpass / self.grid.resolution)
+            }
             self._calibration = calibration
         grey = pixels if pixels.ndim == 2 else cv2.cvtColor(pixels, cv2.COLOR_RGB2GRAY)
         view = cv2.warpPerspective(
@@ -188,9 +197,7 @@ class BevMotionScale(Stage):
 
     def _smooth(self, image: np.ndarray, sigma: float) -> np.ndarray:
         """Gaussian smoothing (``sigma`` pixels) of the pixels inside the camera's view."""
-        inside = self._valid.astype(np.float32)
-        weight = cv2.GaussianBlur(inside, (0, 0), sigma)
-        return cv2.GaussianBlur(image * inside, (0, 0), sigma) / np.maximum(weight, 1e-3)
+        return cv2.GaussianBlur(image * self._inside, (0, 0), sigma) / self._weights[sigma]
 
     def _warp(self, earlier: np.ndarray, motion: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """The earlier view sampled at ground points ``(x, y)`` of this frame (NaN where it did not see them)."""
@@ -222,13 +229,6 @@ class NoOdometryScale(Stage):
     def process(self, frame: Frame) -> OdometryScale:
         """Always the factor 1."""
         return OdometryScale(1.0, 0.0, 0)
-
-
-def _planar(pose: np.ndarray) -> np.ndarray:
-    """The 3x3 planar pose (x, y, heading) of a 4x4 pose."""
-    x, y, yaw = xy_yaw(pose)
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
 
 
 @hookimpl
