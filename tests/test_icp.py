@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from backend_world import _fill, arrow_points, ell_points, tee_points
 from sgf_plugins.icp import Icp2d, IcpSettings, apply, centroid_seed, se2
+from sgf_plugins.loop import IcpLoopParams
 
 COLUMN = 2 * math.pi / 90  # one column of the N_s = 90 polar descriptor
 
@@ -80,11 +81,11 @@ def test_two_different_shapes_fail_the_acceptance_tests_from_every_seed(other) -
     target = arrow_points() + rng.normal(0.0, 0.01, arrow_points().shape)
     source = other() + rng.normal(0.0, 0.01, other().shape)
     icp = Icp2d(target, IcpSettings())
+    loop = IcpLoopParams()  # the loop stage's acceptance thresholds
     accepted = []
     for yaw in np.linspace(-math.pi, math.pi, 24, endpoint=False):
         r = icp.align(source, centroid_seed(source.mean(0), target.mean(0), float(yaw)))
-        # the loop stage's defaults: max_fitness 0.025 m, min_inlier_ratio 0.85
-        if r.converged and r.fitness <= 0.025 and r.inlier_ratio >= 0.85:
+        if r.converged and r.fitness <= loop.max_fitness and r.inlier_ratio >= loop.min_inlier_ratio:
             accepted.append(r)
     assert accepted == []
 

@@ -9,11 +9,12 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from backend_world import CALIBRATION, Marking, OracleAssociation, descriptor, make_world, run_stages
+from backend_world import CALIBRATION, SHAPES, Marking, OracleAssociation, _fill, descriptor, make_world, run_stages
 from sgf_plugins.backend import GtsamLmBackend, LmParams
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, se2
 from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, drift_covariance
 from sgf_plugins.sgf.association import SgfGroup
+from sgf_plugins.sgf.polar import shifted_distances
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, wrap_angle, xy_yaw
@@ -358,7 +359,7 @@ def test_two_different_shapes_in_one_group_give_no_factor() -> None:
     # loop_candidates.csv says what the fit with the most inliers missed, against each threshold
     detail = stage.decisions[-1]["detail"]
     m = re.fullmatch(
-        r"best fit: inliers ([\d.]+) \(0.85 needed\), rms ([\d.]+) m \(0.025\), sigma ([\d.]+) \(0.05\)", detail
+        r"best fit: inliers ([\d.]+) \(0.85 needed\), rms ([\d.]+) m \(0.03\), sigma ([\d.]+) \(0.05\)", detail
     )
     assert m is not None, detail
     inliers, rms, sigma = map(float, m.groups())
@@ -487,11 +488,12 @@ def test_min_support_refuses_a_lone_match_that_no_neighbour_confirms() -> None:
     assert loop.instance_ids == (1, 1)
 
 
-def _revisit_with_neighbours(first: list[Marking], second: list[Marking]):  # type: ignore[no-untyped-def]
+def _revisit_with_neighbours(first: list[Marking], second: list[Marking], turn: float = 0.0):  # type: ignore[no-untyped-def]
     """Two passes along x; the second pass's view of an arrow (x = 30) is matched to its first-pass view.
 
     ``first`` and ``second`` are the neighbouring markings seen on each pass (frames 2 m behind them);
-    on the second pass they open groups of their own: evidence only.
+    on the second pass they open groups of their own: evidence only. ``turn`` (rad) turns the arrow's
+    second view, so that its descriptor differs from the first's by a sector's fraction.
     """
     n = 40
     frames = _two_passes(n)
@@ -506,7 +508,7 @@ def _revisit_with_neighbours(first: list[Marking], second: list[Marking]):  # ty
             by_frame[k] = GroupAssignments(
                 (GroupAssignment(view, offset + m.instance_id, True, 1.0, 0, 0.0, None, False),)
             )  # type: ignore[arg-type]
-    query = _view(frames[n + 28], arrow)
+    query = _view(frames[n + 28], replace(arrow, pose=(30.0, 0.5, 0.3 + turn)))
     by_frame[n + 28] = GroupAssignments((GroupAssignment(query, 1, False, 0.01, 0, 0.0, seen, False),))  # type: ignore[arg-type]
     return frames, by_frame
 
@@ -525,6 +527,47 @@ def test_a_distinct_marking_vouches_for_itself_unless_another_group_looks_like_i
     frames, by_frame = _revisit_with_neighbours([other], [])
     common = IcpLoopClosing(IcpLoopParams(gate=False))
     assert _run_loop(common, frames, by_frame) == [] and common.counts["consensus"] == 1 and common.distinct == 0
+
+
+def _stout_arrow(shaft: float, head: float):  # type: ignore[no-untyped-def]
+    """An arrow of another design: a wider shaft (half-width ``shaft``) and head (``head`` at its base)."""
+    return lambda spacing=0.03: _fill(
+        lambda x, y: (
+            ((x <= 0.1) & (x >= -0.6) & (np.abs(y) <= shaft))
+            | ((x > 0.1) & (x <= 0.6) & (np.abs(y) <= head * (0.6 - x) / 0.5))
+        ),
+        spacing=spacing,
+    )
+
+
+@pytest.mark.parametrize(
+    ("head", "turn", "ratio", "distinct"),
+    [
+        (0.45, 0.0, 3.0, True),  # the other design 0.058 from the query, the match 0: far more like its match
+        (0.45, 0.0, None, False),  # the ratio test off: 0.058 is within distinct_distance, so the marking is common
+        (0.45, 0.02, 3.0, False),  # the query's match 0.030 off: the other design is not 3 times farther
+        (
+            0.35,
+            0.0,
+            3.0,
+            False,
+        ),  # the other design 0.032 from the query: within distinct_floor, common whatever the ratio
+    ],
+)
+def test_a_marking_far_more_like_its_match_than_like_any_other_group_is_distinct(
+    monkeypatch: pytest.MonkeyPatch, head: float, turn: float, ratio: float | None, distinct: bool
+) -> None:
+    monkeypatch.setitem(SHAPES, "stout_arrow", _stout_arrow(0.08, head))
+    frames, by_frame = _revisit_with_neighbours([Marking(4, "stout_arrow", (22.0, -1.0, 0.0))], [], turn=turn)
+    query, other = by_frame[68].items[0], by_frame[20].items[0]
+    match = shifted_distances(np.asarray(query.descriptor.matrix), np.asarray(query.matched.matrix)).min()
+    nearest = shifted_distances(np.asarray(query.descriptor.matrix), np.asarray(other.descriptor.matrix)).min()
+    expected = {(0.45, 0.0): (0.0, 0.058), (0.45, 0.02): (0.030, 0.069), (0.35, 0.0): (0.0, 0.032)}[(head, turn)]
+    assert (match, nearest) == pytest.approx(expected, abs=0.0015)
+    stage = IcpLoopClosing(IcpLoopParams(gate=False, distinct_ratio=ratio))
+    loops = _run_loop(stage, frames, by_frame)
+    assert stage.distinct == int(distinct) and stage.counts["consensus"] == int(not distinct)
+    assert [c.instance_ids for c in loops] == ([(1, 1)] if distinct else [])
 
 
 @pytest.mark.parametrize(("copies", "common_groups", "closed"), [(2, 3, True), (5, 3, False), (5, None, True)])

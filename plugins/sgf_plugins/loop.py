@@ -124,7 +124,7 @@ class IcpLoopParams(StageParams):
         8, ge=3, description="neighbours of the target line normals (point_to_line, ICP covariance)"
     )
     min_points: int = Field(20, ge=3, description="fewer SGF points than this on either side: no ICP")
-    max_fitness: float = Field(0.025, gt=0.0, description="reject when the RMS inlier residual exceeds this (m)")
+    max_fitness: float = Field(0.03, gt=0.0, description="reject when the RMS inlier residual exceeds this (m)")
     min_inlier_ratio: float = Field(
         0.85, gt=0.0, le=1.0, description="reject when fewer points of either set have a partner within inlier_distance"
     )
@@ -237,6 +237,15 @@ class IcpLoopParams(StageParams):
     )
     distinct_distance: float = Field(
         0.15, ge=0.0, le=1.0, description="eq. 10: an SGF of another group this close makes a marking not distinct"
+    )
+    distinct_ratio: float | None = Field(
+        3.0,
+        gt=1.0,
+        description="...unless it is this many times farther (eq. 10) than the match and farther than "
+        "distinct_floor: the query is far more like its match than like anything else seen (null: off)",
+    )
+    distinct_floor: float = Field(
+        0.05, ge=0.0, le=1.0, description="eq. 10: an SGF of another group this close always makes a marking common"
     )
     gate_support_sigma: float | None = Field(
         2.0,
@@ -510,14 +519,22 @@ class IcpLoopClosing(Stage):
         The campus repeats standard markings; a marking whose copies have been seen elsewhere has
         them in other groups (the spatial gate keeps them apart), so its matches need neighbours
         that agree. A marking that looks like nothing else seen (a custom one, painted once) is
-        its own evidence. The first copy of a repeated design met twice is the risk this takes.
+        its own evidence; so is one far more like its match than like any SGF of another group
+        (``distinct_ratio`` times, a ratio test: false pairs measured at most 1.2, docs/results.md).
+        The first copy of a repeated design met twice is the risk this takes.
         """
         assert a.matched is not None
         query = np.asarray(a.descriptor.matrix)
-        if shifted_distances(query, np.asarray(a.matched.matrix)).min() > self.p.consensus_distance:
+        match = float(shifted_distances(query, np.asarray(a.matched.matrix)).min())
+        if match > self.p.consensus_distance:
             return False
         _, alike = self._other_groups_distances(query, a.group_id)
-        return bool(len(alike) and alike.min() > self.p.distinct_distance)
+        if not len(alike):
+            return False
+        nearest, ratio = float(alike.min()), self.p.distinct_ratio
+        if nearest > self.p.distinct_distance:
+            return True
+        return ratio is not None and nearest > self.p.distinct_floor and nearest >= ratio * match
 
     def _other_groups_distances(self, matrix: np.ndarray, group_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Every SGF seen so far outside ``group_id`` (its index), and eq. 10 of ``matrix`` to it (best shift)."""
