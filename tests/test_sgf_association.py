@@ -234,6 +234,25 @@ def test_a_smeared_group_mean_does_not_make_a_match_symmetric():
     assert not r.new_group and r.symmetric
 
 
+def test_a_match_between_two_flat_views_is_symmetric_whatever_the_group_mean():
+    # A round manhole's view in a group that also holds shaped views (the mean is not flat): a second
+    # flat view matched to it has no yaw to fit either (a reverse loop on campus_reverse_slope closed
+    # 0.8 m and 14 degrees off that way).
+    mixed = SgfGroup(0)
+    mixed.add(desc(DISC, seen_from(DISC, 3.0, 0.0), 0), 0, anchor=np.asarray(DISC.pose[:2]))
+    for k in range(1, 4):
+        mixed.add(desc(ARROW, seen_from(ARROW, 3.0, 0.0), k), 0, anchor=np.asarray(DISC.pose[:2]))
+    mixed.refresh("intersection", 0.1)
+    assert not mixed.symmetric
+    s = stage()
+    s.seed_groups([mixed])
+    pose = seen_from(DISC, 3.0, 1.1)
+    (r,) = feed(s, 40, pose, desc(DISC, pose, 40))
+    assert not r.new_group and r.group_id == 0 and r.matched is not None
+    assert r.matched.sgf.frame_index == 0  # the disc's own view
+    assert not s.groups[0].symmetric and r.symmetric
+
+
 def test_threshold_and_gate_open_new_groups():
     # Different markings at the same place, without the gate: eq. 10 decides (0.7 lets them merge).
     pose = seen_from(ARROW, 3.0, 0.0)

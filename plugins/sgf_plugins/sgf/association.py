@@ -825,11 +825,10 @@ class OnlineSgfGroups(Stage):
         self._index.add(self._slot[group.group_id], query, self._frames.get_distance(query.sgf.frame_index), None)
         group.refresh(p.columns, p.symmetry_threshold)
         # A flat group mean may only be a smear of members from different markings: the match is
-        # symmetric when one of its two own views is flat too.
-        symmetric = group.symmetric and (
-            min(symmetry_spread(query.matrix, p.columns), symmetry_spread(matched.matrix, p.columns))
-            < p.symmetry_threshold
-        )
+        # symmetric when one of its two own views is flat too. Two flat views are symmetric whatever
+        # the group's mean (a round manhole in a group that also took a shaped view): no yaw to fit.
+        spreads = (symmetry_spread(query.matrix, p.columns), symmetry_spread(matched.matrix, p.columns))
+        symmetric = (group.symmetric and min(spreads) < p.symmetry_threshold) or max(spreads) < p.symmetry_threshold
         return GroupAssignment(
             descriptor=query,
             group_id=group.group_id,
