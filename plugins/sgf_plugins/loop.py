@@ -239,7 +239,7 @@ class IcpLoopParams(StageParams):
         0.15, ge=0.0, le=1.0, description="eq. 10: an SGF of another group this close makes a marking not distinct"
     )
     distinct_ratio: float | None = Field(
-        3.0,
+        None,
         gt=1.0,
         description="...unless it is this many times farther (eq. 10) than the match and farther than "
         "distinct_floor: the query is far more like its match than like anything else seen (null: off)",
@@ -519,8 +519,8 @@ class IcpLoopClosing(Stage):
         The campus repeats standard markings; a marking whose copies have been seen elsewhere has
         them in other groups (the spatial gate keeps them apart), so its matches need neighbours
         that agree. A marking that looks like nothing else seen (a custom one, painted once) is
-        its own evidence; so is one far more like its match than like any SGF of another group
-        (``distinct_ratio`` times, a ratio test: false pairs measured at most 1.2, docs/results.md).
+        its own evidence; so, with ``distinct_ratio`` set, is one far more like its match than like
+        any SGF of another group (that many times: a ratio test; false pairs measured at most 1.2).
         The first copy of a repeated design met twice is the risk this takes.
         """
         assert a.matched is not None
