@@ -43,12 +43,12 @@ def _fill(mask_fn, extent: float = 0.7, spacing: float = 0.03) -> np.ndarray:
     return pts[mask_fn(pts[:, 0], pts[:, 1])]
 
 
-def arrow_points(spacing: float = 0.03) -> np.ndarray:
-    """A straight-ahead arrow: a shaft and a triangular head (about 1.2 m long)."""
+def arrow_points(spacing: float = 0.03, head: float = 0.35) -> np.ndarray:
+    """A straight-ahead arrow: a shaft and a triangular head ``head`` m wide at its base (about 1.2 m long)."""
     return _fill(
         lambda x, y: (
             ((x <= 0.1) & (x >= -0.6) & (np.abs(y) <= 0.08))
-            | ((x > 0.1) & (x <= 0.6) & (np.abs(y) <= 0.35 * (0.6 - x) / 0.5))
+            | ((x > 0.1) & (x <= 0.6) & (np.abs(y) <= head * (0.6 - x) / 0.5))
         ),
         spacing=spacing,
     )

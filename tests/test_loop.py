@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 import re
@@ -9,7 +10,16 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from backend_world import CALIBRATION, SHAPES, Marking, OracleAssociation, _fill, descriptor, make_world, run_stages
+from backend_world import (
+    CALIBRATION,
+    SHAPES,
+    Marking,
+    OracleAssociation,
+    arrow_points,
+    descriptor,
+    make_world,
+    run_stages,
+)
 from sgf_plugins.backend import GtsamLmBackend, LmParams
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, se2
 from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, drift_covariance
@@ -529,36 +539,20 @@ def test_a_distinct_marking_vouches_for_itself_unless_another_group_looks_like_i
     assert _run_loop(common, frames, by_frame) == [] and common.counts["consensus"] == 1 and common.distinct == 0
 
 
-def _stout_arrow(shaft: float, head: float):  # type: ignore[no-untyped-def]
-    """An arrow of another design: a wider shaft (half-width ``shaft``) and head (``head`` at its base)."""
-    return lambda spacing=0.03: _fill(
-        lambda x, y: (
-            ((x <= 0.1) & (x >= -0.6) & (np.abs(y) <= shaft))
-            | ((x > 0.1) & (x <= 0.6) & (np.abs(y) <= head * (0.6 - x) / 0.5))
-        ),
-        spacing=spacing,
-    )
-
-
 @pytest.mark.parametrize(
     ("head", "turn", "ratio", "distinct"),
     [
         (0.45, 0.0, 3.0, True),  # the other design 0.058 from the query, the match 0: far more like its match
         (0.45, 0.0, None, False),  # the ratio test off: 0.058 is within distinct_distance, so the marking is common
         (0.45, 0.02, 3.0, False),  # the query's match 0.030 off: the other design is not 3 times farther
-        (
-            0.35,
-            0.0,
-            3.0,
-            False,
-        ),  # the other design 0.032 from the query: within distinct_floor, common whatever the ratio
+        (0.35, 0.0, 3.0, False),  # the arrow's own shape, 0.032 off: within distinct_floor, common whatever the ratio
     ],
 )
 def test_a_marking_far_more_like_its_match_than_like_any_other_group_is_distinct(
     monkeypatch: pytest.MonkeyPatch, head: float, turn: float, ratio: float | None, distinct: bool
 ) -> None:
-    monkeypatch.setitem(SHAPES, "stout_arrow", _stout_arrow(0.08, head))
-    frames, by_frame = _revisit_with_neighbours([Marking(4, "stout_arrow", (22.0, -1.0, 0.0))], [], turn=turn)
+    monkeypatch.setitem(SHAPES, "other_arrow", functools.partial(arrow_points, head=head))  # in another group
+    frames, by_frame = _revisit_with_neighbours([Marking(4, "other_arrow", (22.0, -1.0, 0.0))], [], turn=turn)
     query, other = by_frame[68].items[0], by_frame[20].items[0]
     match = shifted_distances(np.asarray(query.descriptor.matrix), np.asarray(query.matched.matrix)).min()
     nearest = shifted_distances(np.asarray(query.descriptor.matrix), np.asarray(other.descriptor.matrix)).min()
