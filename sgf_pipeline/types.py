@@ -347,6 +347,11 @@ class MarkingTruth:
     size: tuple[float, float]
 
 
+PASS_SLACK_FRAMES = 5
+"""Frames before or after a pass whose views still count as that pass's (``SequenceTruth.drive_by``): a selected
+view can show a marking a frame or two before the ground truth has it wholly in view."""
+
+
 @dataclass(frozen=True)
 class MarkingPass:
     """One pass of the robot over a marking: the frames over which the marking is wholly in view."""
@@ -386,6 +391,21 @@ class SequenceTruth:
             if p.instance_id == instance_id and p.contains(frame_index):
                 return p
         return None
+
+    def drive_by(self, instance_id: int, frame_index: int, slack: int = PASS_SLACK_FRAMES) -> MarkingPass | None:
+        """The pass a view of ``instance_id`` at ``frame_index`` comes from.
+
+        That is the pass holding the frame, else the nearest one at most ``slack`` frames away (a view
+        taken just before the marking is wholly in view).
+        """
+        best: tuple[int, MarkingPass] | None = None
+        for p in self.passes:
+            if p.instance_id != instance_id:
+                continue
+            gap = max(p.start_frame - frame_index, frame_index - p.end_frame, 0)
+            if gap <= slack and (best is None or gap < best[0]):
+                best = (gap, p)
+        return None if best is None else best[1]
 
     @property
     def on_path(self) -> set[int]:

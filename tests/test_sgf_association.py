@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -589,6 +590,32 @@ def test_metrics_purity_and_loop_pairs():
     none = RunContext(None)
     s.finalize(none)
     assert none.metrics["sgf"]["purity"] is None and none.metrics["loops"]["pairs_found"] is None
+
+
+def test_a_view_taken_just_before_its_pass_counts_for_that_pass():
+    # The ground truth's pass starts when the marking is wholly in view; a selected view can come a
+    # frame or two earlier (cd0 at 30 %: frame 67 for a pass from frame 69). It is the same drive-by.
+    first, second = MarkingPass(1, 1, 69, 108, 0.0), MarkingPass(1, 2, 841, 872, math.pi)
+    truth = SequenceTruth(passes=[first, second], revisits=[RevisitPair(1, first, second, True)])
+    assert truth.drive_by(1, 67) is first and truth.drive_by(1, 880) is None
+    assert truth.drive_by(1, 64) is first and truth.drive_by(1, 63) is None  # 5 frames of slack
+    assert truth.drive_by(1, 67, slack=0) is None and truth.drive_by(2, 70) is None
+    # Two passes close together: a frame inside one belongs to it; between them, to the nearer.
+    close = SequenceTruth(passes=[MarkingPass(3, 1, 0, 10, 0.0), MarkingPass(3, 2, 14, 20, math.pi)])
+    assert close.drive_by(3, 10).number == 1 and close.drive_by(3, 14).number == 2
+    assert close.drive_by(3, 11).number == 1 and close.drive_by(3, 13).number == 2
+
+    s = stage()
+    s.begin(RunContext(None))
+    pa, pb = seen_from(ARROW, 3.0, 0.0), seen_from(ARROW, 3.0, math.pi)
+    feed(s, 67, pa, desc(ARROW, pa, 67))
+    feed(s, 860, pb, desc(ARROW, pb, 860))
+    assert loop_pairs(s.groups, truth)["pairs_found"] == 1
+    late = SequenceTruth(
+        passes=[replace(first, start_frame=75), second],
+        revisits=[RevisitPair(1, replace(first, start_frame=75), second, True)],
+    )
+    assert loop_pairs(s.groups, late)["pairs_found"] == 0  # 8 frames early: not this pass's view
 
 
 def test_metrics_share_of_decisions_where_eq10_ranks_the_own_marking_first():

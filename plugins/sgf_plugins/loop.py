@@ -1184,7 +1184,7 @@ class IcpLoopClosing(Stage):
         if not self.accepted and (truth is not None or self.frames.has_truth()):
             loops["false_closed"] = 0  # nothing accepted, and the truth to judge it by is known
         if truth is not None:
-            closed = [r for r in truth.revisits if self._closes(r, truths)]
+            closed = [r for r in truth.revisits if self._closes(r, truths, truth)]
             loops["closed"] = len(closed)
             loops["closed_reverse"] = sum(bool(r.reverse) for r in closed)
         context.metrics.setdefault("loops", {}).update(loops)
@@ -1281,7 +1281,7 @@ class IcpLoopClosing(Stage):
             "true": None if true is None else bool(true),
         }
 
-    def _closes(self, pair: RevisitPair, truths: list[bool | None]) -> bool:
+    def _closes(self, pair: RevisitPair, truths: list[bool | None], truth: SequenceTruth) -> bool:
         """Whether an accepted, not false constraint joins the pair's two passes over its marking."""
         for c, t in zip(self.accepted, truths, strict=True):
             k = c.constraint
@@ -1289,8 +1289,8 @@ class IcpLoopClosing(Stage):
                 not k.from_map
                 and t is not False
                 and k.instance_ids == (pair.instance_id, pair.instance_id)
-                and pair.first.contains(k.frame_from)
-                and pair.second.contains(k.frame_to)
+                and pair.first == truth.drive_by(pair.instance_id, k.frame_from)
+                and pair.second == truth.drive_by(pair.instance_id, k.frame_to)
             ):
                 return True
         return False

@@ -19,6 +19,7 @@ from sgf_pipeline.types import (
     GroupAssignments,
     LookAlike,
     LoopConstraints,
+    MarkingPass,
     PoseEstimate,
     SequenceTruth,
     SgfDescriptor,
@@ -1017,13 +1018,14 @@ def loop_pairs(groups: Iterable[SgfGroup], truth: SequenceTruth) -> dict[str, in
     """Revisit pairs found (Table 3): SGFs of the pair's instance from both passes share a group."""
     together: set[tuple[int, int, int]] = set()
     for group in groups:
-        frames_by_instance: dict[int, list[int]] = {}
+        passes: set[MarkingPass] = set()
         for member in group.members:
             if member.sgf.instance_id is not None:
-                frames_by_instance.setdefault(member.sgf.instance_id, []).append(member.sgf.frame_index)
+                drive_by = truth.drive_by(member.sgf.instance_id, member.sgf.frame_index)
+                if drive_by is not None:
+                    passes.add(drive_by)
         for pair in truth.revisits:
-            frames = frames_by_instance.get(pair.instance_id, [])
-            if any(pair.first.contains(f) for f in frames) and any(pair.second.contains(f) for f in frames):
+            if pair.first in passes and pair.second in passes:
                 together.add((pair.instance_id, pair.first.number, pair.second.number))
     found = [(p, (p.instance_id, p.first.number, p.second.number) in together) for p in truth.revisits]
     return {
