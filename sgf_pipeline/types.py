@@ -387,10 +387,7 @@ class SequenceTruth:
 
     def pass_of(self, instance_id: int, frame_index: int) -> MarkingPass | None:
         """The pass of ``instance_id`` that ``frame_index`` belongs to, if any."""
-        for p in self.passes:
-            if p.instance_id == instance_id and p.contains(frame_index):
-                return p
-        return None
+        return self.drive_by(instance_id, frame_index, slack=0)
 
     def drive_by(self, instance_id: int, frame_index: int, slack: int = PASS_SLACK_FRAMES) -> MarkingPass | None:
         """The pass a view of ``instance_id`` at ``frame_index`` comes from.
