@@ -1016,3 +1016,57 @@ def test_the_default_gate_holds_the_worlds_odometry_drift_between_two_sightings_
     assert driven.max() > 1200.0 and error.max() > 400.0  # the route's end revisits its start
     assert worst() < 0.85
     assert worst(drift_quadratic=0.0002) > 1.1
+
+
+def _a_copy_seen_after_a_long_drive(**params):
+    """Arrow A seen at the start, then 500 m out and 392 m back; a copy of A 100 m from it is seen at the end.
+
+    Online, without a loop, the gate after 890 m (1.5 + 0.05 d + 0.0003 d^2 = 283.6 m) lets the
+    copy join A's group. Frame 1 is where the back-end's heading bias correction will begin.
+    """
+    copy_ = ARROW.placed(105.0, 0.0, 0.3, instance_id=9)
+    s = stage(**params)
+    feed(s, 1, pose_from_xy_yaw(0.0, 0.0, 0.0))
+    p2 = seen_from(ARROW, 3.0, 0.0)
+    (a,) = feed(s, 2, p2, desc(ARROW, p2, 2))
+    feed(s, 3, pose_from_xy_yaw(500.0, 0.0, 0.0))
+    p4 = seen_from(copy_, 3.0, math.pi)
+    (b,) = feed(s, 4, p4, desc(copy_, p4, 4))
+    assert not b.new_group and b.group_id == a.group_id  # the premise: the wide gate let the copy in
+    return s, {1: pose_from_xy_yaw(0.0, 0.0, 0.0), 2: p2, 3: pose_from_xy_yaw(500.0, 0.0, 0.0), 4: p4}
+
+
+def test_the_back_ends_heading_bias_correction_narrows_the_end_split_gate():
+    from sgf_pipeline.types import YawBiasCorrection
+
+    truth = SequenceTruth(passes=[], revisits=[])
+    # The estimate corrects the heading bias from frame 1 on, to 0.01 deg/m: the quadratic term shrinks
+    # by 0.01 / 0.07 and the gate after 890 m is 1.5 + 44.5 + 34.0 = 80 m, short of the copy's 100 m.
+    s, poses = _a_copy_seen_after_a_long_drive()
+    corrected = PoseEstimate(4, poses, YawBiasCorrection(1, math.radians(0.01)))
+    sgf = _finish(s, corrected, truth).metrics["sgf"]
+    assert sgf["groups_split"] == 1 and sgf["purity"] == 1.0 and sgf["purity_online"] == 0.5
+    # Without the correction (or with it switched off) the gate is the odometry's, and the copy stays.
+    s, poses = _a_copy_seen_after_a_long_drive()
+    assert _finish(s, PoseEstimate(4, poses), truth).metrics["sgf"]["groups_split"] == 0
+    s, poses = _a_copy_seen_after_a_long_drive(gate_bias_from_backend=False)
+    assert _finish(s, corrected, truth).metrics["sgf"]["groups_split"] == 0
+    # A bias left as large as the one the term is sized for changes nothing (the term never grows).
+    s, poses = _a_copy_seen_after_a_long_drive()
+    loose = PoseEstimate(4, poses, YawBiasCorrection(1, math.radians(0.2)))
+    assert _finish(s, loose, truth).metrics["sgf"]["groups_split"] == 0
+
+
+def test_the_heading_bias_term_shrinks_only_where_the_correction_covers_the_drive():
+    from sgf_pipeline.types import YawBiasCorrection
+
+    s, poses = _a_copy_seen_after_a_long_drive()
+    began = s._frames.get_distance(3)  # the correction begins at frame 3, 500 m out
+    estimate = PoseEstimate(4, poses, YawBiasCorrection(3, math.radians(0.007)))
+    travelled = np.array([0.0, began - 1.0, began, began + 400.0, np.nan])
+    q = s._quadratic(travelled, [], estimate)
+    assert q.tolist()[:4] == pytest.approx([0.0003, 0.0003, 0.00003, 0.00003]) and q[4] == 0.0003
+    # A loop the estimate satisfies spans the early drive: the pose graph took the bias off it there.
+    q = s._quadratic(travelled, [(began + 300.0, 0.5)], estimate)
+    assert q.tolist()[:4] == pytest.approx([0.0003, 0.00003, 0.00003, 0.00003])
+    assert s._quadratic(travelled, [], PoseEstimate(4, poses)).tolist()[:4] == [0.0003] * 4

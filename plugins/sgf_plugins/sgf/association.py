@@ -115,6 +115,15 @@ class OnlineGroupsParams(StageParams):
         "a straight drive's bound is half the bias in rad/m; a route that turns back stays under it "
         "(campus_large_loop's return to its start after 1.5 km: 0.00024)",
     )
+    gate_bias_from_backend: bool = Field(
+        True,
+        description="once the back-end takes the odometry's heading bias off (the estimate's yaw_bias), the "
+        "quadratic term scales by the bias left, its sigma, over drift_bias_deg_per_m (never up), between members "
+        "whose drive the correction covers: seen after it began, or between the two frames of an anchoring loop",
+    )
+    drift_bias_deg_per_m: float = Field(
+        0.07, gt=0.0, description="the odometry heading bias (deg/m) drift_quadratic is sized for"
+    )
     member_gate: bool = Field(
         True,
         description="eq. 10 against a group's members inside the gate only; false = against every member once one "
@@ -334,6 +343,7 @@ class OnlineSgfGroups(Stage):
         self._shortcuts: tuple[object, list[tuple[float, float]]] = (_NO_ESTIMATE, [])
         self._ranked = [0, 0]  # labelled decisions between the own marking's group and others; own ranked first
         self._estimate: PoseEstimate | None = None  # the newest estimate seen (for the split at the end)
+        self._bias_began: tuple[int, float] | None = None  # frame and travelled distance the bias correction began
 
     # -- groups ---------------------------------------------------------------------------
 
@@ -377,6 +387,7 @@ class OnlineSgfGroups(Stage):
         self._shortcuts = (_NO_ESTIMATE, [])
         self._ranked = [0, 0]
         self._estimate = None
+        self._bias_began = None
         for k, group in enumerate(self._groups):
             for member, anchor in zip(group.members, group.anchors, strict=True):
                 self._index.add(k, member, None, anchor)
@@ -499,7 +510,8 @@ class OnlineSgfGroups(Stage):
             if shortcuts:
                 known = ~unknown
                 travelled[known] = anchored_distances(since, index.travelled[:n][known], shortcuts)
-        radius = self._gate_radius(travelled)
+        quadratic = self._quadratic(index.travelled[:n], self._anchoring(estimate), estimate)
+        radius = self._gate_radius(travelled, quadratic)
         radius[anchored] = math.inf if p.prior_gate_radius is None else p.prior_gate_radius
         groups = index.group[:n]
         count = len(self._groups)
@@ -573,10 +585,43 @@ class OnlineSgfGroups(Stage):
         self._shortcuts = (estimate, shortcuts)
         return shortcuts
 
-    def _gate_radius(self, travelled: np.ndarray) -> np.ndarray:
-        """The spatial gate's radius (m) for the distances travelled between two sightings."""
+    def _gate_radius(self, travelled: np.ndarray, quadratic: np.ndarray | float | None = None) -> np.ndarray:
+        """The spatial gate's radius (m) for the distances travelled between two sightings.
+
+        ``quadratic``: the heading bias term per pair (:meth:`_quadratic`); ``drift_quadratic`` by default.
+        """
         p = self.params
-        return p.gate_radius + p.drift_rate * travelled + p.drift_quadratic * travelled**2
+        q = p.drift_quadratic if quadratic is None else quadratic
+        return p.gate_radius + p.drift_rate * travelled + q * travelled**2
+
+    def _quadratic(
+        self, travelled: np.ndarray, shortcuts: list[tuple[float, float]], estimate: PoseEstimate | None
+    ) -> np.ndarray:
+        """The gate's heading bias term for members seen at ``travelled`` metres (``gate_bias_from_backend``).
+
+        Once the back-end corrects the odometry's heading bias (``PoseEstimate.yaw_bias``), the
+        estimate keeps only the bias left in it, about its sigma, on the drive after the correction
+        began; between the two frames of a loop it satisfies, the pose graph has spread the loop's
+        error, a constant bias included. There the term is ``drift_quadratic`` scaled by that sigma
+        over ``drift_bias_deg_per_m``; elsewhere (and for a pair with one member elsewhere) it stays.
+        """
+        p = self.params
+        q = np.full(np.shape(travelled), p.drift_quadratic)
+        correction = None if estimate is None else estimate.yaw_bias
+        if not p.gate_bias_from_backend or correction is None:
+            return q
+        if self._bias_began is None or self._bias_began[0] != correction.since:
+            known = self._travelled_at(correction.since)  # remembered: the frame log forgets old frames
+            self._bias_began = None if known is None else (correction.since, known)
+        if self._bias_began is None:
+            return q
+        began = self._bias_began[1]
+        with np.errstate(invalid="ignore"):
+            covered = travelled >= began
+            for a, b in shortcuts:
+                covered |= (travelled >= min(a, b)) & (travelled <= max(a, b))
+        q[covered] = p.drift_quadratic * min(1.0, math.degrees(correction.sigma) / p.drift_bias_deg_per_m)
+        return q
 
     def split_groups(self, estimate: PoseEstimate | None) -> int:
         """Split each group into the parts the estimate puts within the spatial gate of each other; new groups made.
@@ -600,7 +645,7 @@ class OnlineSgfGroups(Stage):
             mine = rows[index.group[: index.size] == slot]
             if len(mine) < 2 or any(a is not None for a in group.anchors) or np.isnan(index.travelled[mine]).any():
                 continue
-            parts = self._parts(positions[mine], index.travelled[mine], shortcuts)
+            parts = self._parts(positions[mine], index.travelled[mine], shortcuts, estimate)
             if parts.max() == 0:
                 continue
             keep = parts == 0  # holds the first member, whose offset (the group's orientation) is 0
@@ -684,7 +729,7 @@ class OnlineSgfGroups(Stage):
             seen_a, seen_b = index.travelled[:n][in_a], index.travelled[:n][in_b]
             if np.abs(seen_a[:, None] - seen_b[None, :]).min() < p.repeat_window:
                 continue  # seen on one drive-by: two markings (a repeated pattern's copies), not a revisit
-            if self._parts(positions[both], index.travelled[both], shortcuts).max() > 0:
+            if self._parts(positions[both], index.travelled[both], shortcuts, estimate).max() > 0:
                 continue
             ga, gb = self._groups[sa], self._groups[sb]
             # Member b turned by ``shift`` lies on member a: B's members turn into A's orientation so.
@@ -709,7 +754,13 @@ class OnlineSgfGroups(Stage):
             self._slot = {g.group_id: k for k, g in enumerate(self._groups)}
         return made
 
-    def _parts(self, positions: np.ndarray, travelled: np.ndarray, shortcuts: list[tuple[float, float]]) -> np.ndarray:
+    def _parts(
+        self,
+        positions: np.ndarray,
+        travelled: np.ndarray,
+        shortcuts: list[tuple[float, float]],
+        estimate: PoseEstimate | None = None,
+    ) -> np.ndarray:
         """Parts (labels from 0, in order of first member) whose members are all within the gate of each other.
 
         Agglomerative, closest pairs (by map distance over gate radius) first; two parts merge only
@@ -719,7 +770,8 @@ class OnlineSgfGroups(Stage):
         n = len(positions)
         distance = np.hypot(*(positions[:, None, :] - positions[None, :, :]).transpose(2, 0, 1))
         anchored = np.stack([anchored_distances(float(t), travelled, shortcuts) for t in travelled])
-        ratio = distance / self._gate_radius(anchored)
+        quadratic = self._quadratic(travelled, shortcuts, estimate)
+        ratio = distance / self._gate_radius(anchored, np.maximum(quadratic[:, None], quadratic[None, :]))
         within = ratio <= 1.0
         label = np.arange(n)
         i, j = np.triu_indices(n, 1)
