@@ -616,10 +616,9 @@ class OnlineSgfGroups(Stage):
         if self._bias_began is None:
             return q
         began = self._bias_began[1]
-        with np.errstate(invalid="ignore"):
-            covered = travelled >= began
-            for a, b in shortcuts:
-                covered |= (travelled >= min(a, b)) & (travelled <= max(a, b))
+        covered = travelled >= began  # NaN (a map member): never covered
+        for a, b in shortcuts:
+            covered |= (travelled >= min(a, b)) & (travelled <= max(a, b))
         q[covered] = p.drift_quadratic * min(1.0, math.degrees(correction.sigma) / p.drift_bias_deg_per_m)
         return q
 
