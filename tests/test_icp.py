@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -73,6 +74,23 @@ def test_independently_sampled_views_align_to_the_sampling_limit() -> None:
     assert result.converged
     assert math.hypot(result.pose[0] - 1.5, result.pose[1] + 0.7) < 0.02  # half the 3 cm spacing
     assert math.degrees(yaw_error(result.pose[2], 0.4)) < 0.3
+
+
+def test_a_coarse_round_that_wanders_hands_its_pose_to_the_inlier_round() -> None:
+    # Two real SGFs of one direction sign (0.9 x 2 m), seen on the way out (frame 1548) and back (frame 8422)
+    # of the full-length campus_reverse_slope, seed 0: both are 2 cm voxel grids of about 2,600 points. With
+    # pairs up to 0.5 m apart the nearest neighbours keep changing, and ICP wanders by 0.01-0.3 mm a step
+    # without ever settling; with inlier pairs only (0.1 m) it converges. The coarse round only brings the
+    # fit within reach of the inlier round: its wandering must not refuse a good fit.
+    data = np.load(Path(__file__).parent / "data" / "direction_sign_reverse_views.npz")
+    query, matched = data["query"], data["matched"]
+    seed = centroid_seed(data["query_centroid"], data["matched_centroid"], math.pi)  # the column shift's yaw
+    settings = IcpSettings()
+    result = Icp2d(matched, settings).align(query, seed)
+    assert result.converged and result.iterations > settings.max_iterations  # the coarse round ran out
+    assert result.inlier_ratio == pytest.approx(1.0)
+    assert result.fitness == pytest.approx(0.0103, abs=5e-4)
+    assert math.degrees(yaw_error(result.pose[2], math.pi)) < 1.0
 
 
 @pytest.mark.parametrize("other", [ell_points, tee_points])

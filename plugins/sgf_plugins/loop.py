@@ -235,6 +235,12 @@ class IcpLoopParams(StageParams):
         "most consensus_distance) and that no SGF of another group looks like (all farther than distinct_distance); "
         "null = min_support",
     )
+    distinct_gate_sigma: float | None = Field(
+        None,
+        gt=0.0,
+        description="m: a distinct marking vouches for itself only while the gate predicts the match this tightly "
+        "(a wider gate cannot tell a copy never seen from the marking; null: at any sigma)",
+    )
     distinct_distance: float = Field(
         0.15, ge=0.0, le=1.0, description="eq. 10: an SGF of another group this close makes a marking not distinct"
     )
@@ -253,6 +259,16 @@ class IcpLoopParams(StageParams):
         description="a match the gate predicts within this position sigma (m) needs no agreeing neighbours, unless an "
         "SGF of another group that looks like the query (eq. 10 at most consensus_distance) was seen within the "
         "gate's reach of the matched one: ICP and the gate decide (null = min_support always)",
+    )
+    gate_support_alternatives: bool = Field(
+        True,
+        description="a look-alike within the gate's reach stands against the match only when the query matched to "
+        "it would pass ICP and the gate too; false: any SGF alike by eq. 10 within the reach does",
+    )
+    gate_support_round: bool = Field(
+        True,
+        description="a look-alike in a symmetric group (a round manhole) never stands against a match into a "
+        "shaped group",
     )
     consensus_wait: bool = Field(
         True,
@@ -419,6 +435,9 @@ class IcpLoopClosing(Stage):
         self._sgf_frame: list[int] = []
         self._sgf_centroid: list[np.ndarray] = []
         self._sgf_track: list[int] = []
+        self._sgf_descriptor: list[SgfDescriptor] = []
+        self._sgf_symmetric: list[bool] = []
+        self._gate_refusal = ""  # why the gate alone did not decide the last match
         self._estimate: PoseEstimate | None = None  # the newest estimate (for the final pass)
         self.final_tried = 0
 
@@ -469,16 +488,30 @@ class IcpLoopClosing(Stage):
         if isinstance(candidate, str):
             self._refuse(a, candidate, self._reading, self._icp_detail if candidate == "icp" else "")
             return []
-        need = self.p.min_support
-        if self.p.distinct_support is not None and need > self.p.distinct_support and self._distinct(a):
-            need = self.p.distinct_support
+        need, basis = self.p.min_support, ""
+        if (
+            self.p.distinct_support is not None
+            and need > self.p.distinct_support
+            and self._gate_bounds_distinct(candidate)
+            and self._distinct(a)
+        ):
+            need, basis = self.p.distinct_support, "distinct"
             self.distinct += 1
         if need > 0 and candidate.map_pose is None and self._gate_decides(a, candidate, estimate):
-            need = 0
+            need, basis = 0, "the gate decides"
             self.gate_decided += 1
         if need > 0 and candidate.map_pose is None:
             return self._consensus(((a, candidate),), need, False, "consensus", None, estimate)
-        return self._accept(candidate, estimate)
+        return self._accept(candidate, estimate, basis)
+
+    def _gate_bounds_distinct(self, candidate: _Candidate) -> bool:
+        """Whether the gate is tight enough for a distinct marking to vouch for itself (``distinct_gate_sigma``).
+
+        "Distinct" means no copy was *seen*; a gate wider than the campus cannot tell a copy never
+        seen from the marking itself, so a match there needs its neighbours like any other.
+        """
+        limit, gate = self.p.distinct_gate_sigma, candidate.gate
+        return limit is None or candidate.map_pose is not None or (gate is not None and gate.sigma_xy <= limit)
 
     def _gate_decides(self, a: GroupAssignment, candidate: _Candidate, estimate: PoseEstimate | None) -> bool:
         """Whether the gate alone tells this match from every look-alike seen so far (``gate_support_sigma``).
@@ -493,6 +526,8 @@ class IcpLoopClosing(Stage):
         """
         limit, gate = self.p.gate_support_sigma, candidate.gate
         if not self.p.gate or limit is None or gate is None or not (gate.sigma_xy <= limit):
+            sigma = "none" if gate is None else f"{gate.sigma_xy:.2f} m"
+            self._gate_refusal = f"the gate's sigma ({sigma}) above gate_support_sigma ({limit})"
             return False
         assert a.matched is not None
         others, distances = self._other_groups_distances(np.asarray(a.descriptor.matrix), a.group_id)
@@ -504,9 +539,39 @@ class IcpLoopClosing(Stage):
             if self._sgf_frame[k] == query_frame and np.allclose(self._sgf_centroid[k], query_centroid):
                 continue  # the query itself (remembered in the group it joined: another option's, in a tie)
             here = self._estimate_xy(self._sgf_frame[k], self._sgf_centroid[k], estimate)
-            if float(np.hypot(*(here - matched))) <= reach:
+            apart = float(np.hypot(*(here - matched)))
+            if apart <= reach and self._stands_against(a, k, estimate):
+                self._gate_refusal = (
+                    f"a look-alike (frame {self._sgf_frame[k]}) {apart:.1f} m from the match, within the gate's "
+                    f"reach ({reach:.1f} m)"
+                )
                 return False
         return True
+
+    def _stands_against(self, a: GroupAssignment, k: int, estimate: PoseEstimate | None) -> bool:
+        """Whether remembered SGF ``k``, a look-alike within the gate's reach, could be what the query saw.
+
+        With ``gate_support_round``, a look-alike the association holds in a symmetric group (a round
+        manhole, alike to a compact shape by eq. 10) cannot be a shaped marking's. With
+        ``gate_support_alternatives``, the query matched to the look-alike is put through ICP and
+        the gate as a loop would be: a look-alike whose shape ICP refuses, or that the gate refuses
+        where the estimate puts it, is told apart already. A look-alike it cannot test (seen on the
+        query's own pass, too few points) stands against the match.
+        """
+        if self.p.gate_support_round and self._sgf_symmetric[k] and not a.symmetric:
+            return False
+        if not self.p.gate_support_alternatives:
+            return True
+        other = self._sgf_descriptor[k]
+        if other.sgf.frame_index < a.descriptor.sgf.frame_index:
+            alternative = _match_closest(a, [other])
+        else:  # seen after the query (the final pass): the same pairing, the earlier view matched
+            alternative = _match_closest(replace(a, descriptor=other), [a.descriptor])
+        alternative = replace(alternative, group_id=self._sgf_group[k], alternatives=(), ambiguous=False)
+        saved = self._reading, self._icp_detail
+        outcome = self._evaluate(alternative, estimate)
+        self._reading, self._icp_detail = saved
+        return outcome not in ("icp", "gate")
 
     def _estimate_xy(self, frame_index: int, centroid: np.ndarray, estimate: PoseEstimate | None) -> np.ndarray:
         """An SGF's centroid (x, y) in the current estimate (odometry before the first)."""
@@ -577,7 +642,7 @@ class IcpLoopClosing(Stage):
         if len(passed) == 1 and self._gate_decides(*passed[0], estimate):
             self.gate_decided += 1
             self.ties_resolved += 1
-            return self._accept(passed[0][1], estimate)
+            return self._accept(passed[0][1], estimate, "the gate decides the tie")
         need = max(self.p.tie_support, self.p.min_support)
         return self._consensus(tuple(passed), need, False, "ambiguous", "ties", estimate)
 
@@ -610,7 +675,7 @@ class IcpLoopClosing(Stage):
                 self.ties_resolved += 1
             elif w.resolved == "aliases":
                 self.aliases_resolved += 1
-            return self._accept(supported[0], estimate)
+            return self._accept(supported[0], estimate, _support_detail(support, w.need))
         if len(supported) > 1 or final:
             outcome = "ambiguous" if len(supported) > 1 else w.refused
             self._refuse(w.options[0][0], outcome, w.options[0][1].gate, _support_detail(support, w.need))
@@ -721,12 +786,15 @@ class IcpLoopClosing(Stage):
         cov = c.covariance + predicted[1]
         return mahalanobis2(pose_error(predicted[0], c.relative), cov)
 
-    def _accept(self, candidate: _Candidate, estimate: PoseEstimate | None) -> list[LoopConstraint]:
-        """Emit a candidate that passed every test (map matches wait for the run's anchoring in the map)."""
+    def _accept(self, candidate: _Candidate, estimate: PoseEstimate | None, basis: str = "") -> list[LoopConstraint]:
+        """Emit a candidate that passed every test (map matches wait for the run's anchoring in the map).
+
+        ``basis`` says, in ``loop_candidates.csv``, what vouched for it beyond ICP and the gate.
+        """
         if candidate.map_pose is not None and not candidate.anchored:
             return self._confirm_map(candidate, estimate)
         self.accepted.append(candidate)
-        self._decided(candidate.constraint, candidate.group_id, "accepted", candidate.gate)
+        self._decided(candidate.constraint, candidate.group_id, "accepted", candidate.gate, basis)
         return [candidate.constraint]
 
     def _refuse(self, a: GroupAssignment, reason: str, gate: _GateReading | None = None, detail: str = "") -> None:
@@ -737,8 +805,10 @@ class IcpLoopClosing(Stage):
         ids = (a.matched.sgf.instance_id, a.descriptor.sgf.instance_id)
         self._log(ends, ids, a.group_id, isinstance(a.matched, MapDescriptor), reason, gate, detail)
 
-    def _decided(self, k: LoopConstraint, group_id: int, outcome: str, gate: _GateReading | None) -> None:
-        self._log((k.frame_from, k.frame_to), k.instance_ids, group_id, k.from_map, outcome, gate)
+    def _decided(
+        self, k: LoopConstraint, group_id: int, outcome: str, gate: _GateReading | None, detail: str = ""
+    ) -> None:
+        self._log((k.frame_from, k.frame_to), k.instance_ids, group_id, k.from_map, outcome, gate, detail)
 
     def _log(
         self,
@@ -782,6 +852,8 @@ class IcpLoopClosing(Stage):
         self._sgf_frame.append(d.sgf.frame_index)
         self._sgf_centroid.append(np.asarray(d.centroid, dtype=np.float64)[:2])
         self._sgf_track.append(d.sgf.track_id)
+        self._sgf_descriptor.append(d.without_pixels())
+        self._sgf_symmetric.append(a.symmetric)
 
     def _support(self, a: GroupAssignment, c: LoopConstraint, unlike: bool = False) -> float:
         """How many other markings near the query agree with the match: seen where it puts them, and alike.
@@ -1239,7 +1311,7 @@ class IcpLoopClosing(Stage):
                     detail = "final pass" + (f": {self._icp_detail}" if candidate == "icp" else "")
                     self._log(ends, ids, group.group_id, False, candidate, self._reading, detail)
                 elif not self._gate_decides(a, candidate, estimate):
-                    detail = "final pass: a look-alike within the gate's reach"
+                    detail = f"final pass: {self._gate_refusal}"
                     self._log(ends, ids, group.group_id, False, "consensus", candidate.gate, detail)
                 else:
                     self.accepted.append(candidate)
