@@ -854,6 +854,30 @@ def test_fits_are_told_apart_on_the_marking_not_at_the_robot() -> None:
     assert loop._fits([best, result(about_marking(math.pi), 0.02)], points) == [best]
 
 
+@pytest.mark.parametrize(("limit", "kept"), [(10.0, False), (None, True)])
+def test_fits_that_agree_on_the_place_but_not_the_heading_give_no_factor(limit: float | None, kept: bool) -> None:
+    # a ring-framed marker (full-length campus_reverse_slope, seed 0, frames 1137 and 8769): ICP from two
+    # seeds stopped 35 degrees apart about it, both near-equal, both within 0.25 m (RMS) on the marking's
+    # points; their mean was 6.4 degrees off the truth. Such a marking fixes its place but not its heading
+    angles = np.linspace(0.0, 2 * math.pi, 120, endpoint=False)
+    ring = np.stack([0.4 * np.cos(angles), 0.4 * np.sin(angles)], axis=1)
+
+    def result(yaw: float, fitness: float) -> IcpResult:
+        return IcpResult(se2(0.0, 0.0, yaw), True, 10, fitness, 1.0, np.eye(3) * 1e-4, len(ring))
+
+    a, b = result(math.radians(-17.5), 0.018), result(math.radians(17.5), 0.020)
+    loop = IcpLoopClosing(IcpLoopParams(max_fit_spread_deg=limit))
+    fits = loop._fits([a, b], ring)
+    assert len(fits) == int(kept)
+    if kept:
+        assert np.allclose(fits[0].transform, np.eye(3), atol=1e-9)  # their mean
+    else:
+        assert loop._icp_detail == "fits of one alignment 35.0 degrees apart (10 at most)"
+    # 5 degrees apart (an elongated marking's shallow valley) stay one fit under the default limit
+    (one,) = IcpLoopClosing(IcpLoopParams())._fits([result(0.0, 0.018), result(math.radians(5.0), 0.019)], ring)
+    assert math.degrees(math.atan2(one.transform[1, 0], one.transform[0, 0])) == pytest.approx(2.5)
+
+
 @pytest.mark.parametrize(
     ("copy_x", "sigma_limit", "closed"),
     [(5.0, 5.0, True), (26.0, 5.0, False), (5.0, None, False), (5.0, 4.0, False)],
@@ -942,7 +966,7 @@ def test_a_distinct_marking_vouches_for_itself_only_under_a_tight_enough_gate(
     # the arrow's revisit after 78 m of exact odometry: the gate's sigma is 4.14 m. A gate wider than
     # distinct_gate_sigma cannot tell a copy never seen from the marking, so the match needs a neighbour
     frames, by_frame = _revisit_with_neighbours([Marking(3, "ell", (22.0, -1.0, 0.0))], [])
-    stage = IcpLoopClosing(IcpLoopParams(distinct_gate_sigma=limit))
+    stage = IcpLoopClosing(IcpLoopParams(distinct_gate_sigma=limit, gate_support_sigma=None))  # not the gate alone
     loops = _run_loop(stage, frames, by_frame)
     assert [c.instance_ids for c in loops] == ([(1, 1)] if closed else [])
     assert stage.distinct == int(closed) and stage.counts["consensus"] == int(not closed)

@@ -47,11 +47,14 @@ query looks like (eq. 10 within ``consensus_distance``) while no SGF of any othe
 needs ``distinct_support`` agreeing neighbours (0 by default: ICP and the gate decide), so a route
 that revisits one marking only (campus_delivery) can close its loop. The risk it takes is the
 second copy of a repeated design met before any third copy made it look common; the gate is what
-stands against that. Once loops have anchored the estimate, the gate itself tells a design's copies
-apart: a match the gate predicts within ``gate_support_sigma`` metres needs no neighbours either,
-unless an SGF of another group that looks like the query was seen within the gate's reach of the
-matched one (:meth:`IcpLoopClosing._gate_decides`); a tie that the gate leaves one option of is
-resolved the same way. With ``consensus_wait`` (the default), a match that has too few
+stands against that, and only while it predicts the match within ``distinct_gate_sigma`` metres (a
+gate wider than the campus cannot). Once loops have anchored the estimate, the gate itself tells a
+design's copies apart: a match the gate predicts within ``gate_support_sigma`` metres needs no
+neighbours either, unless an SGF of another group that looks like the query was seen within the
+gate's reach of the matched one and could be what the query saw: matched to it, the query would
+pass ICP and the gate too (``gate_support_alternatives``), and it is not a round marking against a
+shaped one (``gate_support_round``; :meth:`IcpLoopClosing._gate_decides`); a tie that the gate
+leaves one option of is resolved the same way. With ``consensus_wait`` (the default), a match that has too few
 agreeing neighbours so far waits while the robot drives ``consensus_window`` metres on, and the
 SGFs seen after it count too: the first marking of a revisit (a reverse one above all, entered
 from a stretch never driven before) has no neighbour behind it that both passes saw. A neighbour
@@ -138,6 +141,12 @@ class IcpLoopParams(StageParams):
     )
     extra_yaw_seeds: int = Field(
         1, ge=0, le=16, description="further seeds evenly spaced in yaw around the first (1: its half-turn alternative)"
+    )
+    max_fit_spread_deg: float | None = Field(
+        10.0,
+        gt=0.0,
+        description="ICP fits of one alignment (within FIT_TOLERANCE_M of each other on the marking) further apart "
+        "in yaw than this: the marking fixes its place but not its heading, no factor (null: their mean, any spread)",
     )
     ambiguity_ratio: float = Field(
         1.25,
@@ -236,7 +245,7 @@ class IcpLoopParams(StageParams):
         "null = min_support",
     )
     distinct_gate_sigma: float | None = Field(
-        None,
+        50.0,
         gt=0.0,
         description="m: a distinct marking vouches for itself only while the gate predicts the match this tightly "
         "(a wider gate cannot tell a copy never seen from the marking; null: at any sigma)",
@@ -254,7 +263,7 @@ class IcpLoopParams(StageParams):
         0.05, ge=0.0, le=1.0, description="eq. 10: an SGF of another group this close always makes a marking common"
     )
     gate_support_sigma: float | None = Field(
-        2.0,
+        5.0,
         gt=0.0,
         description="a match the gate predicts within this position sigma (m) needs no agreeing neighbours, unless an "
         "SGF of another group that looks like the query (eq. 10 at most consensus_distance) was seen within the "
@@ -734,6 +743,8 @@ class IcpLoopClosing(Stage):
             distance = self._anchored_distance(_MAP, j, estimate)
             predicted = (invert(map_pose) @ self._pose(j, estimate), self._drift(distance, j, estimate))
         fits = self._fits(results, np.asarray(query.points, dtype=np.float64))
+        if not fits:
+            return "icp"
         if predicted is not None:
             chi2 = [self._gate_chi2(a, r, from_map, predicted) for r in fits]
             self._reading = _GateReading(distance, math.sqrt(predicted[1][0, 0]), min(chi2))
@@ -1042,6 +1053,13 @@ class IcpLoopClosing(Stage):
                     break
             else:
                 clusters.append([r])
+        limit = self.p.max_fit_spread_deg
+        spreads = [_yaw_spread(cluster) for cluster in clusters]
+        if limit is not None and any(spread > math.radians(limit) for spread in spreads):
+            # a marking nearly round (a ring-framed pick-up marker): its fits agree on the place, not the heading
+            apart = math.degrees(max(spreads))
+            self._icp_detail = f"fits of one alignment {apart:.1f} degrees apart ({limit:g} at most)"
+            return []
         return [_merged(cluster) for cluster in clusters]
 
     def _select(self, results: list[IcpResult], predicted: tuple[np.ndarray, np.ndarray] | None) -> IcpResult:
@@ -1438,6 +1456,12 @@ def _merged(fits: list[IcpResult]) -> IcpResult:
     spread = np.array([se2_params(invert(mean) @ r.transform) for r in fits])
     covariance = fits[0].covariance + spread.T @ spread / len(fits)
     return replace(fits[0], transform=mean, covariance=covariance)
+
+
+def _yaw_spread(fits: list[IcpResult]) -> float:
+    """The largest yaw difference (rad) between ICP results of one alignment."""
+    yaws = [se2_params(r.transform)[2] for r in fits]
+    return max((abs(wrap_angle(a - b)) for a, b in itertools.combinations(yaws, 2)), default=0.0)
 
 
 def _displacement(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
