@@ -464,9 +464,10 @@ class IcpLoopClosing(Stage):
         earlier, self.waiting = self.waiting, []  # this frame's matches were just decided: they wait untested
         out: list[LoopConstraint] = []
         for a in assignments.items:
-            self.assignments.append(replace(a, descriptor=a.descriptor.without_pixels()))  # for the map: no pixels
+            kept = replace(a, descriptor=a.descriptor.without_pixels())  # for the map and the gate: no pixels
+            self.assignments.append(kept)
             if a.descriptor.sgf.frame_index in self.frames:
-                self._remember(a)
+                self._remember(kept)
             out.extend(self._close(a, estimate))
         out.extend(self._settle_waiting(estimate, new_sgfs=bool(assignments.items), waiting=earlier))
         return LoopConstraints(tuple(out))
@@ -863,7 +864,7 @@ class IcpLoopClosing(Stage):
         self._sgf_frame.append(d.sgf.frame_index)
         self._sgf_centroid.append(np.asarray(d.centroid, dtype=np.float64)[:2])
         self._sgf_track.append(d.sgf.track_id)
-        self._sgf_descriptor.append(d.without_pixels())
+        self._sgf_descriptor.append(d)
         self._sgf_symmetric.append(a.symmetric)
 
     def _support(self, a: GroupAssignment, c: LoopConstraint, unlike: bool = False) -> float:
@@ -1054,12 +1055,12 @@ class IcpLoopClosing(Stage):
             else:
                 clusters.append([r])
         limit = self.p.max_fit_spread_deg
-        spreads = [_yaw_spread(cluster) for cluster in clusters]
-        if limit is not None and any(spread > math.radians(limit) for spread in spreads):
-            # a marking nearly round (a ring-framed pick-up marker): its fits agree on the place, not the heading
-            apart = math.degrees(max(spreads))
-            self._icp_detail = f"fits of one alignment {apart:.1f} degrees apart ({limit:g} at most)"
-            return []
+        if limit is not None:
+            apart = math.degrees(max(_yaw_spread(cluster) for cluster in clusters))
+            if apart > limit:
+                # a marking nearly round (a ring-framed pick-up marker): its fits agree on the place, not the heading
+                self._icp_detail = f"fits of one alignment {apart:.1f} degrees apart ({limit:g} at most)"
+                return []
         return [_merged(cluster) for cluster in clusters]
 
     def _select(self, results: list[IcpResult], predicted: tuple[np.ndarray, np.ndarray] | None) -> IcpResult:
