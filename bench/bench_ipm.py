@@ -22,6 +22,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 from sgf_plugins.ipm import (
+    HindsightMotionCompensatedIPM,
+    HindsightMotionCompensatedIpmParams,
     InversePerspectiveMapping,
     IpmParams,
     MotionCompensatedIPM,
@@ -36,7 +38,7 @@ from sgf_plugins.ipm.accuracy import AHEAD_MC
 
 from sgf_pipeline.calibration import Calibration, Intrinsics, camera_to_base_from_mounting
 from sgf_pipeline.io import atomic_write_text
-from sgf_pipeline.types import CameraImage, Frame
+from sgf_pipeline.types import CameraImage, Frame, PathAhead
 
 RESULTS = Path(__file__).with_name("RESULTS.md")
 CALIBRATION = Calibration(
@@ -67,6 +69,22 @@ def _frames(count: int) -> list[Frame]:
         odometry[0, 3] = 0.12 * k  # 1.2 m/s at 10 Hz: the line fit of MC-IPM's reference has distances to fit
         frames.append(Frame(k, 0.1 * k, image, odometry, CALIBRATION, (0.01 * math.sin(k / 5.0), pitch)))
     return frames
+
+
+def _with_paths(frames: list[Frame], distance: float) -> list[Frame]:
+    """Copies of the frames carrying the path after them (what the runner's read-ahead gives ipm=mc_hindsight)."""
+    out = []
+    for k, f in enumerate(frames):
+        after = frames[k + 1 : k + 2 + math.ceil(distance / 0.12)]
+        copy = Frame(f.index, f.timestamp, f.image, f.odometry, f.calibration, f.imu_roll_pitch)
+        copy.path_ahead = PathAhead(
+            np.array([a.odometry for a in after]).reshape(-1, 4, 4),
+            np.array([a.imu_roll_pitch for a in after], dtype=np.float64).reshape(-1, 2),
+            distance,
+            len(after) > distance / 0.12,
+        )
+        out.append(copy)
+    return out
 
 
 def run(n: int, repeats: int) -> dict[str, float]:
@@ -112,6 +130,9 @@ def run(n: int, repeats: int) -> dict[str, float]:
     out["mc_ahead_frame"] = _timed(lambda i: ahead.process(frames[i], images[i]), n, repeats)
     plane = PlaneMotionCompensatedIPM(PlaneMotionCompensatedIpmParams(**AHEAD_MC))
     out["mc_plane_frame"] = _timed(lambda i: plane.process(frames[i], images[i]), max(10, n // 4), repeats)
+    hindsight = HindsightMotionCompensatedIPM(HindsightMotionCompensatedIpmParams())
+    ahead_frames = _with_paths(frames, hindsight.lookahead)
+    out["mc_hindsight_frame"] = _timed(lambda i: hindsight.process(ahead_frames[i], images[i]), n, repeats)
     try:
         import torch
 
@@ -164,6 +185,7 @@ def report(t: dict[str, float]) -> str:
         ("mc_frame", "**ipm=mc** process(): queue, H, mask, warp"),
         ("mc_ahead_frame", "**ipm=mc_ahead** process()"),
         ("mc_plane_frame", "**ipm=mc_plane** process(): mc_ahead + the two-view plane fit (3 levels)"),
+        ("mc_hindsight_frame", "**ipm=mc_hindsight** process(): mc_ahead + the plane of the 6.5 m path ahead"),
         ("mc_frame_all_cores", "ipm=mc process(), cv2 on all cores"),
         ("mc_frame_kornia_cpu", "ipm=mc backend=kornia, CPU, 1 torch thread"),
     ):

@@ -13,8 +13,8 @@ import math
 import os
 import resource
 import time
-from collections import Counter
-from collections.abc import Iterator, Mapping
+from collections import Counter, deque
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -27,7 +27,7 @@ from sgf_pipeline.errors import ConfigError, PipelineGraphError, SgfError, Stage
 from sgf_pipeline.registry import LoadedPlugins, VariantInfo, load_plugins
 from sgf_pipeline.stage import Dataset, InputSpec, Stage
 from sgf_pipeline.trajectory import Trajectory
-from sgf_pipeline.types import Frame, PoseEstimate
+from sgf_pipeline.types import Frame, PathAhead, PoseEstimate
 
 log = logging.getLogger("sgf_pipeline")
 
@@ -351,7 +351,6 @@ class Pipeline:
             self._drop(frame, problem)
             return StepResult(frame.index, frame.timestamp, {}, None, dropped=problem)
         hook = self.plugins.manager.hook
-        self._last_key = frame.odometry
         values: dict[str, Any] = {"frame": frame}
         start = time.perf_counter()
         for node in self.order[1:]:
@@ -399,8 +398,27 @@ class Pipeline:
         pose = next((v.latest for v in values.values() if isinstance(v, PoseEstimate)), None)
         return StepResult(frame.index, frame.timestamp, values, pose)
 
+    @property
+    def lookahead(self) -> float:
+        """Metres of path read ahead of the frame being processed: the most any stage asks for."""
+        return max((n.stage.lookahead for n in self.order[1:] if isinstance(n.stage, Stage)), default=0.0)
+
     def frames(self) -> Iterator[Frame]:
-        """The dataset's frames, timed and counted, with keyframe selection applied."""
+        """The dataset's keyframes, timed and counted, in time order.
+
+        With a :attr:`lookahead`, a keyframe comes once the odometry has moved that far past it (or
+        the sequence has ended), its ``path_ahead`` filled with every frame read after it.
+        """
+        distance = self.lookahead
+        if distance > 0.0:
+            yield from read_ahead(self._read(), distance)
+            return
+        for frame, key in self._read():
+            if key:
+                yield frame
+
+    def _read(self) -> Iterator[tuple[Frame, bool]]:
+        """Every valid frame of the dataset, and whether it is a keyframe (whose image is then loaded)."""
         self.begin()
         iterator = iter(self.dataset.frames())
         limit = self.config.run.max_frames
@@ -440,6 +458,7 @@ class Pipeline:
             self.info.last_timestamp = frame.timestamp
             key = self.is_keyframe(frame)
             if key:
+                self._last_key = frame.odometry
                 try:
                     _ = frame.image  # load (decode or render) now, so it counts as dataset time
                     frame.truth_ids()
@@ -454,8 +473,7 @@ class Pipeline:
                         frame.index,
                     ) from exc
             self.info.dataset_seconds += time.perf_counter() - t0
-            if key:
-                yield frame
+            yield frame, key
 
     def run(self) -> dict[str, Any]:
         """Stream the whole dataset through the pipeline, finalize, and return the metrics."""
@@ -519,6 +537,40 @@ class Pipeline:
             return
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
         outputs.write_failure(self, status, exc)
+
+
+def read_ahead(frames: Iterable[tuple[Frame, bool]], distance: float) -> Iterator[Frame]:
+    """The keyframes of ``(frame, is_keyframe)`` pairs, each once the odometry has moved ``distance`` metres past it.
+
+    Each keyframe gets ``path_ahead``: the odometry and IMU of every frame read after it until then
+    (``complete`` False for the last keyframes of a sequence that ends sooner).
+    """
+    buffer: deque[tuple[Frame, float, bool]] = deque()  # frames from the oldest waiting keyframe on
+    travelled = 0.0
+    last: np.ndarray | None = None
+    for frame, key in frames:
+        position = np.asarray(frame.odometry, dtype=np.float64)[:3, 3]
+        if last is not None:
+            travelled += float(np.linalg.norm(position - last))
+        last = position
+        if key or buffer:
+            buffer.append((frame, travelled, key))
+        while buffer and travelled - buffer[0][1] >= distance:
+            yield _with_path(buffer, distance, complete=True)
+    while buffer:
+        yield _with_path(buffer, distance, complete=False)
+
+
+def _with_path(buffer: deque[tuple[Frame, float, bool]], distance: float, complete: bool) -> Frame:
+    """Pop the oldest keyframe with the frames after it as its path ahead; drop the non-keyframes before the next."""
+    frame, _, _ = buffer.popleft()
+    after = [f for f, _, _ in buffer]
+    odometry = np.array([np.asarray(f.odometry, dtype=np.float64) for f in after]).reshape(-1, 4, 4)
+    imu = np.array([f.imu_roll_pitch if f.imu_roll_pitch is not None else (math.nan, math.nan) for f in after])
+    frame.path_ahead = PathAhead(odometry, imu.reshape(-1, 2).astype(np.float64), distance, complete)
+    while buffer and not buffer[0][2]:
+        buffer.popleft()
+    return frame
 
 
 class PoseLog:

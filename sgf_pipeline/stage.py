@@ -54,6 +54,15 @@ class Stage(ABC):
     def __init__(self, params: StageParams) -> None:
         self.params = params
 
+    @property
+    def lookahead(self) -> float:
+        """Metres of path after a frame that must be driven before this stage processes the frame.
+
+        When a stage of a pipeline asks for some, ``Pipeline.frames`` reads the dataset that far
+        ahead and fills ``Frame.path_ahead``: the whole pipeline then runs that far behind the camera.
+        """
+        return 0.0
+
     def begin(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
         """Reset per-sequence state before the first frame."""
 

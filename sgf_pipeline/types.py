@@ -32,6 +32,7 @@ class Frame:
         "index",
         "instance_ids",
         "odometry",
+        "path_ahead",
         "timestamp",
     )
 
@@ -54,6 +55,9 @@ class Frame:
         self.imu_roll_pitch = imu_roll_pitch
         self.ground_truth = ground_truth
         self.instance_ids = instance_ids
+        #: The odometry and IMU of the frames after this one, when the runner read ahead for a stage
+        #: that asked (:attr:`sgf_pipeline.stage.Stage.lookahead`); ``None`` otherwise.
+        self.path_ahead: PathAhead | None = None
 
     @property
     def image(self) -> np.ndarray:
@@ -75,6 +79,32 @@ class Frame:
 
     def __repr__(self) -> str:
         return f"Frame(index={self.index}, timestamp={self.timestamp:.3f})"
+
+
+@dataclass(frozen=True)
+class PathAhead:
+    """What the robot measured on the path it drove after a frame: the runner's read-ahead.
+
+    ``odometry`` (M, 4, 4) and ``imu_roll_pitch`` (M, 2, rad; NaN where a frame had none) of the
+    M frames that followed, in time order, every frame (keyframes or not) until the odometry had
+    moved ``distance`` metres; ``complete`` is False when the sequence ended before that.
+    """
+
+    odometry: np.ndarray
+    imu_roll_pitch: np.ndarray
+    distance: float
+    complete: bool
+
+    def __post_init__(self) -> None:
+        if self.odometry.ndim != 3 or self.odometry.shape[1:] != (4, 4):
+            raise ValueError(f"PathAhead.odometry must be (M, 4, 4) poses, got shape {self.odometry.shape}")
+        if self.imu_roll_pitch.shape != (len(self.odometry), 2):
+            raise ValueError(
+                f"PathAhead.imu_roll_pitch must be ({len(self.odometry)}, 2), got {self.imu_roll_pitch.shape}"
+            )
+
+    def __len__(self) -> int:
+        return len(self.odometry)
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,8 @@ import yaml
 from ipm_scene import GroundScene, render, scene_calibration, truth_mask
 from pydantic import ValidationError
 from sgf_plugins.ipm import (
+    HindsightMotionCompensatedIPM,
+    HindsightMotionCompensatedIpmParams,
     InversePerspectiveMapping,
     IpmParams,
     MotionCompensatedIPM,
@@ -44,15 +46,21 @@ def _frame(image: np.ndarray, ids=None, imu=(0.0, 0.0), odometry=None, index: in
 
 def test_both_variants_are_registered_with_their_parameters() -> None:
     registry = load_plugins(allow=["ipm"]).registry
-    assert {v.name for v in registry.variants("ipm")} == {"plain", "mc", "mc_plane"}
+    assert {v.name for v in registry.variants("ipm")} == {"plain", "mc", "mc_plane", "mc_hindsight"}
     assert registry.get("ipm", "mc").cls is MotionCompensatedIPM
     assert registry.get("ipm", "mc_plane").cls is PlaneMotionCompensatedIPM
+    assert registry.get("ipm", "mc_hindsight").cls is HindsightMotionCompensatedIPM
     assert registry.get("ipm", "plain").signature.output_types == (Bev,)
 
 
 @pytest.mark.parametrize(
     "name,params",
-    [("plain", IpmParams), ("mc", MotionCompensatedIpmParams), ("mc_plane", PlaneMotionCompensatedIpmParams)],
+    [
+        ("plain", IpmParams),
+        ("mc", MotionCompensatedIpmParams),
+        ("mc_plane", PlaneMotionCompensatedIpmParams),
+        ("mc_hindsight", HindsightMotionCompensatedIpmParams),
+    ],
 )
 def test_configs_list_every_parameter_with_its_default(name: str, params) -> None:
     node = yaml.safe_load((ROOT / "conf" / "ipm" / f"{name}.yaml").read_text())

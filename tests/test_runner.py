@@ -155,3 +155,43 @@ def test_an_interrupted_run_records_itself_and_leaves_no_half_file(plugins, tmp_
     assert len(read_tum(tmp_path / "trajectory_odometry.partial.tum")) == 5
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".part")]
     assert not (tmp_path / "metrics.json").exists()
+
+
+def test_a_stage_with_a_lookahead_gets_the_path_driven_after_each_keyframe(plugins):
+    cfg = config(enhance={"name": "none"}, ahead={"name": "path", "lookahead": 2.0})
+    cfg["dataset"]["frames"] = 200
+    cfg["run"]["keyframe_distance"] = 1.0
+    cfg["run"]["keyframe_angle"] = 10.0
+    pipeline = Pipeline.from_config(cfg, plugins=plugins)
+    assert pipeline.lookahead == 2.0
+    results = [pipeline.process(f) for f in pipeline.frames()]
+    # the same keyframes as without the read-ahead, each once and in order
+    plain = config(enhance={"name": "none"})
+    plain["dataset"], plain["run"] = cfg["dataset"], cfg["run"]
+    reference = Pipeline.from_config(plain, plugins=plugins)
+    assert reference.lookahead == 0.0
+    assert [r.frame_index for r in results] == [reference.process(f).frame_index for f in reference.frames()]
+    poses = [f.odometry for f in pipeline.dataset.frames()]
+    complete = 0
+    for r in results:
+        path = r.outputs["path"]
+        k, m = r.frame_index, len(path)
+        # every frame after the keyframe, keyframe or not, in order
+        np.testing.assert_array_equal(path.odometry, np.stack(poses[k + 1 : k + 1 + m]))
+        chain = np.stack([poses[k], *path.odometry])[:, :3, 3]
+        driven = np.cumsum(np.linalg.norm(np.diff(chain, axis=0), axis=1))
+        if path.complete:  # up to the first frame 2 m on, not one more
+            complete += 1
+            assert driven[-1] >= 2.0 and (m == 1 or driven[-2] < 2.0)
+        else:  # the sequence ended sooner: the path runs to its last frame
+            assert k + m == 199 and driven[-1] < 2.0
+        assert np.isnan(path.imu_roll_pitch).all()  # the figure eight has no IMU
+    # only the keyframes less than 2 m from the sequence's end wait for the end
+    assert 0 < len(results) - complete <= 3
+    assert all(r.outputs["path"].complete for r in results[:complete])
+    assert pipeline.finish()["timing"]["frames"] == len(results)
+
+
+def test_without_a_lookahead_frames_carry_no_path(plugins):
+    pipeline = Pipeline.from_config(config(enhance={"name": "none"}), plugins=plugins)
+    assert all(f.path_ahead is None for f in itertools.islice(pipeline.frames(), 5))

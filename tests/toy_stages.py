@@ -13,7 +13,7 @@ from sgf_pipeline.calibration import Calibration, Intrinsics
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.geometry import pose_from_xy_yaw
 from sgf_pipeline.trajectory import Trajectory
-from sgf_pipeline.types import Bev, CameraImage, Frame, PoseEstimate
+from sgf_pipeline.types import Bev, CameraImage, Frame, PathAhead, PoseEstimate
 
 CALIBRATION = Calibration.from_mounting(
     Intrinsics(fx=100.0, fy=100.0, cx=40.0, cy=30.0, width=80, height=60), height=0.6, tilt=0.4
@@ -164,6 +164,27 @@ class GateFromConsumer(Stage):
         return consumed
 
 
+class ReadAheadParams(StageParams):
+    lookahead: float = Field(2.0, gt=0.0, description="metres of path the stage needs after a frame")
+
+
+class ReadAhead(Stage):
+    """Returns the path the runner read ahead of each frame."""
+
+    kind = "ahead"
+    name = "path"
+    output = "path"
+    Params = ReadAheadParams
+
+    @property
+    def lookahead(self) -> float:
+        assert isinstance(self.params, ReadAheadParams)
+        return self.params.lookahead
+
+    def process(self, frame: Frame) -> PathAhead | None:
+        return frame.path_ahead
+
+
 class ToyPlugin:
     """Registers the toy stages."""
 
@@ -180,5 +201,6 @@ class ToyPlugin:
             Exploding,
             DuplicateImage,
             GateFromConsumer,
+            ReadAhead,
         ):
             registry.add(cls)

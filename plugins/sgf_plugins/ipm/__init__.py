@@ -1,4 +1,4 @@
-"""IPM stages (paper Sec. III-A, eq. 1-4): ``ipm=plain``, the motion-compensated ``ipm=mc`` and ``ipm=mc_plane``."""
+"""IPM stages (paper Sec. III-A, eq. 1-4): ``ipm=plain`` and the motion-compensated ``ipm=mc`` and its extensions."""
 
 from __future__ import annotations
 
@@ -14,6 +14,8 @@ from sgf_plugins.ipm.geometry import (
 )
 from sgf_plugins.ipm.reference import PoseQueue, ReferenceAttitude
 from sgf_plugins.ipm.stages import (
+    HindsightMotionCompensatedIPM,
+    HindsightMotionCompensatedIpmParams,
     InversePerspectiveMapping,
     IpmParams,
     MotionCompensatedIPM,
@@ -23,6 +25,8 @@ from sgf_plugins.ipm.stages import (
 )
 
 __all__ = [
+    "HindsightMotionCompensatedIPM",
+    "HindsightMotionCompensatedIpmParams",
     "InversePerspectiveMapping",
     "IpmParams",
     "MotionCompensatedIPM",
@@ -44,7 +48,8 @@ __all__ = [
 
 @hookimpl
 def sgf_register_stages(registry: StageRegistry) -> None:
-    """Register plain IPM, MC-IPM and MC-IPM with the ground plane measured from two views."""
+    """Register plain IPM, MC-IPM, and MC-IPM with the ground plane from two views or from the path driven next."""
     registry.add(InversePerspectiveMapping)
     registry.add(MotionCompensatedIPM)
     registry.add(PlaneMotionCompensatedIPM)
+    registry.add(HindsightMotionCompensatedIPM)

@@ -35,8 +35,10 @@ import numpy as np
 from sgf_pipeline import RunContext, SgfError
 from sgf_pipeline.geometry import rpy_from_rotation
 from sgf_pipeline.io import atomic_write_bytes, atomic_write_text
-from sgf_pipeline.types import BevGrid
+from sgf_pipeline.types import BevGrid, PathAhead
 from sgf_plugins.ipm.stages import (
+    HindsightMotionCompensatedIPM,
+    HindsightMotionCompensatedIpmParams,
     InversePerspectiveMapping,
     IpmParams,
     MotionCompensatedIPM,
@@ -171,13 +173,28 @@ AHEAD_MC: dict[str, Any] = {"reference_fit": "line", "lookahead": 2.0, "attitude
 
 
 def default_variants() -> dict[str, InversePerspectiveMapping]:
-    """Plain IPM, the paper's MC-IPM (``ipm=mc``), ``ipm=mc_ahead`` and ``ipm=mc_plane`` (plane fitted to two views)."""
+    """Plain IPM, the paper's MC-IPM (``ipm=mc``), and ``ipm=mc_ahead``, ``mc_plane`` and ``mc_hindsight``."""
     return {
         "plain": InversePerspectiveMapping(IpmParams()),
         "mc": MotionCompensatedIPM(MotionCompensatedIpmParams()),
         "mc_ahead": MotionCompensatedIPM(MotionCompensatedIpmParams(**AHEAD_MC)),
         "mc_plane": PlaneMotionCompensatedIPM(PlaneMotionCompensatedIpmParams(**AHEAD_MC)),
+        "mc_hindsight": HindsightMotionCompensatedIPM(HindsightMotionCompensatedIpmParams()),
     }
+
+
+def path_ahead(world: Any, index: int, distance: float) -> PathAhead:
+    """The odometry and IMU of the world's frames after ``index``, until the odometry has moved ``distance`` metres.
+
+    What the runner's read-ahead (``Pipeline.frames``) gives a frame when every frame is a keyframe.
+    """
+    sensors = world.sensors
+    odometry, imu = sensors.odometry, sensors.imu_roll_pitch
+    positions = odometry[index:, :3, 3]
+    driven = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
+    reached = np.flatnonzero(driven >= distance)
+    end = index + (int(reached[0]) if reached.size else len(positions) - 1)
+    return PathAhead(odometry[index + 1 : end + 1].copy(), imu[index + 1 : end + 1].copy(), distance, reached.size > 0)
 
 
 def evaluate(
@@ -210,6 +227,7 @@ def evaluate(
         result.frames.append(k)
         result.kinds.append(ground_kind(world, pose))
         for name, stage in stages.items():
+            frame.path_ahead = path_ahead(world, k, stage.lookahead) if stage.lookahead > 0.0 else None
             psi, theta = stage.compensation(frame, layers.image)
             h = stage.homography(frame.calibration, psi, theta)
             result.errors[name].append(_position_error(relative, pose, h, samples[stage.grid]))

@@ -16,6 +16,7 @@ from sgf_pipeline.geometry import rpy_from_rotation
 from sgf_pipeline.types import Bev, BevGrid, CameraImage, Frame
 from sgf_plugins.ipm.geometry import RollAxis, bev_to_image_homography, visible_mask
 from sgf_plugins.ipm.ground_plane import GradeFilter, GroundPlaneTracker
+from sgf_plugins.ipm.hindsight import AttitudeWindow, GroundAhead, ground_ahead, path_profile
 from sgf_plugins.ipm.reference import PoseQueue, ReferenceAttitude, ReferenceCenter, ReferenceFit
 
 _INTERPOLATION = {"linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST, "cubic": cv2.INTER_CUBIC}
@@ -517,4 +518,99 @@ class PlaneMotionCompensatedIPM(MotionCompensatedIPM):
             return psi_ahead, theta_ahead
         psi = psi_motion + roll_ahead if self.params.compensate_roll else 0.0
         theta = theta_motion + pitch_ahead if self.params.compensate_pitch else 0.0
+        return psi, theta
+
+
+class HindsightMotionCompensatedIpmParams(MotionCompensatedIpmParams):
+    """``ipm=mc_hindsight``: ``ipm=mc_ahead`` until the path after a frame is known, then its plane."""
+
+    reference_fit: ReferenceFit = "line"
+    lookahead: float = 2.0
+    attitude_noise: float = 0.005
+    hindsight: float = Field(
+        6.5,
+        gt=0.0,
+        description="metres of path driven after a frame before its BEV is made (the BEV's far edge and a "
+        "margin); the whole pipeline runs this far behind the camera",
+    )
+    hindsight_min_reach: float = Field(
+        2.0, gt=0.0, description="metres ahead the path must reach inside the BEV for a plane; else mc_ahead's"
+    )
+    attitude_window: float = Field(
+        0.6,
+        gt=0.0,
+        description="metres on either side of a frame whose median IMU attitude is the robot's on its ground "
+        "(the frame's own deviation from it is shrunk by attitude_noise)",
+    )
+
+
+class HindsightMotionCompensatedIPM(MotionCompensatedIPM):
+    """MC-IPM whose BEV plane is the ground ahead as the robot later drove over it (extension of Sec. III-A).
+
+    The pipeline reads ``hindsight`` metres of path ahead of each frame (``Frame.path_ahead``,
+    :attr:`lookahead`); :func:`~sgf_plugins.ipm.hindsight.ground_ahead` fits the plane of the
+    ground within the BEV's reach to it, and the robot's own attitude against its ground is the
+    median IMU attitude around the frame plus the frame's shrunk deviation
+    (:mod:`sgf_plugins.ipm.hindsight`). Then ``theta`` (eq. 2) is the robot's pitch against that
+    plane and ``psi`` (eq. 1) its roll against the ground's roll there. Without a path (a robot
+    feeding frames live, or one that turns out of the BEV or stops at the sequence's end) it is
+    ``ipm=mc_ahead``. ``finalize`` adds ``hindsight_planes`` and ``hindsight_fallbacks`` to
+    metrics.json under ``ipm``.
+    """
+
+    name = "mc_hindsight"
+    Params = HindsightMotionCompensatedIpmParams
+
+    def __init__(self, params: HindsightMotionCompensatedIpmParams) -> None:
+        super().__init__(params)
+        self.params: HindsightMotionCompensatedIpmParams = params
+        self.window = AttitudeWindow(params.attitude_window)
+        self.last_ground: GroundAhead | None = None
+        self._travelled = 0.0
+        self.hindsight_counts = {"hindsight_planes": 0, "hindsight_fallbacks": 0}
+
+    @property
+    def lookahead(self) -> float:
+        """The metres of path the runner reads ahead of each frame for this stage."""
+        return self.params.hindsight
+
+    def begin(self, context: RunContext) -> None:
+        """Forget the attitudes and counts of the previous sequence."""
+        super().begin(context)
+        self.window.reset()
+        self.last_ground = None
+        self._travelled = 0.0
+        self.hindsight_counts = dict.fromkeys(self.hindsight_counts, 0)
+
+    def finalize(self, context: RunContext) -> None:
+        """MC-IPM's counts, and how many frames had a plane from the path ahead or fell back to mc_ahead."""
+        super().finalize(context)
+        context.metrics.setdefault("ipm", {}).update(self.hindsight_counts)
+
+    def compensation(self, frame: Frame, image: np.ndarray | None = None) -> tuple[float, float]:
+        """``(psi, theta)``: the robot's attitude against the plane of the path it drove next."""
+        fallback = super().compensation(frame, image)  # keeps the queue and its counts going
+        self._travelled += self.last_step
+        roll, pitch = self.attitude(frame)
+        path = frame.path_ahead
+        odometry = np.asarray(frame.odometry, dtype=np.float64)
+        ground = None
+        if path is not None and math.isfinite(roll) and math.isfinite(pitch):
+            ground = ground_ahead(odometry, path, self.grid.x_min, self.grid.x_max, self.params.hindsight_min_reach)
+            self.window.add(self._travelled, roll, pitch)
+            driven, _, _ = path_profile(odometry, path)
+            for distance, (r, p) in zip(driven, path.imu_roll_pitch, strict=True):
+                self.window.add(self._travelled + float(distance), float(r), float(p))
+        self.last_ground = ground
+        smooth = self.window.median(self._travelled) if ground is not None else None
+        if ground is None or smooth is None:
+            self.hindsight_counts["hindsight_fallbacks"] += 1
+            return fallback
+        self.hindsight_counts["hindsight_planes"] += 1
+        noise = self.params.attitude_noise
+        body_roll = smooth[0] + _shrink(roll - smooth[0], noise)
+        body_pitch = smooth[1] + _shrink(pitch - smooth[1], noise)
+        ground_roll = body_roll if ground.roll is None else ground.roll
+        psi = -(body_roll - ground_roll) if self.params.compensate_roll else 0.0
+        theta = body_pitch - ground.pitch if self.params.compensate_pitch else 0.0
         return psi, theta
