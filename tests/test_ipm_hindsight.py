@@ -152,3 +152,4 @@ def test_the_stage_compensates_the_robot_against_the_plane_of_the_path_it_drove_
     context = RunContext(run_dir=None)
     stage.finalize(context)
     assert context.metrics["ipm"]["hindsight_planes"] == 1 and context.metrics["ipm"]["frames"] == 31
+    assert context.metrics["ipm"]["max_abs_pitch_compensation"] == pytest.approx(theta, abs=1e-6)

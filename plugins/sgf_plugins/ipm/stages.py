@@ -589,6 +589,7 @@ class HindsightMotionCompensatedIPM(MotionCompensatedIPM):
 
     def compensation(self, frame: Frame, image: np.ndarray | None = None) -> tuple[float, float]:
         """``(psi, theta)``: the robot's attitude against the plane of the path it drove next."""
+        largest = self._max_theta
         fallback = super().compensation(frame, image)  # keeps the queue and its counts going
         self._travelled += self.last_step
         roll, pitch = self.attitude(frame)
@@ -613,4 +614,5 @@ class HindsightMotionCompensatedIPM(MotionCompensatedIPM):
         ground_roll = body_roll if ground.roll is None else ground.roll
         psi = -(body_roll - ground_roll) if self.params.compensate_roll else 0.0
         theta = body_pitch - ground.pitch if self.params.compensate_pitch else 0.0
+        self._max_theta = max(largest, abs(theta))  # this pitch, not the fallback's
         return psi, theta
