@@ -153,3 +153,22 @@ def test_the_stage_compensates_the_robot_against_the_plane_of_the_path_it_drove_
     stage.finalize(context)
     assert context.metrics["ipm"]["hindsight_planes"] == 1 and context.metrics["ipm"]["frames"] == 31
     assert context.metrics["ipm"]["max_abs_pitch_compensation"] == pytest.approx(theta, abs=1e-6)
+
+
+def test_the_accuracy_tool_gives_each_frame_the_path_the_runner_reads_ahead() -> None:
+    from itertools import islice
+
+    from sgf_plugins.ipm.accuracy import path_ahead
+    from sgf_plugins.world import build_world
+
+    from sgf_pipeline.runner import read_ahead
+
+    world = build_world("campus_delivery", seed=0, scale=0.3, occluders=False, sensor_noise=False)
+    frames = list(islice(read_ahead(((f, True) for f in world.frames(0, 250)), 6.5), 100))
+    assert [f.index for f in frames] == list(range(100))
+    for frame in frames[::9]:
+        expected = path_ahead(world, frame.index, 6.5)
+        assert frame.path_ahead is not None and frame.path_ahead.complete and expected.complete
+        np.testing.assert_array_equal(frame.path_ahead.odometry, expected.odometry)
+        np.testing.assert_array_equal(frame.path_ahead.imu_roll_pitch, expected.imu_roll_pitch)
+        assert 40 < len(expected) < 100  # 6.5 m at the world's speed and 10 Hz
