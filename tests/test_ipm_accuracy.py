@@ -99,6 +99,13 @@ def test_the_command_writes_table_csv_and_plot(tmp_path: Path) -> None:
     assert all(math.isfinite(float(x)) for x in rows[1].split(",")[2:])
     assert (out / "ipm_accuracy.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert main(["--preset", "campus_nowhere", "--out", str(tmp_path / "x")]) == 1
+    # a choice of variants
+    two = tmp_path / "two"
+    args = ["--preset", "campus_delivery", "--scale", "0.3", "--frames", "2", "--out", str(two)]
+    assert main([*args, "--variants", "plain, mc_hindsight"]) == 0
+    assert (two / "ipm_accuracy.csv").read_text().splitlines()[0] == "frame,ground,plain,mc_hindsight"
+    bad = ["--preset", "campus_delivery", "--frames", "2", "--out", str(tmp_path / "bad"), "--variants", "plain,mc_x"]
+    assert main(bad) == 1 and not (tmp_path / "bad").exists()  # refused before any work
 
 
 def test_mc_plane_does_not_lock_onto_the_joints_of_a_slab_paving() -> None:

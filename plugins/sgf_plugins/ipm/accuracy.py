@@ -274,14 +274,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--scale", type=float, default=0.3, help="route length scale")
     parser.add_argument("--frames", type=int, default=None, help="only the first N frames")
     parser.add_argument("--out", type=Path, default=Path("ipm_accuracy"), help="folder to write into")
+    parser.add_argument(
+        "--variants", default=None, help="comma-separated IPM variants to measure (default: all of them)"
+    )
     args = parser.parse_args(argv)
+    variants = default_variants()
+    if args.variants is not None:
+        chosen = [v.strip() for v in args.variants.split(",") if v.strip()]
+        unknown = [v for v in chosen if v not in variants]
+        if unknown or not chosen:
+            print(
+                f"error: unknown IPM variant(s) {unknown or args.variants!r}; choose from {', '.join(variants)}",
+                file=sys.stderr,
+            )
+            return 1
+        variants = {v: variants[v] for v in chosen}
     from sgf_plugins.world import build_world
 
     try:
         # occluders and sensor noise change the image, not the geometry: left out, the frames render faster
         world = build_world(args.preset, seed=args.seed, scale=args.scale, occluders=False, sensor_noise=False)
         frames = range(len(world) if args.frames is None else min(args.frames, len(world)))
-        result = evaluate(world, default_variants(), frames, progress=True)
+        result = evaluate(world, variants, frames, progress=True)
     except (SgfError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
