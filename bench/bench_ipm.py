@@ -131,7 +131,7 @@ def run(n: int, repeats: int) -> dict[str, float]:
     plane = PlaneMotionCompensatedIPM(PlaneMotionCompensatedIpmParams(**AHEAD_MC))
     out["mc_plane_frame"] = _timed(lambda i: plane.process(frames[i], images[i]), max(10, n // 4), repeats)
     hindsight = HindsightMotionCompensatedIPM(HindsightMotionCompensatedIpmParams())
-    ahead_frames = _with_paths(frames, hindsight.lookahead)
+    ahead_frames = _with_paths(frames, hindsight.read_ahead)
     out["mc_hindsight_frame"] = _timed(lambda i: hindsight.process(ahead_frames[i], images[i]), n, repeats)
     try:
         import torch

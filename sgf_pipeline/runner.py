@@ -399,17 +399,17 @@ class Pipeline:
         return StepResult(frame.index, frame.timestamp, values, pose)
 
     @property
-    def lookahead(self) -> float:
+    def read_ahead(self) -> float:
         """Metres of path read ahead of the frame being processed: the most any stage asks for."""
-        return max((n.stage.lookahead for n in self.order[1:] if isinstance(n.stage, Stage)), default=0.0)
+        return max((n.stage.read_ahead for n in self.order[1:] if isinstance(n.stage, Stage)), default=0.0)
 
     def frames(self) -> Iterator[Frame]:
         """The dataset's keyframes, timed and counted, in time order.
 
-        With a :attr:`lookahead`, a keyframe comes once the odometry has moved that far past it (or
+        With a :attr:`read_ahead`, a keyframe comes once the odometry has moved that far past it (or
         the sequence has ended), its ``path_ahead`` filled with every frame read after it.
         """
-        distance = self.lookahead
+        distance = self.read_ahead
         if distance > 0.0:
             yield from read_ahead(self._read(), distance)
             return

@@ -55,7 +55,7 @@ class Stage(ABC):
         self.params = params
 
     @property
-    def lookahead(self) -> float:
+    def read_ahead(self) -> float:
         """Metres of path after a frame that must be driven before this stage processes the frame.
 
         When a stage of a pipeline asks for some, ``Pipeline.frames`` reads the dataset that far

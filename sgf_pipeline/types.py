@@ -56,7 +56,7 @@ class Frame:
         self.ground_truth = ground_truth
         self.instance_ids = instance_ids
         #: The odometry and IMU of the frames after this one, when the runner read ahead for a stage
-        #: that asked (:attr:`sgf_pipeline.stage.Stage.lookahead`); ``None`` otherwise.
+        #: that asked (:attr:`sgf_pipeline.stage.Stage.read_ahead`); ``None`` otherwise.
         self.path_ahead: PathAhead | None = None
 
     @property

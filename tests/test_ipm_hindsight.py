@@ -128,7 +128,7 @@ def _frame(index: int, x: float, pitch: float, path: PathAhead | None) -> Frame:
 def test_the_stage_compensates_the_robot_against_the_plane_of_the_path_it_drove_next() -> None:
     stage = HindsightMotionCompensatedIPM(HindsightMotionCompensatedIpmParams())
     ahead = MotionCompensatedIPM(MotionCompensatedIpmParams(**AHEAD_MC))
-    assert stage.lookahead == 6.5 and ahead.lookahead == 0.0
+    assert stage.read_ahead == 6.5 and ahead.read_ahead == 0.0
     stage.begin(RunContext(run_dir=None))
     ahead.begin(RunContext(run_dir=None))
     # flat ground: no path (live use) gives mc_ahead's compensation, frame for frame

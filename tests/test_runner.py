@@ -157,19 +157,19 @@ def test_an_interrupted_run_records_itself_and_leaves_no_half_file(plugins, tmp_
     assert not (tmp_path / "metrics.json").exists()
 
 
-def test_a_stage_with_a_lookahead_gets_the_path_driven_after_each_keyframe(plugins):
-    cfg = config(enhance={"name": "none"}, ahead={"name": "path", "lookahead": 2.0})
+def test_a_stage_with_a_read_ahead_gets_the_path_driven_after_each_keyframe(plugins):
+    cfg = config(enhance={"name": "none"}, ahead={"name": "path", "distance": 2.0})
     cfg["dataset"]["frames"] = 200
     cfg["run"]["keyframe_distance"] = 1.0
     cfg["run"]["keyframe_angle"] = 10.0
     pipeline = Pipeline.from_config(cfg, plugins=plugins)
-    assert pipeline.lookahead == 2.0
+    assert pipeline.read_ahead == 2.0
     results = [pipeline.process(f) for f in pipeline.frames()]
     # the same keyframes as without the read-ahead, each once and in order
     plain = config(enhance={"name": "none"})
     plain["dataset"], plain["run"] = cfg["dataset"], cfg["run"]
     reference = Pipeline.from_config(plain, plugins=plugins)
-    assert reference.lookahead == 0.0
+    assert reference.read_ahead == 0.0
     assert [r.frame_index for r in results] == [reference.process(f).frame_index for f in reference.frames()]
     poses = [f.odometry for f in pipeline.dataset.frames()]
     complete = 0
@@ -192,6 +192,6 @@ def test_a_stage_with_a_lookahead_gets_the_path_driven_after_each_keyframe(plugi
     assert pipeline.finish()["timing"]["frames"] == len(results)
 
 
-def test_without_a_lookahead_frames_carry_no_path(plugins):
+def test_without_a_read_ahead_frames_carry_no_path(plugins):
     pipeline = Pipeline.from_config(config(enhance={"name": "none"}), plugins=plugins)
     assert all(f.path_ahead is None for f in itertools.islice(pipeline.frames(), 5))

@@ -165,7 +165,7 @@ class GateFromConsumer(Stage):
 
 
 class ReadAheadParams(StageParams):
-    lookahead: float = Field(2.0, gt=0.0, description="metres of path the stage needs after a frame")
+    distance: float = Field(2.0, gt=0.0, description="metres of path the stage needs after a frame")
 
 
 class ReadAhead(Stage):
@@ -177,9 +177,9 @@ class ReadAhead(Stage):
     Params = ReadAheadParams
 
     @property
-    def lookahead(self) -> float:
+    def read_ahead(self) -> float:
         assert isinstance(self.params, ReadAheadParams)
-        return self.params.lookahead
+        return self.params.distance
 
     def process(self, frame: Frame) -> PathAhead | None:
         return frame.path_ahead

@@ -227,7 +227,7 @@ def evaluate(
         result.frames.append(k)
         result.kinds.append(ground_kind(world, pose))
         for name, stage in stages.items():
-            frame.path_ahead = path_ahead(world, k, stage.lookahead) if stage.lookahead > 0.0 else None
+            frame.path_ahead = path_ahead(world, k, stage.read_ahead) if stage.read_ahead > 0.0 else None
             psi, theta = stage.compensation(frame, layers.image)
             h = stage.homography(frame.calibration, psi, theta)
             result.errors[name].append(_position_error(relative, pose, h, samples[stage.grid]))

@@ -383,12 +383,17 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
         return bev_to_image_homography(calibration, self.grid, psi, theta, self.params.roll_axis)
 
 
-class PlaneMotionCompensatedIpmParams(MotionCompensatedIpmParams):
-    """``ipm=mc_plane``: ``ipm=mc_ahead``'s attitude, with the ground ahead's plane measured from two views."""
+class _AheadDefaults(MotionCompensatedIpmParams):
+    """MC-IPM with ``ipm=mc_ahead``'s extensions on by default: the base of the variants built on it."""
 
     reference_fit: ReferenceFit = "line"
     lookahead: float = 2.0
     attitude_noise: float = 0.005
+
+
+class PlaneMotionCompensatedIpmParams(_AheadDefaults):
+    """``ipm=mc_plane``: ``ipm=mc_ahead``'s attitude, with the ground ahead's plane measured from two views."""
+
     plane_baseline: float = Field(
         0.6,
         gt=0.0,
@@ -521,12 +526,9 @@ class PlaneMotionCompensatedIPM(MotionCompensatedIPM):
         return psi, theta
 
 
-class HindsightMotionCompensatedIpmParams(MotionCompensatedIpmParams):
+class HindsightMotionCompensatedIpmParams(_AheadDefaults):
     """``ipm=mc_hindsight``: ``ipm=mc_ahead`` until the path after a frame is known, then its plane."""
 
-    reference_fit: ReferenceFit = "line"
-    lookahead: float = 2.0
-    attitude_noise: float = 0.005
     hindsight: float = Field(
         6.5,
         gt=0.0,
@@ -548,7 +550,7 @@ class HindsightMotionCompensatedIPM(MotionCompensatedIPM):
     """MC-IPM whose BEV plane is the ground ahead as the robot later drove over it (extension of Sec. III-A).
 
     The pipeline reads ``hindsight`` metres of path ahead of each frame (``Frame.path_ahead``,
-    :attr:`lookahead`); :func:`~sgf_plugins.ipm.hindsight.ground_ahead` fits the plane of the
+    :attr:`read_ahead`); :func:`~sgf_plugins.ipm.hindsight.ground_ahead` fits the plane of the
     ground within the BEV's reach to it, and the robot's own attitude against its ground is the
     median IMU attitude around the frame plus the frame's shrunk deviation
     (:mod:`sgf_plugins.ipm.hindsight`). Then ``theta`` (eq. 2) is the robot's pitch against that
@@ -570,7 +572,7 @@ class HindsightMotionCompensatedIPM(MotionCompensatedIPM):
         self.hindsight_counts = {"hindsight_planes": 0, "hindsight_fallbacks": 0}
 
     @property
-    def lookahead(self) -> float:
+    def read_ahead(self) -> float:
         """The metres of path the runner reads ahead of each frame for this stage."""
         return self.params.hindsight
 
