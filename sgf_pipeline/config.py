@@ -52,6 +52,12 @@ class RunOptions(BaseModel):
         None, ge=1, description="torch intra-op threads (1 inside parallel sweeps); null = torch's default"
     )
     ate_max_time_diff: float = Field(0.01, gt=0.0, description="timestamp association tolerance for ATE (s)")
+    read_ahead_seconds: float = Field(
+        30.0,
+        gt=0.0,
+        description="a keyframe waits at most this long (s of sequence time) for the path a stage's read_ahead "
+        "asks for (a robot standing still); then it goes on with the path read so far",
+    )
 
 
 class PluginOptions(BaseModel):

@@ -411,7 +411,7 @@ class Pipeline:
         """
         distance = self.read_ahead
         if distance > 0.0:
-            yield from read_ahead(self._read(), distance)
+            yield from read_ahead(self._read(), distance, self.config.run.read_ahead_seconds)
             return
         for frame, key in self._read():
             if key:
@@ -539,11 +539,12 @@ class Pipeline:
         outputs.write_failure(self, status, exc)
 
 
-def read_ahead(frames: Iterable[tuple[Frame, bool]], distance: float) -> Iterator[Frame]:
+def read_ahead(frames: Iterable[tuple[Frame, bool]], distance: float, max_seconds: float = math.inf) -> Iterator[Frame]:
     """The keyframes of ``(frame, is_keyframe)`` pairs, each once the odometry has moved ``distance`` metres past it.
 
-    Each keyframe gets ``path_ahead``: the odometry and IMU of every frame read after it until then
-    (``complete`` False for the last keyframes of a sequence that ends sooner).
+    Each keyframe gets ``path_ahead``: the odometry and IMU of every frame read after it until then.
+    A keyframe that has waited ``max_seconds`` (the robot stands still), and the last keyframes of
+    a sequence that ends sooner, go on with the path read so far (``complete`` False).
     """
     buffer: deque[tuple[Frame, float, bool]] = deque()  # frames from the oldest waiting keyframe on
     travelled = 0.0
@@ -555,8 +556,12 @@ def read_ahead(frames: Iterable[tuple[Frame, bool]], distance: float) -> Iterato
         last = position
         if key or buffer:
             buffer.append((frame, travelled, key))
-        while buffer and travelled - buffer[0][1] >= distance:
-            yield _with_path(buffer, distance, complete=True)
+        while buffer:
+            oldest, start, _ = buffer[0]
+            complete = travelled - start >= distance
+            if not complete and frame.timestamp - oldest.timestamp < max_seconds:
+                break
+            yield _with_path(buffer, distance, complete)
     while buffer:
         yield _with_path(buffer, distance, complete=False)
 

@@ -8,10 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from toy_stages import ToyPlugin
+from toy_stages import CALIBRATION, ToyPlugin
 
 from sgf_pipeline import Pipeline, StageError, load_plugins
+from sgf_pipeline.geometry import pose_from_xy_yaw
+from sgf_pipeline.runner import read_ahead
 from sgf_pipeline.trajectory import read_tum
+from sgf_pipeline.types import Frame
 
 
 @pytest.fixture(scope="module")
@@ -195,3 +198,30 @@ def test_a_stage_with_a_read_ahead_gets_the_path_driven_after_each_keyframe(plug
 def test_without_a_read_ahead_frames_carry_no_path(plugins):
     pipeline = Pipeline.from_config(config(enhance={"name": "none"}), plugins=plugins)
     assert all(f.path_ahead is None for f in itertools.islice(pipeline.frames(), 5))
+
+
+def test_a_keyframe_waits_for_its_path_only_so_long():
+    # 0.1 m per frame at 10 Hz for 20 frames, 10 s standing still, then on again
+    x = [0.1 * min(i, 20) + 0.1 * max(0, i - 120) for i in range(160)]
+    image = np.zeros((60, 80), np.uint8)
+    frames = [Frame(i, 0.1 * i, image, pose_from_xy_yaw(x[i], 0.0, 0.0), CALIBRATION) for i in range(160)]
+    read: list[int] = []
+
+    def source():
+        for f in frames:
+            read.append(f.index)
+            yield f, f.index % 5 == 0
+
+    out = {}
+    for f in read_ahead(source(), 0.95, max_seconds=3.0):
+        out[f.index] = (read[-1], f.path_ahead)
+    assert sorted(out) == list(range(0, 160, 5))
+    # driving: a keyframe comes once the path 0.95 m on is read, complete
+    assert out[5][0] == 15 and out[5][1].complete and len(out[5][1]) == 10
+    assert out[10][0] == 20 and out[10][1].complete
+    # at the stop: it waits 3 s of sequence time, then goes on with the path so far
+    for k in (15, 20):
+        seen, path = out[k]
+        assert seen == k + 30 and not path.complete and len(path) == 30
+    # after the stop: complete again
+    assert out[125][1].complete and not out[155][1].complete  # the last ones: the sequence ended
