@@ -154,6 +154,11 @@ def test_the_gate_alone_keeps_look_alikes_out_of_the_graph() -> None:
     }
     assert gated.context.metrics["loops"]["false_closed"] == 0  # type: ignore[attr-defined]
     assert ungated.context.metrics["loops"]["false_closed"] == 4  # type: ignore[attr-defined]
+    # the loops' pairwise consistency through the odometry puts exactly the four false ones outside the
+    # largest consistent set (a diagnostic: the estimate keeps them)
+    consistency = ungated.context.metrics["loops"]["consistency"]  # type: ignore[attr-defined]
+    assert len(consistency["outside_largest_set"]) == 4 and consistency["false_outside"] == 4
+    assert gated.context.metrics["loops"]["consistency"]["outside_largest_set"] == []  # type: ignore[attr-defined]
     assert ate_of["gated"] < 1.5 * ate_of["reference"]
     assert ate_of["ungated"] > 5.0 * ate_of["reference"]
 

@@ -104,6 +104,7 @@ from sgf_pipeline.types import (
 from sgf_plugins.anchoring import anchored_distances
 from sgf_plugins.frame_log import FrameLog
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2, se2_params
+from sgf_plugins.loop_consistency import LoopEnds, consistency_ratios, largest_consistent_set, planar
 from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, yaw_to_shift
 
 _MAP = -1  # the prior map as one node of the anchoring graph
@@ -283,6 +284,13 @@ class IcpLoopParams(StageParams):
         True,
         description="a match short of agreeing neighbours waits while the robot drives consensus_window metres on: "
         "SGFs seen after it count too (false = decide on the SGFs seen before it)",
+    )
+    consistency_threshold: float | None = Field(
+        3.0,
+        gt=0.0,
+        description="diagnostic (the estimate is not changed): accepted loops outside the largest set whose "
+        "pairwise cycles through the odometry agree within this (position error over 1 m + 5 % of the path "
+        "between their ends) are listed in metrics.json as loops.consistency (null: not computed)",
     )
     final_pass: bool = Field(
         True,
@@ -1278,12 +1286,38 @@ class IcpLoopClosing(Stage):
             closed = [r for r in truth.revisits if self._closes(r, truths, truth)]
             loops["closed"] = len(closed)
             loops["closed_reverse"] = sum(bool(r.reverse) for r in closed)
+        if self.p.consistency_threshold is not None:
+            loops["consistency"] = self._consistency(self.p.consistency_threshold, truths)
         context.metrics.setdefault("loops", {}).update(loops)
         context.artifacts["loops"] = [
             self._loop_entry(c, e, t) for c, e, t in zip(self.accepted, errors, truths, strict=True)
         ]
         context.artifacts["group_assignments"] = list(self.assignments)
         context.artifacts["loop_candidates"] = list(self.decisions)
+
+    def _consistency(self, threshold: float, truths: list[bool | None]) -> dict[str, Any]:
+        """Accepted loops outside the largest mutually consistent set (:mod:`sgf_plugins.loop_consistency`)."""
+        own = [(c.constraint, t) for c, t in zip(self.accepted, truths, strict=True) if not c.constraint.from_map]
+        ends = [
+            LoopEnds(
+                c.frame_from,
+                c.frame_to,
+                planar(np.asarray(c.relative, dtype=np.float64)),
+                planar(self.frames.odometry(c.frame_from)),
+                planar(self.frames.odometry(c.frame_to)),
+                self.frames.distance(c.frame_from),
+                self.frames.distance(c.frame_to),
+            )
+            for c, _ in own
+        ]
+        kept = set(largest_consistent_set(consistency_ratios(ends), threshold))
+        outside = [k for k in range(len(own)) if k not in kept]
+        judged = any(t is not None for _, t in own)  # with ground truth: how many of them are false
+        return {
+            "threshold": threshold,
+            "outside_largest_set": [[own[k][0].frame_from, own[k][0].frame_to] for k in outside],
+            "false_outside": sum(own[k][1] is False for k in outside) if judged else None,
+        }
 
     def _final_pass(
         self, groups: list[Any], group_of: dict[tuple[int, int], int], estimate: PoseEstimate

@@ -1,0 +1,92 @@
+"""Pairwise consistency of accepted loops through the odometry (as in PCM), and their largest consistent set.
+
+Two loops ``a: i1 -> j1`` and ``b: i2 -> j2`` with measured relative poses ``Z_a`` and ``Z_b`` close a
+cycle with the odometry between their ends: ``(Z_a O(j1 -> j2))^-1 O(i1 -> i2) Z_b`` is the identity
+when both are true, up to the odometry's drift over the path ``d`` driven between ``i1`` and ``i2``
+and between ``j1`` and ``j2``. The ratio of the cycle's position error to ``floor + per_metre * d``
+measures their disagreement; loops that disagree with the others beyond ``threshold`` fall outside
+the largest mutually consistent set (a maximum clique of the agreement graph). Two copies of a
+design at two crossings laid out alike give loops that agree with each other and with no true one.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class LoopEnds:
+    """One loop: its frames, its measured relative pose (planar 3x3, ``i -> j``), the odometry at both ends.
+
+    ``odometry_i``/``odometry_j``: planar 3x3 odometry poses of the two frames; ``distance_i``/``distance_j``:
+    metres the odometry had driven at them.
+    """
+
+    frame_i: int
+    frame_j: int
+    relative: np.ndarray
+    odometry_i: np.ndarray
+    odometry_j: np.ndarray
+    distance_i: float
+    distance_j: float
+
+
+def planar(pose: np.ndarray) -> np.ndarray:
+    """The planar (x, y, yaw) part of a 4x4 pose as a 3x3 homogeneous matrix."""
+    yaw = math.atan2(pose[1, 0], pose[0, 0])
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, pose[0, 3]], [s, c, pose[1, 3]], [0.0, 0.0, 1.0]])
+
+
+def cycle_ratio(a: LoopEnds, b: LoopEnds, floor: float = 1.0, per_metre: float = 0.05) -> float:
+    """Position error of the cycle through loops ``a`` and ``b`` over ``floor + per_metre * d`` (module docstring)."""
+    o_i = np.linalg.solve(a.odometry_i, b.odometry_i)  # O(i1 -> i2)
+    o_j = np.linalg.solve(a.odometry_j, b.odometry_j)  # O(j1 -> j2)
+    cycle = np.linalg.solve(a.relative @ o_j, o_i @ b.relative)
+    driven = abs(a.distance_i - b.distance_i) + abs(a.distance_j - b.distance_j)
+    return float(math.hypot(cycle[0, 2], cycle[1, 2]) / (floor + per_metre * driven))
+
+
+def consistency_ratios(loops: Sequence[LoopEnds], floor: float = 1.0, per_metre: float = 0.05) -> np.ndarray:
+    """The symmetric matrix of :func:`cycle_ratio` over every pair of loops (zero on the diagonal)."""
+    n = len(loops)
+    ratios = np.zeros((n, n))
+    for a in range(n):
+        for b in range(a + 1, n):
+            ratios[a, b] = ratios[b, a] = cycle_ratio(loops[a], loops[b], floor, per_metre)
+    return ratios
+
+
+def largest_consistent_set(ratios: np.ndarray, threshold: float) -> list[int]:
+    """The largest set of loops whose every pair's ratio is at most ``threshold`` (Bron-Kerbosch with pivots).
+
+    Ties go to the set whose worst ratio is smallest; the indices are returned sorted.
+    """
+    n = len(ratios)
+    agree = [{b for b in range(n) if b != a and ratios[a, b] <= threshold} for a in range(n)]
+    best: list[int] = []
+    best_worst = math.inf
+
+    def worst(clique: list[int]) -> float:
+        return max((ratios[a, b] for a in clique for b in clique if a < b), default=0.0)
+
+    def expand(clique: list[int], candidates: set[int], excluded: set[int]) -> None:
+        nonlocal best, best_worst
+        if not candidates and not excluded:
+            if len(clique) > len(best) or (len(clique) == len(best) and worst(clique) < best_worst):
+                best, best_worst = sorted(clique), worst(clique)
+            return
+        if len(clique) + len(candidates) < len(best):
+            return
+        pivot = max(candidates | excluded, key=lambda u: len(agree[u] & candidates))
+        for v in sorted(candidates - agree[pivot]):
+            expand([*clique, v], candidates & agree[v], excluded & agree[v])
+            candidates = candidates - {v}
+            excluded = excluded | {v}
+
+    expand([], set(range(n)), set())
+    return best
