@@ -38,7 +38,8 @@ from sgf_plugins.ipm.accuracy import AHEAD_MC
 
 from sgf_pipeline.calibration import Calibration, Intrinsics, camera_to_base_from_mounting
 from sgf_pipeline.io import atomic_write_text
-from sgf_pipeline.types import CameraImage, Frame, PathAhead
+from sgf_pipeline.runner import read_ahead
+from sgf_pipeline.types import CameraImage, Frame
 
 RESULTS = Path(__file__).with_name("RESULTS.md")
 CALIBRATION = Calibration(
@@ -69,22 +70,6 @@ def _frames(count: int) -> list[Frame]:
         odometry[0, 3] = 0.12 * k  # 1.2 m/s at 10 Hz: the line fit of MC-IPM's reference has distances to fit
         frames.append(Frame(k, 0.1 * k, image, odometry, CALIBRATION, (0.01 * math.sin(k / 5.0), pitch)))
     return frames
-
-
-def _with_paths(frames: list[Frame], distance: float) -> list[Frame]:
-    """Copies of the frames carrying the path after them (what the runner's read-ahead gives ipm=mc_hindsight)."""
-    out = []
-    for k, f in enumerate(frames):
-        after = frames[k + 1 : k + 2 + math.ceil(distance / 0.12)]
-        copy = Frame(f.index, f.timestamp, f.image, f.odometry, f.calibration, f.imu_roll_pitch)
-        copy.path_ahead = PathAhead(
-            np.array([a.odometry for a in after]).reshape(-1, 4, 4),
-            np.array([a.imu_roll_pitch for a in after], dtype=np.float64).reshape(-1, 2),
-            distance,
-            len(after) > distance / 0.12,
-        )
-        out.append(copy)
-    return out
 
 
 def run(n: int, repeats: int) -> dict[str, float]:
@@ -131,7 +116,8 @@ def run(n: int, repeats: int) -> dict[str, float]:
     plane = PlaneMotionCompensatedIPM(PlaneMotionCompensatedIpmParams(**AHEAD_MC))
     out["mc_plane_frame"] = _timed(lambda i: plane.process(frames[i], images[i]), max(10, n // 4), repeats)
     hindsight = HindsightMotionCompensatedIPM(HindsightMotionCompensatedIpmParams())
-    ahead_frames = _with_paths(frames, hindsight.read_ahead)
+    # the runner's read-ahead gives each frame the path after it (the last ones: what is left of it)
+    ahead_frames = list(read_ahead(((f, True) for f in frames), hindsight.read_ahead))
     out["mc_hindsight_frame"] = _timed(lambda i: hindsight.process(ahead_frames[i], images[i]), n, repeats)
     try:
         import torch

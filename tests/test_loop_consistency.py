@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sgf_plugins.icp import se2
 from sgf_plugins.loop_consistency import LoopEnds, consistency_ratios, cycle_ratio, largest_consistent_set
 
 #: The accepted loops of four runs of this session's code at 30 % (campus_large_loop seed 2 with
@@ -15,11 +16,6 @@ from sgf_plugins.loop_consistency import LoopEnds, consistency_ratios, cycle_rat
 #: pose (x, y, yaw), the odometry at i and at j (x, y, yaw), the metres driven at i and j, and
 #: whether the ground truth calls it true.
 RUNS = np.load(Path(__file__).parent / "data" / "loop_consistency_runs.npz")
-
-
-def se2(x: float, y: float, yaw: float) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
 
 
 def ends(row: np.ndarray) -> LoopEnds:

@@ -104,7 +104,7 @@ from sgf_pipeline.types import (
 from sgf_plugins.anchoring import anchored_distances
 from sgf_plugins.frame_log import FrameLog
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2, se2_params
-from sgf_plugins.loop_consistency import LoopEnds, consistency_ratios, largest_consistent_set, planar
+from sgf_plugins.loop_consistency import LoopEnds, consistency_ratios, largest_consistent_set
 from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, yaw_to_shift
 
 _MAP = -1  # the prior map as one node of the anchoring graph
@@ -1302,9 +1302,9 @@ class IcpLoopClosing(Stage):
             LoopEnds(
                 c.frame_from,
                 c.frame_to,
-                planar(np.asarray(c.relative, dtype=np.float64)),
-                planar(self.frames.odometry(c.frame_from)),
-                planar(self.frames.odometry(c.frame_to)),
+                se2(*xy_yaw(c.relative)),
+                se2(*xy_yaw(self.frames.odometry(c.frame_from))),
+                se2(*xy_yaw(self.frames.odometry(c.frame_to))),
                 self.frames.distance(c.frame_from),
                 self.frames.distance(c.frame_to),
             )

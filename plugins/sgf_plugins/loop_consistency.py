@@ -22,8 +22,8 @@ import numpy as np
 class LoopEnds:
     """One loop: its frames, its measured relative pose (planar 3x3, ``i -> j``), the odometry at both ends.
 
-    ``odometry_i``/``odometry_j``: planar 3x3 odometry poses of the two frames; ``distance_i``/``distance_j``:
-    metres the odometry had driven at them.
+    ``odometry_i``/``odometry_j``: planar 3x3 odometry poses of the two frames (``se2`` of ``xy_yaw``);
+    ``distance_i``/``distance_j``: metres the odometry had driven at them.
     """
 
     frame_i: int
@@ -33,13 +33,6 @@ class LoopEnds:
     odometry_j: np.ndarray
     distance_i: float
     distance_j: float
-
-
-def planar(pose: np.ndarray) -> np.ndarray:
-    """The planar (x, y, yaw) part of a 4x4 pose as a 3x3 homogeneous matrix."""
-    yaw = math.atan2(pose[1, 0], pose[0, 0])
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, pose[0, 3]], [s, c, pose[1, 3]], [0.0, 0.0, 1.0]])
 
 
 def cycle_ratio(a: LoopEnds, b: LoopEnds, floor: float = 1.0, per_metre: float = 0.05) -> float:

@@ -183,18 +183,25 @@ def default_variants() -> dict[str, InversePerspectiveMapping]:
     }
 
 
-def path_ahead(world: Any, index: int, distance: float) -> PathAhead:
+def route_distances(world: Any) -> np.ndarray:
+    """Metres the world's odometry has driven at each frame."""
+    positions = world.sensors.odometry[:, :3, 3]
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
+
+
+def path_ahead(world: Any, index: int, distance: float, driven: np.ndarray | None = None) -> PathAhead:
     """The odometry and IMU of the world's frames after ``index``, until the odometry has moved ``distance`` metres.
 
     What the runner's read-ahead (``Pipeline.frames``) gives a frame when every frame is a keyframe.
+    ``driven``: :func:`route_distances` of the world, when the caller has it already.
     """
     sensors = world.sensors
     odometry, imu = sensors.odometry, sensors.imu_roll_pitch
-    positions = odometry[index:, :3, 3]
-    driven = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))])
-    reached = np.flatnonzero(driven >= distance)
-    end = index + (int(reached[0]) if reached.size else len(positions) - 1)
-    return PathAhead(odometry[index + 1 : end + 1].copy(), imu[index + 1 : end + 1].copy(), distance, reached.size > 0)
+    driven = route_distances(world) if driven is None else driven
+    end = int(np.searchsorted(driven, driven[index] + distance, side="left"))
+    complete = end < len(driven)
+    end = min(end, len(driven) - 1)
+    return PathAhead(odometry[index + 1 : end + 1].copy(), imu[index + 1 : end + 1].copy(), distance, complete)
 
 
 def evaluate(
@@ -214,6 +221,7 @@ def evaluate(
         stage.begin(RunContext(run_dir=None))
     indices = list(range(len(world)) if frames is None else frames)
     result = IpmAccuracy(errors={name: [] for name in stages})
+    driven = route_distances(world) if any(s.read_ahead > 0.0 for s in stages.values()) else None
     iterator: Iterable[int] = indices
     if progress:
         from tqdm import tqdm
@@ -227,7 +235,7 @@ def evaluate(
         result.frames.append(k)
         result.kinds.append(ground_kind(world, pose))
         for name, stage in stages.items():
-            frame.path_ahead = path_ahead(world, k, stage.read_ahead) if stage.read_ahead > 0.0 else None
+            frame.path_ahead = path_ahead(world, k, stage.read_ahead, driven) if stage.read_ahead > 0.0 else None
             psi, theta = stage.compensation(frame, layers.image)
             h = stage.homography(frame.calibration, psi, theta)
             result.errors[name].append(_position_error(relative, pose, h, samples[stage.grid]))

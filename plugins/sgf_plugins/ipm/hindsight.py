@@ -82,20 +82,22 @@ def ground_ahead(
     far: float,
     min_reach: float = 2.0,
     min_points: int = 5,
+    profile: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> GroundAhead | None:
     """The plane of the ground from ``near`` to ``far`` metres ahead of ``pose``, from the path driven after it.
 
     ``None`` when the path does not reach ``min_reach`` metres ahead within the BEV (the robot
     turned away, stopped or the sequence ended), or has fewer than ``min_points`` points there.
+    ``profile``: :func:`path_profile` of ``pose`` and ``path`` when the caller has it already.
     """
     if len(path) == 0:
         return None
-    driven, ahead, height = path_profile(pose, path)
+    driven, ahead, height = path_profile(pose, path) if profile is None else profile
     beyond = np.flatnonzero(ahead > far)
     end = int(beyond[0]) if beyond.size else len(ahead)  # the path leaves the BEV: what follows is elsewhere
     x, z = ahead[:end], height[:end]
     use = x >= MIN_AHEAD
-    if use.sum() < min_points or not use.any() or float(x[use].max()) < min_reach:
+    if use.sum() < max(min_points, 1) or float(x[use].max()) < min_reach:
         return None
     x, z = x[use], z[use]
     grade = float((x * z).sum() / (x * x).sum())

@@ -102,6 +102,11 @@ class PoseQueue:
     def __len__(self) -> int:
         return len(self._poses)
 
+    @property
+    def travelled(self) -> float:
+        """Metres driven over the steps pushed since the last reset."""
+        return self._travelled
+
     def reset(self) -> None:
         """Forget every queued pose."""
         self._poses.clear()

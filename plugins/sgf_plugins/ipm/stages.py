@@ -471,7 +471,6 @@ class PlaneMotionCompensatedIPM(MotionCompensatedIPM):
         self.pitch_filter = GradeFilter(params.plane_rate_noise, params.plane_measurement_noise)
         self.roll_filter = GradeFilter(params.plane_rate_noise, params.plane_measurement_noise)
         self._recent_motion: list[tuple[float, float]] = []
-        self._travelled = 0.0
         self._start: tuple[float, float] | None = None
         self.plane_counts = {"plane_fits": 0, "plane_skipped_bumps": 0, "plane_no_fit": 0}
 
@@ -482,7 +481,6 @@ class PlaneMotionCompensatedIPM(MotionCompensatedIPM):
         self.pitch_filter.reset()
         self.roll_filter.reset()
         self._recent_motion = []
-        self._travelled = 0.0
         self._start = None
         self.plane_counts = dict.fromkeys(self.plane_counts, 0)
 
@@ -495,15 +493,14 @@ class PlaneMotionCompensatedIPM(MotionCompensatedIPM):
         """``(psi, theta)``: the robot's own attitude (IMU) plus the ground ahead's (fitted, filtered)."""
         psi_ahead, theta_ahead = super().compensation(frame, image)
         psi_motion, theta_motion = self.last_motion
-        step = self.last_step
-        self._travelled += step
+        step, travelled = self.last_step, self.queue.travelled
         self.pitch_filter.predict(step)
         self.roll_filter.predict(step)
         threshold = self.params.plane_bump_threshold
         window = self.params.plane_baseline + 0.4
-        self._recent_motion = [(d, m) for d, m in self._recent_motion if self._travelled - d <= window]
+        self._recent_motion = [(d, m) for d, m in self._recent_motion if travelled - d <= window]
         bumpy = abs(theta_motion) > threshold or any(m > threshold for _, m in self._recent_motion)
-        self._recent_motion.append((self._travelled, abs(theta_motion)))
+        self._recent_motion.append((travelled, abs(theta_motion)))
         if image is not None:
             start = self._start if self._start is not None else (psi_ahead, theta_ahead)
             fit = self.tracker.measure(image, frame.odometry, frame.calibration, *start)
@@ -568,7 +565,6 @@ class HindsightMotionCompensatedIPM(MotionCompensatedIPM):
         self.params: HindsightMotionCompensatedIpmParams = params
         self.window = AttitudeWindow(params.attitude_window)
         self.last_ground: GroundAhead | None = None
-        self._travelled = 0.0
         self.hindsight_counts = {"hindsight_planes": 0, "hindsight_fallbacks": 0}
 
     @property
@@ -581,7 +577,6 @@ class HindsightMotionCompensatedIPM(MotionCompensatedIPM):
         super().begin(context)
         self.window.reset()
         self.last_ground = None
-        self._travelled = 0.0
         self.hindsight_counts = dict.fromkeys(self.hindsight_counts, 0)
 
     def finalize(self, context: RunContext) -> None:
@@ -593,19 +588,21 @@ class HindsightMotionCompensatedIPM(MotionCompensatedIPM):
         """``(psi, theta)``: the robot's attitude against the plane of the path it drove next."""
         largest = self._max_theta
         fallback = super().compensation(frame, image)  # keeps the queue and its counts going
-        self._travelled += self.last_step
+        travelled = self.queue.travelled
         roll, pitch = self.attitude(frame)
         path = frame.path_ahead
         odometry = np.asarray(frame.odometry, dtype=np.float64)
         ground = None
         if path is not None and math.isfinite(roll) and math.isfinite(pitch):
-            ground = ground_ahead(odometry, path, self.grid.x_min, self.grid.x_max, self.params.hindsight_min_reach)
-            self.window.add(self._travelled, roll, pitch)
-            driven, _, _ = path_profile(odometry, path)
-            for distance, (r, p) in zip(driven, path.imu_roll_pitch, strict=True):
-                self.window.add(self._travelled + float(distance), float(r), float(p))
+            profile = path_profile(odometry, path)
+            ground = ground_ahead(
+                odometry, path, self.grid.x_min, self.grid.x_max, self.params.hindsight_min_reach, profile=profile
+            )
+            self.window.add(travelled, roll, pitch)
+            for distance, (r, p) in zip(profile[0], path.imu_roll_pitch, strict=True):
+                self.window.add(travelled + float(distance), float(r), float(p))
         self.last_ground = ground
-        smooth = self.window.median(self._travelled) if ground is not None else None
+        smooth = self.window.median(travelled) if ground is not None else None
         if ground is None or smooth is None:
             self.hindsight_counts["hindsight_fallbacks"] += 1
             return fallback
