@@ -139,6 +139,33 @@ def test_the_cauchy_kernel_ignores_a_false_loop(world, kernel: str, moves: bool)
         assert moved < 0.05
 
 
+@pytest.mark.parametrize("solver", ["gtsam_lm", "isam2"])
+def test_a_loop_taken_back_leaves_the_estimate_of_the_graph_without_it(world, solver: str) -> None:  # type: ignore[no-untyped-def]
+    def backend():  # type: ignore[no-untyped-def]
+        settings = {"save_map": False, "loop_kernel": "none", "odometry_yaw_bias": False}
+        return GtsamLmBackend(LmParams(**settings)) if solver == "gtsam_lm" else Isam2Backend(Isam2Params(**settings))  # type: ignore[arg-type]
+
+    loops = true_loops(world)
+    clean, _ = feed(world, backend(), loops)
+    marking_5 = [r.second for r in world.truth.revisits if r.instance_id == 5][-1]
+    marking_1 = next(r.second for r in world.truth.revisits if r.instance_id == 1)
+    a, b = (marking_1.start_frame + marking_1.end_frame) // 2, (marking_5.start_frame + marking_5.end_frame) // 2
+    false = look_alike_loop(world, a, b)
+    polluted = {k: list(v) for k, v in loops.items()}
+    polluted.setdefault(b + 3, []).append(false)
+    dirty, _ = feed(world, backend(), polluted)
+    context = RunContext(run_dir=None, calibration=CALIBRATION)
+    context.artifacts["dropped_loops"] = LoopConstraints((false,))
+    taken_back, _ = feed(world, backend(), polluted, context)
+    positions = {name: c.trajectories["sgf"].positions for name, c in (("clean", clean), ("dirty", dirty))}
+    back = taken_back.trajectories["sgf"].positions
+    assert np.linalg.norm(positions["dirty"] - positions["clean"], axis=1).max() > 2.0  # no kernel: it pulled
+    # the same optimum, to LM's tolerance (iSAM2's clean estimate is within a millimetre or two of it)
+    assert np.linalg.norm(back - positions["clean"], axis=1).max() < (1e-4 if solver == "gtsam_lm" else 5e-3)
+    metrics = taken_back.metrics["backend"]
+    assert metrics["loops_dropped"] == 1 and metrics["loop_factors"] == len(world.truth.revisits)
+
+
 def test_the_gate_alone_keeps_look_alikes_out_of_the_graph() -> None:
     world = make_world(seed=1, odometry_noise=(0.01, math.radians(0.3), 0.01, math.radians(0.05)))
     no_kernel = LmParams(save_map=False, loop_kernel="none")
@@ -147,7 +174,8 @@ def test_the_gate_alone_keeps_look_alikes_out_of_the_graph() -> None:
         world, IcpLoopClosing(alone), GtsamLmBackend(no_kernel), OracleAssociation(world, by="instance")
     )
     gated = run_stages(world, IcpLoopClosing(alone), GtsamLmBackend(no_kernel))
-    ungated = run_stages(world, IcpLoopClosing(IcpLoopParams(gate=False, min_support=0)), GtsamLmBackend(no_kernel))
+    no_gate = IcpLoopParams(gate=False, min_support=0, drop_inconsistent=False)
+    ungated = run_stages(world, IcpLoopClosing(no_gate), GtsamLmBackend(no_kernel))
     ate_of = {
         name: ate(run.context.trajectories["sgf"].poses, world.gt)  # type: ignore[attr-defined]
         for name, run in (("reference", reference), ("gated", gated), ("ungated", ungated))
@@ -155,12 +183,38 @@ def test_the_gate_alone_keeps_look_alikes_out_of_the_graph() -> None:
     assert gated.context.metrics["loops"]["false_closed"] == 0  # type: ignore[attr-defined]
     assert ungated.context.metrics["loops"]["false_closed"] == 4  # type: ignore[attr-defined]
     # the loops' pairwise consistency through the odometry puts exactly the four false ones outside the
-    # largest consistent set (a diagnostic: the estimate keeps them)
+    # largest consistent set (listed only: this run keeps them)
     consistency = ungated.context.metrics["loops"]["consistency"]  # type: ignore[attr-defined]
     assert len(consistency["outside_largest_set"]) == 4 and consistency["false_outside"] == 4
     assert gated.context.metrics["loops"]["consistency"]["outside_largest_set"] == []  # type: ignore[attr-defined]
     assert ate_of["gated"] < 1.5 * ate_of["reference"]
     assert ate_of["ungated"] > 5.0 * ate_of["reference"]
+
+
+@pytest.mark.parametrize("backend", ["gtsam_lm", "isam2"])
+def test_loops_the_others_contradict_are_taken_back_before_the_last_optimisation(backend: str) -> None:
+    world = make_world(seed=1, odometry_noise=(0.01, math.radians(0.3), 0.01, math.radians(0.05)))
+    no_kernel = {"save_map": False, "loop_kernel": "none"}
+    reference = run_stages(
+        world,
+        IcpLoopClosing(IcpLoopParams(min_support=0)),
+        GtsamLmBackend(LmParams(**no_kernel)),  # type: ignore[arg-type]
+        OracleAssociation(world, by="instance"),
+    )
+    solver = GtsamLmBackend(LmParams(**no_kernel)) if backend == "gtsam_lm" else Isam2Backend(Isam2Params(**no_kernel))  # type: ignore[arg-type]
+    run = run_stages(world, IcpLoopClosing(IcpLoopParams(gate=False, min_support=0)), solver)
+    loops = run.context.metrics["loops"]  # type: ignore[attr-defined]
+    # the ungated run accepted 9 loops, 4 of them false (test above); the 4 are taken back at the end
+    assert loops["consistency"]["dropped"] and loops["consistency"]["false_outside"] == 4
+    assert loops["accepted"] == 5 and loops["false_closed"] == 0 and loops["rejected"]["inconsistent"] == 4
+    assert run.context.metrics["backend"]["loops_dropped"] == 4  # type: ignore[attr-defined]
+    assert run.context.metrics["backend"]["loop_factors"] == 5  # type: ignore[attr-defined]
+    assert all(entry["true"] for entry in run.context.artifacts["loops"])  # type: ignore[attr-defined]
+    taken_back = [r for r in run.context.artifacts["loop_candidates"] if r["outcome"] == "inconsistent"]  # type: ignore[attr-defined]
+    assert len(taken_back) == 4 and all("taken back" in r["detail"] for r in taken_back)
+    # the estimate is the graph's without them: as good as the oracle's (28 m ATE with them in)
+    sgf, truth = run.context.trajectories["sgf"].poses, world.gt  # type: ignore[attr-defined]
+    assert ate(sgf, truth) < 1.5 * ate(reference.context.trajectories["sgf"].poses, truth)  # type: ignore[attr-defined]
 
 
 def test_pose3_takes_roll_and_pitch_from_the_imu() -> None:

@@ -8,7 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from sgf_plugins.icp import se2
-from sgf_plugins.loop_consistency import LoopEnds, consistency_ratios, cycle_ratio, largest_consistent_set
+from sgf_plugins.loop_consistency import (
+    LoopEnds,
+    consistency_ratios,
+    cycle_ratio,
+    inconsistent_loops,
+    largest_consistent_set,
+    maximum_consistent_sets,
+)
 
 #: The accepted loops of four runs of this session's code at 30 % (campus_large_loop seed 2 with
 #: ipm=mc_hindsight and ipm=plain, campus_reverse_slope seed 0 with ipm=mc and seed 2 with
@@ -59,6 +66,27 @@ def test_the_largest_consistent_set_is_a_maximum_clique() -> None:
     assert largest_consistent_set(np.zeros((1, 1)), 3.0) == [0]
 
 
+def test_loops_outside_the_largest_set_are_inconsistent_and_a_full_tie_keeps_them() -> None:
+    r = np.full((6, 6), 9.0)
+    np.fill_diagonal(r, 0.0)
+    for group, value in (((0, 2, 4), 0.5), ((1, 3), 0.1), ((3, 5), 0.2)):
+        for a in group:
+            for b in group:
+                if a != b:
+                    r[a, b] = value
+    assert maximum_consistent_sets(r, 3.0) == [[0, 2, 4]]
+    assert inconsistent_loops(r, 3.0) == [1, 3, 5]
+    # two pairs of one size: the one that agrees better is kept
+    pairs = r[np.ix_([1, 3, 5], [1, 3, 5])]
+    assert sorted(maximum_consistent_sets(pairs, 3.0)) == [[0, 1], [1, 2]]
+    assert inconsistent_loops(pairs, 3.0) == [2]
+    # two lone loops that contradict each other: nothing tells which is true, both stay
+    lone = np.array([[0.0, 7.0], [7.0, 0.0]])
+    assert sorted(maximum_consistent_sets(lone, 3.0)) == [[0], [1]]
+    assert inconsistent_loops(lone, 3.0) == []
+    assert inconsistent_loops(np.zeros((0, 0)), 3.0) == [] and maximum_consistent_sets(np.zeros((0, 0)), 3.0) == []
+
+
 @pytest.mark.parametrize("run", ["ll_h2", "ll_p2", "rs_m0", "rs_p2"])
 def test_on_real_runs_the_set_drops_exactly_the_false_loops_of_alike_crossings(run: str) -> None:
     rows = RUNS[run]
@@ -72,6 +100,7 @@ def test_on_real_runs_the_set_drops_exactly_the_false_loops_of_alike_crossings(r
         assert ratios[np.ix_(~true, true)].min() > 5.0
     kept = largest_consistent_set(ratios, 3.0)
     assert kept == list(np.flatnonzero(true))
+    assert inconsistent_loops(ratios, 3.0) == list(np.flatnonzero(~true))
     if run == "ll_p2":  # its two false loops are copies at two crossings laid out alike: they agree
         false = np.flatnonzero(~true)
         assert ratios[false[0], false[1]] < 3.0

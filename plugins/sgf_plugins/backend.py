@@ -261,6 +261,7 @@ class _GraphBackend(_Backend):
         self.graph = PoseGraph(params.pose, params.noise(), self.map_poses, params.node_distance)
         self.optimizations = 0
         self.optimize_seconds = 0.0
+        self.loops_dropped = 0
 
     def _add(
         self, frame: Frame, loops: LoopConstraints | None, odometry_scale: OdometryScale | None
@@ -286,6 +287,26 @@ class _GraphBackend(_Backend):
         """Add the loops a loop stage closed at the end of the run (``artifacts['final_loops']``); their number."""
         final = context.artifacts.get("final_loops")
         return self._add_loops(final if isinstance(final, LoopConstraints) else None)[0]
+
+    def _drop_loops(self, context: RunContext) -> int:
+        """Take out the loops the loop stage took back at the end (``artifacts['dropped_loops']``); their number."""
+        dropped = context.artifacts.get("dropped_loops")
+        if not isinstance(dropped, LoopConstraints):
+            return 0
+        self.loops_dropped = self.graph.remove_loops(dropped.items)
+        return self.loops_dropped
+
+    def resolve(self) -> None:
+        """Batch LM over the whole graph from the current estimate and from dead reckoning; the lower error wins.
+
+        After loops were taken out, the estimate they pulled may lie far from the others' optimum.
+        """
+        self.batch_optimize()
+        optimum, error = self.graph.values, self.graph.error()
+        self.graph.values = self.graph.dead_reckoned()
+        self.batch_optimize()
+        if self.graph.error() > error:
+            self.graph.set_values(optimum)
 
     def estimate(self) -> PoseEstimate:
         """The current estimate of every processed frame."""
@@ -327,6 +348,7 @@ class _GraphBackend(_Backend):
             "pose_nodes": len(self.graph.nodes),
             "loop_factors": self.graph.loop_factors,
             "map_factors": self.graph.map_factors,
+            "loops_dropped": self.loops_dropped,
             "optimizations": self.optimizations,
             "optimize_seconds": round(self.optimize_seconds, 4),
             "final_error": self.graph.error(),
@@ -366,11 +388,15 @@ class GtsamLmBackend(_GraphBackend):
         return self.estimate()
 
     def finalize(self, context: RunContext) -> None:
-        """The loops closed at the end, a final batch optimisation, then the trajectory, metrics and map."""
+        """The loops closed at the end and out those taken back, a final batch optimisation, then the rest."""
         if self.graph.timestamps:
             self._add_final_loops(context)
+            dropped = self._drop_loops(context)
             self.graph.take_new()
-            self.batch_optimize()
+            if dropped:
+                self.resolve()
+            else:
+                self.batch_optimize()
         super().finalize(context)
 
 
@@ -461,10 +487,20 @@ class Isam2Backend(_GraphBackend):
         return out
 
     def finalize(self, context: RunContext) -> None:
-        """The loops closed at the end, the final iSAM2 estimate (optionally refined by batch LM), then the rest."""
+        """The loops closed at the end, the final iSAM2 estimate (optionally refined by batch LM), then the rest.
+
+        When the loop stage took loops back, the graph without them is solved by batch LM instead.
+        """
         if self.graph.timestamps:
+            final = self._add_final_loops(context)
+            if self._drop_loops(context):
+                # iSAM2 holds the loops taken back: the graph without them is solved in batch
+                self.graph.take_new()
+                self.resolve()
+                super().finalize(context)
+                return
             t0 = time.perf_counter()
-            if self._add_final_loops(context):
+            if final:
                 factors, values = self.graph.take_new()
                 self.isam.update(factors, values)
             self.isam.update()

@@ -104,7 +104,7 @@ from sgf_pipeline.types import (
 from sgf_plugins.anchoring import anchored_distances
 from sgf_plugins.frame_log import FrameLog
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2, se2_params
-from sgf_plugins.loop_consistency import LoopEnds, consistency_ratios, largest_consistent_set
+from sgf_plugins.loop_consistency import LoopEnds, consistency_ratios, inconsistent_loops
 from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, yaw_to_shift
 
 _MAP = -1  # the prior map as one node of the anchoring graph
@@ -288,9 +288,14 @@ class IcpLoopParams(StageParams):
     consistency_threshold: float | None = Field(
         3.0,
         gt=0.0,
-        description="diagnostic (the estimate is not changed): accepted loops outside the largest set whose "
-        "pairwise cycles through the odometry agree within this (position error over 1 m + 5 % of the path "
-        "between their ends) are listed in metrics.json as loops.consistency (null: not computed)",
+        description="at the end of the run, accepted loops outside every largest set whose pairwise cycles through "
+        "the odometry agree within this (position error over 1 m + 5 % of the path between their ends) are "
+        "listed in metrics.json as loops.consistency and, with drop_inconsistent, taken back (null: not computed)",
+    )
+    drop_inconsistent: bool = Field(
+        True,
+        description="take the loops outside every largest consistent set back out of the estimate before the "
+        "back-end's last optimisation (false: only list them)",
     )
     final_pass: bool = Field(
         True,
@@ -436,6 +441,7 @@ class IcpLoopClosing(Stage):
             "consensus": 0,
             "not_unique": 0,
             "map_unconfirmed": 0,
+            "inconsistent": 0,
         }
         self.ties_resolved = 0
         self.aliases_resolved = 0
@@ -1264,6 +1270,17 @@ class IcpLoopClosing(Stage):
         context.artifacts["final_loops"] = LoopConstraints(tuple(final))
         errors = [self._truth_error(c) for c in self.accepted]
         truths = [self._true(c, e) for c, e in zip(self.accepted, errors, strict=True)]
+        consistency: dict[str, Any] | None = None
+        if self.p.consistency_threshold is not None:
+            consistency, outside = self._consistency(self.p.consistency_threshold, truths)
+            if self.p.drop_inconsistent and outside:
+                dropped = [self.accepted[k] for k in outside]
+                context.artifacts["dropped_loops"] = LoopConstraints(tuple(c.constraint for c in dropped))
+                for c in dropped:
+                    self._taken_back(c, consistency["threshold"])
+                kept = [k for k in range(len(self.accepted)) if k not in set(outside)]
+                self.accepted = [self.accepted[k] for k in kept]
+                errors, truths = [errors[k] for k in kept], [truths[k] for k in kept]
         known = [t for t in truths if t is not None]
         loops: dict[str, Any] = {
             "accepted": len(self.accepted),
@@ -1286,8 +1303,8 @@ class IcpLoopClosing(Stage):
             closed = [r for r in truth.revisits if self._closes(r, truths, truth)]
             loops["closed"] = len(closed)
             loops["closed_reverse"] = sum(bool(r.reverse) for r in closed)
-        if self.p.consistency_threshold is not None:
-            loops["consistency"] = self._consistency(self.p.consistency_threshold, truths)
+        if consistency is not None:
+            loops["consistency"] = consistency
         context.metrics.setdefault("loops", {}).update(loops)
         context.artifacts["loops"] = [
             self._loop_entry(c, e, t) for c, e, t in zip(self.accepted, errors, truths, strict=True)
@@ -1295,29 +1312,49 @@ class IcpLoopClosing(Stage):
         context.artifacts["group_assignments"] = list(self.assignments)
         context.artifacts["loop_candidates"] = list(self.decisions)
 
-    def _consistency(self, threshold: float, truths: list[bool | None]) -> dict[str, Any]:
-        """Accepted loops outside the largest mutually consistent set (:mod:`sgf_plugins.loop_consistency`)."""
-        own = [(c.constraint, t) for c, t in zip(self.accepted, truths, strict=True) if not c.constraint.from_map]
-        ends = [
-            LoopEnds(
-                c.frame_from,
-                c.frame_to,
-                se2(*xy_yaw(c.relative)),
-                se2(*xy_yaw(self.frames.odometry(c.frame_from))),
-                se2(*xy_yaw(self.frames.odometry(c.frame_to))),
-                self.frames.distance(c.frame_from),
-                self.frames.distance(c.frame_to),
+    def _consistency(self, threshold: float, truths: list[bool | None]) -> tuple[dict[str, Any], list[int]]:
+        """Accepted loops outside every largest mutually consistent set (:mod:`sgf_plugins.loop_consistency`).
+
+        Returns the metrics entry and those loops' places in ``self.accepted`` (map loops are not judged).
+        """
+        own = [k for k, c in enumerate(self.accepted) if not c.constraint.from_map]
+        ends = []
+        for k in own:
+            c = self.accepted[k].constraint
+            ends.append(
+                LoopEnds(
+                    c.frame_from,
+                    c.frame_to,
+                    se2(*xy_yaw(c.relative)),
+                    se2(*xy_yaw(self.frames.odometry(c.frame_from))),
+                    se2(*xy_yaw(self.frames.odometry(c.frame_to))),
+                    self.frames.distance(c.frame_from),
+                    self.frames.distance(c.frame_to),
+                )
             )
-            for c, _ in own
-        ]
-        kept = set(largest_consistent_set(consistency_ratios(ends), threshold))
-        outside = [k for k in range(len(own)) if k not in kept]
-        judged = any(t is not None for _, t in own)  # with ground truth: how many of them are false
-        return {
+        outside = [own[k] for k in inconsistent_loops(consistency_ratios(ends), threshold)]
+        judged = any(truths[k] is not None for k in own)  # with ground truth: how many of them are false
+        entry = {
             "threshold": threshold,
-            "outside_largest_set": [[own[k][0].frame_from, own[k][0].frame_to] for k in outside],
-            "false_outside": sum(own[k][1] is False for k in outside) if judged else None,
+            "dropped": self.p.drop_inconsistent,
+            "outside_largest_set": [
+                [self.accepted[k].constraint.frame_from, self.accepted[k].constraint.frame_to] for k in outside
+            ],
+            "false_outside": sum(truths[k] is False for k in outside) if judged else None,
         }
+        return entry, outside
+
+    def _taken_back(self, c: _Candidate, threshold: float) -> None:
+        """Mark an accepted loop's row of ``loop_candidates.csv`` as taken back by the consistency test."""
+        self.counts["inconsistent"] += 1
+        k = c.constraint
+        for row in reversed(self.decisions):
+            if (row["frame_from"], row["frame_to"], row["outcome"]) == (k.frame_from, k.frame_to, "accepted"):
+                row["outcome"] = "inconsistent"
+                row["detail"] = (
+                    f"{row['detail']}; " if row["detail"] else ""
+                ) + f"taken back at the end: outside every largest set of loops agreeing within {threshold:g}"
+                return
 
     def _final_pass(
         self, groups: list[Any], group_of: dict[tuple[int, int], int], estimate: PoseEstimate

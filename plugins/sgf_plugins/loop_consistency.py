@@ -54,26 +54,24 @@ def consistency_ratios(loops: Sequence[LoopEnds], floor: float = 1.0, per_metre:
     return ratios
 
 
-def largest_consistent_set(ratios: np.ndarray, threshold: float) -> list[int]:
-    """The largest set of loops whose every pair's ratio is at most ``threshold`` (Bron-Kerbosch with pivots).
+def maximum_consistent_sets(ratios: np.ndarray, threshold: float) -> list[list[int]]:
+    """Every largest set of loops whose every pair's ratio is at most ``threshold`` (Bron-Kerbosch with pivots).
 
-    Ties go to the set whose worst ratio is smallest; the indices are returned sorted.
+    Each set's indices are sorted; the sets come in the order found. None for no loops.
     """
     n = len(ratios)
     agree = [{b for b in range(n) if b != a and ratios[a, b] <= threshold} for a in range(n)]
-    best: list[int] = []
-    best_worst = math.inf
-
-    def worst(clique: list[int]) -> float:
-        return max((ratios[a, b] for a in clique for b in clique if a < b), default=0.0)
+    found: list[list[int]] = []
 
     def expand(clique: list[int], candidates: set[int], excluded: set[int]) -> None:
-        nonlocal best, best_worst
+        size = len(found[0]) if found else 0
         if not candidates and not excluded:
-            if len(clique) > len(best) or (len(clique) == len(best) and worst(clique) < best_worst):
-                best, best_worst = sorted(clique), worst(clique)
+            if len(clique) > size:
+                found.clear()
+            if len(clique) >= size and clique:
+                found.append(sorted(clique))
             return
-        if len(clique) + len(candidates) < len(best):
+        if len(clique) + len(candidates) < size:
             return
         pivot = max(candidates | excluded, key=lambda u: len(agree[u] & candidates))
         for v in sorted(candidates - agree[pivot]):
@@ -82,4 +80,28 @@ def largest_consistent_set(ratios: np.ndarray, threshold: float) -> list[int]:
             excluded = excluded | {v}
 
     expand([], set(range(n)), set())
-    return best
+    return found
+
+
+def _worst(ratios: np.ndarray, clique: list[int]) -> float:
+    return max((float(ratios[a, b]) for a in clique for b in clique if a < b), default=0.0)
+
+
+def largest_consistent_set(ratios: np.ndarray, threshold: float) -> list[int]:
+    """The largest set of loops whose every pair's ratio is at most ``threshold``.
+
+    Ties go to the set whose worst ratio is smallest; the indices are returned sorted.
+    """
+    return min(maximum_consistent_sets(ratios, threshold), key=lambda c: _worst(ratios, c), default=[])
+
+
+def inconsistent_loops(ratios: np.ndarray, threshold: float) -> list[int]:
+    """Loops outside the largest consistent set: those the loops' majority contradicts (sorted indices).
+
+    Equally large sets go to the one whose worst ratio is smallest; a loop in any of several sets
+    equal in both (two lone loops that contradict each other) is kept: a tie leaves it undecided.
+    """
+    sets = maximum_consistent_sets(ratios, threshold)
+    least = min((_worst(ratios, c) for c in sets), default=0.0)
+    kept = {k for c in sets if _worst(ratios, c) == least for k in c}
+    return [k for k in range(len(ratios)) if k not in kept]

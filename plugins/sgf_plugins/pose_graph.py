@@ -227,6 +227,8 @@ class PoseGraph:
         self.map_nodes: set[int] = set()
         self.loop_factors = 0
         self.map_factors = 0
+        self._loop_factor: dict[tuple[int, int, bool], list[Any]] = {}  # per loop's ends: its factors
+        self._node_odometries: list[np.ndarray] = []  # per node: its (corrected) odometry pose
         self.anchored = not self.map_poses
         self._prior: Any = None
         self._last_odometry: np.ndarray | None = None
@@ -387,6 +389,7 @@ class PoseGraph:
         self._offset[row] = np.eye(4)
         self.store.set_latest(self._matrix(self._gtsam_pose(initial)))
         self._node_odometry = odometry
+        self._node_odometries.append(odometry)
         self._pending_distance = 0.0
         self._pending_steps = 0
 
@@ -475,8 +478,46 @@ class PoseGraph:
             key_from = X(node_from)
             self.loop_factors += 1
         noise = self.loop_noise(loop.covariance, adjoint)
-        self._add(self._between_factor(key_from, X(node_to), relative, noise))
+        factor = self._between_factor(key_from, X(node_to), relative, noise)
+        self._add(factor)
+        self._loop_factor.setdefault((loop.frame_from, loop.frame_to, loop.from_map), []).append(factor)
         return anchored
+
+    def remove_loops(self, loops: Sequence[LoopConstraint]) -> int:
+        """Take loop factors back out of the graph (an incremental solver must then start over); their number.
+
+        The odometry the heading bias corrected while they were in stays as it was.
+        """
+        gone: list[Any] = []
+        for loop in loops:
+            factors = self._loop_factor.pop((loop.frame_from, loop.frame_to, loop.from_map), [])
+            gone.extend(factors)
+            if loop.from_map:
+                self.map_factors -= len(factors)
+            else:
+                self.loop_factors -= len(factors)
+        if gone:
+            ids = {id(f) for f in gone}
+            self.factors = [f for f in self.factors if id(f) not in ids]
+            self.rebuild_new()
+        return len(gone)
+
+    def dead_reckoned(self) -> Any:
+        """The estimate with every node placed by the odometry from the first node's current pose.
+
+        A start for re-solving a graph that lost loops: their pull may have left the current estimate
+        far from the remaining loops' optimum. Map nodes keep their current poses.
+        """
+        import gtsam
+
+        values = gtsam.Values(self.values)
+        base = self._matrix(
+            self.values.atPose3(X(self.nodes[0])) if self.pose3 else self.values.atPose2(X(self.nodes[0]))
+        )
+        start = invert(self._node_odometries[0])
+        for frame, odometry in zip(self.nodes, self._node_odometries, strict=True):
+            values.update(X(frame), self._gtsam_pose(base @ start @ odometry))
+        return values
 
     def _add_map_node(self, map_frame: int) -> None:
         n = self.noise
