@@ -345,7 +345,28 @@ def render_report(metrics: dict[str, Any], accepted: list[dict[str, Any]] | None
     ]
     if accepted is not None:
         lines += _loop_table(accepted)
+    lines += _taken_back(loops)
     return "\n".join(lines)
+
+
+def taken_back(loops: dict[str, Any]) -> list[list[int]]:
+    """The accepted loops the consistency test took back at the end (``loops.consistency``), as frame pairs."""
+    consistency = loops.get("consistency") or {}
+    return list(consistency.get("outside_largest_set", [])) if consistency.get("dropped") else []
+
+
+def _taken_back(loops: dict[str, Any]) -> list[str]:
+    pairs = taken_back(loops)
+    if not pairs:
+        return []
+    false = loops["consistency"].get("false_outside")
+    judged = "" if false is None else f" ({false} of them false by the ground truth)"
+    listed = ", ".join(f"{a} -> {b}" for a, b in pairs)
+    return [
+        f"Taken back at the end, since the other loops contradict them through the odometry{judged}: "
+        f"frames {listed} (`loop_candidates.csv`, outcome `inconsistent`).",
+        "",
+    ]
 
 
 def _loop_table(loops: list[dict[str, Any]]) -> list[str]:

@@ -110,7 +110,8 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
         expected = math.sqrt(drift_covariance(d["anchored_distance"], IcpLoopParams())[0, 0])
         assert d["gate_sigma_xy"] == pytest.approx(expected, abs=0.01)  # distance rounded to cm
     assert all(d["gate_chi2"] is None for d in decisions if d["outcome"] in ("symmetric", "separation"))
-    ungated = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False, min_support=0)))
+    ungated_params = IcpLoopParams(gate=False, min_support=0, drop_inconsistent=False)
+    ungated = run_stages(world, loop=IcpLoopClosing(ungated_params))
     look_alikes = [c for c in ungated.loops if c.instance_ids[0] != c.instance_ids[1]]
     assert len(look_alikes) == 4
     assert ungated.context.metrics["loops"]["false_closed"] == 4
@@ -128,8 +129,12 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     assert consensus.context.metrics["loops"]["closed"] == 5
     # ...but not when a distinct marking vouches for itself: the two arrows share their group, so nothing in
     # another group looks like them; that default leans on the gate, which keeps them out (above)
-    lenient = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False)))
+    lenient = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False, drop_inconsistent=False)))
     assert lenient.context.metrics["loops"]["false_closed"] == 3
+    # the loops' consistency through the odometry takes those three back at the end
+    taken_back = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False))).context.metrics["loops"]
+    assert taken_back["false_closed"] == 0 and taken_back["consistency"]["false_outside"] == 3
+    assert taken_back["accepted"] == lenient.context.metrics["loops"]["accepted"] - 3
     default = run_stages(world, loop=IcpLoopClosing(IcpLoopParams()))
     assert default.context.metrics["loops"]["false_closed"] == 0 and default.context.metrics["loops"]["closed"] == 5
     # with the heading test and a manhole worth half a marking, the tee's revisit (only the manhole behind it)

@@ -13,6 +13,7 @@ from omegaconf import DictConfig, open_dict
 
 from sgf_pipeline.cli.common import console, friendly_errors, raise_terminated
 from sgf_pipeline.config import config_dir
+from sgf_pipeline.outputs import taken_back
 from sgf_pipeline.runner import Pipeline
 
 
@@ -37,7 +38,8 @@ def summary(metrics: dict[str, Any], run_dir: Path) -> str:
         ),
         (
             "loops closed (rev.), false",
-            f"{_fmt(loops['closed'], 'd')} ({_fmt(loops['closed_reverse'], 'd')}), {_fmt(loops['false_closed'], 'd')}",
+            f"{_fmt(loops['closed'], 'd')} ({_fmt(loops['closed_reverse'], 'd')}), {_fmt(loops['false_closed'], 'd')}"
+            + (f"; {len(back)} taken back" if (back := taken_back(loops)) else ""),
         ),
         ("frames processed / seen", f"{timing.get('frames', '-')}/{timing.get('dataset_frames', '-')}"),
         ("frames/s, real-time factor", f"{_fmt(timing.get('fps'), '.1f')}, {_fmt(timing.get('realtime_factor'))}"),
