@@ -141,6 +141,11 @@ class FrameLog:
         k = int(np.searchsorted(self._index[: self._size], frame_index))
         return self._rows[k : self._size, :16].reshape(-1, 4, 4).copy()
 
+    def path(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every remembered frame's index (N,), odometry pose (N, 4, 4) and distance travelled (N,), as copies."""
+        n = self._size
+        return self._index[:n].copy(), self._rows[:n, :16].reshape(-1, 4, 4).copy(), self._rows[:n, 16].copy()
+
     def ground_truth(self, frame_index: int) -> np.ndarray | None:
         """The frame's ground-truth pose, or None when it is unknown or not remembered."""
         k = self._row(frame_index)

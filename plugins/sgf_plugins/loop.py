@@ -104,7 +104,13 @@ from sgf_pipeline.types import (
 from sgf_plugins.anchoring import anchored_distances
 from sgf_plugins.frame_log import FrameLog
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2, se2_params
-from sgf_plugins.loop_consistency import LoopEnds, consistency_ratios, inconsistent_loops
+from sgf_plugins.loop_consistency import (
+    LoopEnds,
+    bias_corrected_path,
+    consistency_ratios,
+    inconsistent_loops,
+    loop_heading_bias,
+)
 from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, yaw_to_shift
 
 _MAP = -1  # the prior map as one node of the anchoring graph
@@ -1318,25 +1324,31 @@ class IcpLoopClosing(Stage):
         Returns the metrics entry and those loops' places in ``self.accepted`` (map loops are not judged).
         """
         own = [k for k, c in enumerate(self.accepted) if not c.constraint.from_map]
-        ends = []
-        for k in own:
-            c = self.accepted[k].constraint
-            ends.append(
-                LoopEnds(
-                    c.frame_from,
-                    c.frame_to,
-                    se2(*xy_yaw(c.relative)),
-                    se2(*xy_yaw(self.frames.odometry(c.frame_from))),
-                    se2(*xy_yaw(self.frames.odometry(c.frame_to))),
-                    self.frames.distance(c.frame_from),
-                    self.frames.distance(c.frame_to),
-                )
+        constraints = [self.accepted[k].constraint for k in own]
+        entry: dict[str, Any] = {"threshold": threshold, "dropped": self.p.drop_inconsistent}
+        if not constraints:
+            return entry | {"heading_bias_deg_per_m": None, "outside_largest_set": [], "false_outside": 0}, []
+        frames, odometry, travelled = self.frames.path()
+        measured = [(c.frame_from, c.frame_to, xy_yaw(c.relative)[2], float(c.covariance[2][2])) for c in constraints]
+        bias = loop_heading_bias(frames, odometry, measured)  # taken off the odometry the cycles run through
+        path = bias_corrected_path(odometry, travelled, bias)
+        row = {int(f): k for k, f in enumerate(frames)}
+        ends = [
+            LoopEnds(
+                c.frame_from,
+                c.frame_to,
+                se2(*xy_yaw(c.relative)),
+                path[row[c.frame_from]],
+                path[row[c.frame_to]],
+                float(travelled[row[c.frame_from]]),
+                float(travelled[row[c.frame_to]]),
             )
+            for c in constraints
+        ]
         outside = [own[k] for k in inconsistent_loops(consistency_ratios(ends), threshold)]
         judged = any(truths[k] is not None for k in own)  # with ground truth: how many of them are false
-        entry = {
-            "threshold": threshold,
-            "dropped": self.p.drop_inconsistent,
+        entry |= {
+            "heading_bias_deg_per_m": math.degrees(bias),
             "outside_largest_set": [
                 [self.accepted[k].constraint.frame_from, self.accepted[k].constraint.frame_to] for k in outside
             ],
