@@ -294,9 +294,10 @@ class IcpLoopParams(StageParams):
     consistency_threshold: float | None = Field(
         3.0,
         gt=0.0,
-        description="at the end of the run, accepted loops outside every largest set whose pairwise cycles through "
-        "the odometry agree within this (position error over 1 m + 5 % of the path between their ends) are "
-        "listed in metrics.json as loops.consistency and, with drop_inconsistent, taken back (null: not computed)",
+        description="at the end of the run, accepted loops outside the largest set whose pairwise cycles through "
+        "the odometry (the heading bias the loops measure taken off) agree within this (position error over 1 m + "
+        "5 % of the path between their ends) are listed in metrics.json as loops.consistency and, with "
+        "drop_inconsistent, taken back (null: no test)",
     )
     drop_inconsistent: bool = Field(
         True,
