@@ -301,7 +301,7 @@ class IcpLoopParams(StageParams):
     )
     drop_inconsistent: bool = Field(
         True,
-        description="take the loops outside every largest consistent set back out of the estimate before the "
+        description="take the loops outside the largest consistent set back out of the estimate before the "
         "back-end's last optimisation (false: only list them)",
     )
     final_pass: bool = Field(
@@ -1320,7 +1320,7 @@ class IcpLoopClosing(Stage):
         context.artifacts["loop_candidates"] = list(self.decisions)
 
     def _consistency(self, threshold: float, truths: list[bool | None]) -> tuple[dict[str, Any], list[int]]:
-        """Accepted loops outside every largest mutually consistent set (:mod:`sgf_plugins.loop_consistency`).
+        """Accepted loops outside the largest mutually consistent set (:mod:`sgf_plugins.loop_consistency`).
 
         Returns the metrics entry and those loops' places in ``self.accepted`` (map loops are not judged).
         """
@@ -1366,7 +1366,7 @@ class IcpLoopClosing(Stage):
                 row["outcome"] = "inconsistent"
                 row["detail"] = (
                     f"{row['detail']}; " if row["detail"] else ""
-                ) + f"taken back at the end: outside every largest set of loops agreeing within {threshold:g}"
+                ) + f"taken back at the end: outside the largest set of loops agreeing within {threshold:g}"
                 return
 
     def _final_pass(
