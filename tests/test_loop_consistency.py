@@ -53,7 +53,8 @@ def test_two_true_loops_close_their_cycle_and_a_copy_elsewhere_does_not() -> Non
     assert largest_consistent_set(ratios, 3.0) == [0, 1]
 
 
-def test_the_largest_consistent_set_is_a_maximum_clique() -> None:
+def three_agreeing() -> np.ndarray:
+    """Ratios of six loops: 0, 2 and 4 agree (0.5), 1 agrees with 3 (0.1) and 3 with 5 (0.2), the rest 9."""
     r = np.full((6, 6), 9.0)
     np.fill_diagonal(r, 0.0)
     for group, value in (((0, 2, 4), 0.5), ((1, 3), 0.1), ((3, 5), 0.2)):
@@ -61,6 +62,11 @@ def test_the_largest_consistent_set_is_a_maximum_clique() -> None:
             for b in group:
                 if a != b:
                     r[a, b] = value
+    return r
+
+
+def test_the_largest_consistent_set_is_a_maximum_clique() -> None:
+    r = three_agreeing()
     assert largest_consistent_set(r, 3.0) == [0, 2, 4]
     # of two pairs of the same size, the one that agrees best
     assert largest_consistent_set(r[np.ix_([1, 3, 5], [1, 3, 5])], 3.0) == [0, 1]
@@ -69,13 +75,7 @@ def test_the_largest_consistent_set_is_a_maximum_clique() -> None:
 
 
 def test_loops_outside_the_largest_set_are_inconsistent_and_a_full_tie_keeps_them() -> None:
-    r = np.full((6, 6), 9.0)
-    np.fill_diagonal(r, 0.0)
-    for group, value in (((0, 2, 4), 0.5), ((1, 3), 0.1), ((3, 5), 0.2)):
-        for a in group:
-            for b in group:
-                if a != b:
-                    r[a, b] = value
+    r = three_agreeing()
     assert maximum_consistent_sets(r, 3.0) == [[0, 2, 4]]
     assert inconsistent_loops(r, 3.0) == [1, 3, 5]
     # two pairs of one size: the one that agrees better is kept
