@@ -497,20 +497,23 @@ class Isam2Backend(_GraphBackend):
                 # iSAM2 holds the loops taken back: the graph without them is solved in batch
                 self.graph.take_new()
                 self.resolve()
-                super().finalize(context)
-                return
-            t0 = time.perf_counter()
-            if final:
-                factors, values = self.graph.take_new()
-                self.isam.update(factors, values)
-            self.isam.update()
-            self.graph.set_values(self.isam.calculateEstimate())
-            self.optimize_seconds += time.perf_counter() - t0
-            params = self.params
-            assert isinstance(params, Isam2Params)
-            if params.final_batch:
-                self.batch_optimize()
+            else:
+                self._finish_isam2(final)
         super().finalize(context)
+
+    def _finish_isam2(self, final_loops: int) -> None:
+        """The final iSAM2 update (with the loops closed at the end), optionally refined by batch LM."""
+        t0 = time.perf_counter()
+        if final_loops:
+            factors, values = self.graph.take_new()
+            self.isam.update(factors, values)
+        self.isam.update()
+        self.graph.set_values(self.isam.calculateEstimate())
+        self.optimize_seconds += time.perf_counter() - t0
+        params = self.params
+        assert isinstance(params, Isam2Params)
+        if params.final_batch:
+            self.batch_optimize()
 
 
 @hookimpl

@@ -1285,7 +1285,7 @@ class IcpLoopClosing(Stage):
                 context.artifacts["dropped_loops"] = LoopConstraints(tuple(c.constraint for c in dropped))
                 for c in dropped:
                     self._taken_back(c, consistency["threshold"])
-                kept = [k for k in range(len(self.accepted)) if k not in set(outside)]
+                kept = sorted(set(range(len(self.accepted))) - set(outside))
                 self.accepted = [self.accepted[k] for k in kept]
                 errors, truths = [errors[k] for k in kept], [truths[k] for k in kept]
         known = [t for t in truths if t is not None]

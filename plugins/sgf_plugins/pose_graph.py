@@ -228,7 +228,6 @@ class PoseGraph:
         self.loop_factors = 0
         self.map_factors = 0
         self._loop_factor: dict[tuple[int, int, bool], list[Any]] = {}  # per loop's ends: its factors
-        self._node_odometries: list[np.ndarray] = []  # per node: its (corrected) odometry pose
         self.anchored = not self.map_poses
         self._prior: Any = None
         self._last_odometry: np.ndarray | None = None
@@ -237,7 +236,7 @@ class PoseGraph:
         self.nodes: list[int] = []  # node frames, in order (GTSAM keys sort the same way)
         self._node_of_row = np.zeros(64, dtype=np.int64)  # per processed frame: its node's place in ``nodes``
         self._offset = np.zeros((64, 4, 4))  # per processed frame: its pose in its node's frame (odometry)
-        self._node_odometry: np.ndarray | None = None
+        self._node_odometries: list[np.ndarray] = []  # per node, in order: its (corrected) odometry pose
         self._pending_distance = 0.0
         self._pending_steps = 0
         self._pending_imu: tuple[float, float] | None = None
@@ -341,8 +340,7 @@ class PoseGraph:
             self.store.append(index, np.eye(4), lift)
             self._make_node(index)
         else:
-            assert self._node_odometry is not None
-            offset = invert(self._node_odometry) @ odometry
+            offset = invert(self._node_odometries[-1]) @ odometry
             self._node_of_row[row] = len(self.nodes) - 1
             self._offset[row] = offset
             node_pose = self.store.get(self.nodes[-1])
@@ -370,8 +368,7 @@ class PoseGraph:
             self._prior = self._prior_factor(key, initial, model)
             self._add(self._prior)
         else:
-            assert self._node_odometry is not None
-            relative = invert(self._node_odometry) @ odometry
+            relative = invert(self._node_odometries[-1]) @ odometry
             node_pose = self.store.get(self.nodes[-1])
             assert node_pose is not None
             initial = node_pose @ relative
@@ -388,7 +385,6 @@ class PoseGraph:
         self._node_of_row[row] = len(self.nodes) - 1
         self._offset[row] = np.eye(4)
         self.store.set_latest(self._matrix(self._gtsam_pose(initial)))
-        self._node_odometry = odometry
         self._node_odometries.append(odometry)
         self._pending_distance = 0.0
         self._pending_steps = 0
