@@ -152,6 +152,36 @@ def test_unknown_design_names_are_a_clear_error():
         allowed_designs(only=["arrow"], exclude=["arrow"])
 
 
+def test_random_shapes_are_painted_only_when_a_world_asks():
+    from sgf_plugins.world.layout import LayoutOptions, build_layout
+    from sgf_plugins.world.params import WorldParams
+
+    assert DESIGNS["random_shape"].weight == 0.0
+    default = build_layout(3, 0.3, LayoutOptions(designs=tuple(allowed_designs())))
+    assert not [m for m in default.markings if m.design.name == "random_shape"]
+    weights = {"random_shape": 8.0}
+    designs = allowed_designs(exclude=HELD_OUT_FAMILIES, weights=weights)
+    assert {d.name: d.weight for d in designs}["random_shape"] == 8.0
+    asked = build_layout(3, 0.3, LayoutOptions(designs=tuple(designs)))
+    shapes = [m for m in asked.markings if m.design.name == "random_shape"]
+    custom = [m for m in asked.markings if m.design.category == "custom"]
+    assert len(shapes) >= 0.3 * len(custom) > 0
+    assert not [m for m in asked.markings if m.design.family in HELD_OUT_FAMILIES]
+    with pytest.raises(ConfigError, match=r"design_weights: unknown marking design.*randomshape"):
+        allowed_designs(weights={"randomshape": 1.0})
+    with pytest.raises(ValueError, match="design_weights must be >= 0"):
+        WorldParams(design_weights={"random_shape": -1.0})
+
+
+def test_random_shapes_differ_from_instance_to_instance():
+    d = DESIGNS["random_shape"]
+    masks = [rasterise(d, 1.0, 1.0, 0.01, d.colours[0], content_seed=s).mask for s in range(12)]
+    fills = np.array([m.mean() for m in masks])
+    assert fills.min() > 0.03 and fills.max() < 0.9
+    ious = [(a & b).sum() / (a | b).sum() for i, a in enumerate(masks) for b in masks[i + 1 :]]
+    assert max(ious) < 0.7  # no two instances are the same shape
+
+
 def test_hangul_words_are_composed_from_jamo_strokes():
     strokes = hangul_strokes("천천히")
     assert len(strokes) == 2 * (4 + 2 + 1) + (3 + 1)  # ㅊ(4) ㅓ(2) ㄴ(1) twice, ㅎ(3) ㅣ(1)

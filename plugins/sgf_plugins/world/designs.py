@@ -10,8 +10,8 @@ designs vary their content, size and colour per instance.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import cv2
@@ -638,6 +638,98 @@ def _drain_grate(c: Canvas, rng: np.random.Generator, col: RGB) -> None:
         c.rect(dark, x - 0.012, x + 0.012, -w + 0.04, w - 0.04)
 
 
+# --- Procedural custom markings: a new shape per instance (saliency training data only) ----------
+
+RANDOM_GLYPHS = "ABEFGHJKLMNQRTVWXYZ2345789"
+
+
+def _blob_points(rng: np.random.Generator, rx: float, ry: float, lumpy: float) -> list[Point]:
+    """A smooth closed curve: an ellipse whose radius wanders by a few low harmonics."""
+    t = np.linspace(0.0, 2 * math.pi, 72, endpoint=False)
+    r = np.ones_like(t)
+    for k in range(2, 6):
+        r += lumpy * rng.uniform(0.0, 1.0) / k * np.cos(k * t + rng.uniform(0, 2 * math.pi))
+    r = np.clip(r, 0.35, None) / max(float(r.max()), 1e-6)
+    return list(zip((rx * r * np.cos(t)).tolist(), (ry * r * np.sin(t)).tolist(), strict=True))
+
+
+def _polygon_points(rng: np.random.Generator, rx: float, ry: float) -> list[Point]:
+    """A random simple polygon (3 to 9 corners at sorted angles, any radius: often concave)."""
+    n = int(rng.integers(3, 10))
+    a = np.sort(rng.uniform(0.0, 2 * math.pi, n))
+    r = rng.uniform(0.45, 1.0, n)
+    return list(zip((rx * r * np.cos(a)).tolist(), (ry * r * np.sin(a)).tolist(), strict=True))
+
+
+def _scribble(rng: np.random.Generator, h: float, w: float) -> list[Point]:
+    """A smooth open stroke across the box (a random walk of the heading)."""
+    n = int(rng.integers(12, 30))
+    step = 2 * max(h, w) / n * rng.uniform(0.8, 1.4)
+    heading = rng.uniform(0, 2 * math.pi)
+    x, y = rng.uniform(-0.5 * h, 0.5 * h), rng.uniform(-0.5 * w, 0.5 * w)
+    pts: list[Point] = [(x, y)]
+    turn = rng.uniform(0.1, 0.5)
+    for _ in range(n):
+        heading += rng.normal(0.0, turn)
+        x, y = x + step * math.cos(heading), y + step * math.sin(heading)
+        if abs(x) > h or abs(y) > w:  # turn back inside the box
+            heading += math.pi
+            x, y = float(np.clip(x, -h, h)), float(np.clip(y, -w, w))
+        pts.append((x, y))
+    return pts
+
+
+def _random_shape(c: Canvas, rng: np.random.Generator, col: RGB) -> None:
+    """One of six kinds of man-made marking, drawn anew for every instance.
+
+    Filled blobs and polygons (some with holes), outlines with a figure inside, painted strokes,
+    random letters, and clusters of small parts: the variety of custom markings that no semantic
+    class covers, so a network trained on them learns painted ground, not a list of designs.
+    """
+    h, w = c.length / 2 - 0.02, c.width / 2 - 0.02
+    la = c.layer(col)
+    kind = int(rng.integers(6))
+    if kind == 0:  # filled blob, maybe with a hole
+        c.poly(la, _blob_points(rng, h, w, rng.uniform(0.2, 0.9)))
+        if rng.random() < 0.4:
+            c.poly(la, _blob_points(rng, 0.35 * h, 0.35 * w, 0.3), 0.0)
+    elif kind == 1:  # filled polygon, maybe with a hole
+        c.poly(la, _polygon_points(rng, h, w))
+        if rng.random() < 0.3:
+            c.poly(la, _polygon_points(rng, 0.3 * h, 0.3 * w), 0.0)
+    elif kind == 2:  # an outline with a small figure inside
+        stroke = rng.uniform(0.04, 0.1)
+        outline = _blob_points(rng, h - stroke, w - stroke, 0.3) if rng.random() < 0.5 else None
+        if outline is None:
+            c.line(
+                la,
+                [
+                    (h - stroke, w - stroke),
+                    (h - stroke, -w + stroke),
+                    (-h + stroke, -w + stroke),
+                    (-h + stroke, w - stroke),
+                ],
+                stroke,
+                closed=True,
+            )
+        else:
+            c.line(la, outline, stroke, closed=True)
+        c.poly(la, _polygon_points(rng, 0.45 * h, 0.45 * w))
+    elif kind == 3:  # painted strokes
+        for _ in range(int(rng.integers(1, 4))):
+            c.line(la, _scribble(rng, h, w), rng.uniform(0.05, 0.14))
+    elif kind == 4:  # letters that spell nothing
+        n = int(rng.integers(1, 5))
+        text = "".join(str(rng.choice(list(RANDOM_GLYPHS))) for _ in range(n))
+        font = int(rng.choice([cv2.FONT_HERSHEY_SIMPLEX, cv2.FONT_HERSHEY_DUPLEX, cv2.FONT_HERSHEY_TRIPLEX]))
+        c.text(la, text, (-h, h, -w, w), font, float(rng.uniform(0.1, 0.18)))
+    else:  # a cluster of small parts
+        for _ in range(int(rng.integers(2, 6))):
+            cx, cy = rng.uniform(-0.6 * h, 0.6 * h), rng.uniform(-0.6 * w, 0.6 * w)
+            part = _blob_points(rng, 0.3 * h, 0.3 * w, 0.5)
+            c.poly(la, [(cx + x, cy + y) for x, y in part])
+
+
 #: Every design, standard (public road markings, identical wherever painted) and custom.
 DESIGNS: dict[str, MarkingDesign] = {
     d.name: d
@@ -796,6 +888,19 @@ DESIGNS: dict[str, MarkingDesign] = {
         MarkingDesign(
             "drain_grate", "utility", "custom", True, (0.8, 0.4), _drain_grate, "edge", (METAL,), 0.1, material="metal"
         ),
+        # Never painted unless a world asks for it (``design_weights``): saliency training data.
+        MarkingDesign(
+            "random_shape",
+            "procedural",
+            "custom",
+            False,
+            (1.0, 1.0),
+            _random_shape,
+            "free",
+            (WHITE, YELLOW, BLUE, GREEN, RED, ORANGE, NAVY, MAROON),
+            size_jitter=0.4,
+            weight=0.0,
+        ),
     )
 }
 
@@ -828,14 +933,23 @@ def resolve_designs(names: Iterable[str], what: str = "designs") -> set[str]:
     return out
 
 
-def allowed_designs(exclude: Iterable[str] = (), only: Iterable[str] = ()) -> list[MarkingDesign]:
-    """The designs a world may paint: ``only`` (if given) minus ``exclude`` (names or families)."""
+def allowed_designs(
+    exclude: Iterable[str] = (), only: Iterable[str] = (), weights: Mapping[str, float] | None = None
+) -> list[MarkingDesign]:
+    """The designs a world may paint: ``only`` (if given) minus ``exclude`` (names or families).
+
+    ``weights`` replaces the named designs' weights (how often each is chosen; 0 = never).
+    """
+    weights = dict(weights or {})
+    unknown = sorted(set(weights) - set(DESIGNS))
+    if unknown:
+        raise ConfigError(f"design_weights: unknown marking design(s) {unknown}. Designs: {', '.join(sorted(DESIGNS))}")
     only = list(only)
     chosen = resolve_designs(only, "only_designs") if only else set(DESIGNS)
     chosen -= resolve_designs(exclude, "exclude_designs")
     if not chosen:
         raise ConfigError("no marking design is left after only_designs/exclude_designs; allow at least one")
-    return [DESIGNS[n] for n in DESIGNS if n in chosen]
+    return [replace(DESIGNS[n], weight=weights.get(n, DESIGNS[n].weight)) for n in DESIGNS if n in chosen]
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ class CampusWorld:
     def __init__(self, preset: Preset, params: WorldParams) -> None:
         self.preset = preset
         self.params = params
-        designs = allowed_designs(params.exclude_designs, params.only_designs)
+        designs = allowed_designs(params.exclude_designs, params.only_designs, params.design_weights)
         options = LayoutOptions(
             marking_spacing=params.marking_spacing,
             pedestrians_per_km=params.pedestrians_per_km,
