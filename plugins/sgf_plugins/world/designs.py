@@ -699,21 +699,9 @@ def _random_shape(c: Canvas, rng: np.random.Generator, col: RGB) -> None:
             c.poly(la, _polygon_points(rng, 0.3 * h, 0.3 * w), 0.0)
     elif kind == 2:  # an outline with a small figure inside
         stroke = rng.uniform(0.04, 0.1)
-        outline = _blob_points(rng, h - stroke, w - stroke, 0.3) if rng.random() < 0.5 else None
-        if outline is None:
-            c.line(
-                la,
-                [
-                    (h - stroke, w - stroke),
-                    (h - stroke, -w + stroke),
-                    (-h + stroke, -w + stroke),
-                    (-h + stroke, w - stroke),
-                ],
-                stroke,
-                closed=True,
-            )
-        else:
-            c.line(la, outline, stroke, closed=True)
+        a, b = h - stroke, w - stroke
+        outline = _blob_points(rng, a, b, 0.3) if rng.random() < 0.5 else [(a, b), (a, -b), (-a, -b), (-a, b)]
+        c.line(la, outline, stroke, closed=True)
         c.poly(la, _polygon_points(rng, 0.45 * h, 0.45 * w))
     elif kind == 3:  # painted strokes
         for _ in range(int(rng.integers(1, 4))):
