@@ -101,3 +101,15 @@ def test_conf_is_inside_the_package_and_the_wheel(tmp_path: Path):
     assert "sgf_pipeline/conf/.sgf_pipeline_conf" in names
     assert "hydra_plugins/sgf_pipeline_searchpath/searchpath.py" in names
     assert any(n.startswith("sgf_plugins/") for n in names)
+
+
+def test_design_weights_are_set_from_the_command_line():
+    """A preset's ``design_weights: null`` takes a whole dict from an override (an empty dict would refuse new keys)."""
+    from sgf_plugins.world.params import WorldParams
+
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        cfg = compose("config", overrides=["dataset=campus_delivery", "dataset.design_weights={random_shape:8}"])
+    node = OmegaConf.to_container(cfg.dataset, resolve=True)
+    assert isinstance(node, dict)
+    params = WorldParams.model_validate({k: v for k, v in node.items() if k not in RESERVED_KEYS})
+    assert params.design_weights == {"random_shape": 8.0}

@@ -48,10 +48,10 @@ class WorldParams(StageParams):
     only_designs: list[str] = Field(
         default_factory=list, description="paint only these designs or families (e.g. the held-out test split)"
     )
-    design_weights: dict[str, float] = Field(
-        default_factory=dict,
-        description="how often a design is chosen, by name (relative; 0 = never): e.g. {random_shape: 3} paints "
-        "procedural custom markings, which no preset does, for saliency training worlds",
+    design_weights: dict[str, float] | None = Field(
+        None,
+        description="how often a design is chosen, by name (relative; 0 = never; null = every design's own): "
+        "e.g. {random_shape: 3} paints procedural custom markings, which no preset does, for saliency training worlds",
     )
     bev_resolution: float = Field(0.02, gt=0.0, description="visibility grid (the IPM's BEV grid) resolution (m)")
     bev_x_min: float = Field(0.5, description="visibility grid near edge (m ahead of the base)")
@@ -66,7 +66,7 @@ class WorldParams(StageParams):
     def _check(self) -> WorldParams:
         if self.speed_min > self.speed_max:
             raise ValueError(f"speed_min ({self.speed_min}) must not exceed speed_max ({self.speed_max})")
-        bad = {k: v for k, v in self.design_weights.items() if not v >= 0.0}
+        bad = {k: v for k, v in (self.design_weights or {}).items() if not v >= 0.0}
         if bad:
             raise ValueError(f"design_weights must be >= 0, got {bad}")
         if self.bev_x_min >= self.bev_x_max or self.bev_y_min >= self.bev_y_max:
