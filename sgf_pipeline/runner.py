@@ -497,22 +497,26 @@ class Pipeline:
             raise RuntimeError("finish() was called twice")
         self.begin()
         self._finished = True
-        failures: list[StageError] = []
-        for node in self.order:  # every stage finalizes, even after another failed (files, resources)
-            try:
-                node.stage.finalize(self.context)
-            except Exception as exc:
-                self.plugins.manager.hook.sgf_on_error(run=self.info, stage=node, frame=None, error=exc)
-                error = StageError(
-                    f"stage {node.label} failed in finalize: {type(exc).__name__}: {exc}", node.kind, node.name, None
-                )
-                error.__cause__ = exc
-                failures.append(error)
+        failures: list[tuple[StageError, str]] = []
+        # Every stage settles, then every stage finalizes, even after another failed (files, resources).
+        for phase in ("settle", "finalize"):
+            for node in self.order:
+                if phase == "settle" and not isinstance(node.stage, Stage):
+                    continue  # a dataset has nothing to settle
+                try:
+                    getattr(node.stage, phase)(self.context)
+                except Exception as exc:
+                    self.plugins.manager.hook.sgf_on_error(run=self.info, stage=node, frame=None, error=exc)
+                    error = StageError(
+                        f"stage {node.label} failed in {phase}: {type(exc).__name__}: {exc}", node.kind, node.name, None
+                    )
+                    error.__cause__ = exc
+                    failures.append((error, phase))
         if failures:
-            first = failures[0]
+            first = failures[0][0]
             if len(failures) > 1:
-                others = ", ".join(f"{e.kind}={e.name}" for e in failures[1:])
-                first.args = (f"{first.args[0]} (finalize also failed in {others})",)
+                others = ", ".join(f"{e.kind}={e.name} in {phase}" for e, phase in failures[1:])
+                first.args = (f"{first.args[0]} (also failed: {others})",)
             raise first
         trajectories = dict(self.context.trajectories)
         if len(self._odometry):

@@ -70,6 +70,14 @@ class Stage(ABC):
     def process(self, *args: Any, **kwargs: Any) -> Any:
         """Compute this stage's output for one frame."""
 
+    def settle(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
+        """Make the end-of-run decisions other stages' ``finalize`` builds on.
+
+        After the last frame the runner calls ``settle`` on every stage in DAG order, then
+        ``finalize`` on every stage: a later stage can settle what an earlier one finalizes with
+        (the back-end re-solves without the loops taken back before the association regroups).
+        """
+
     def finalize(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
         """Finish the sequence: final optimisation, metrics, files."""
 

@@ -358,7 +358,9 @@ def run_stages(world: World, loop=None, backend=None, association=None, run_dir=
         if backend is not None:
             estimate = backend.process(frame=frame, loops=found)
             estimates.append(estimate)
-    for stage in (loop, backend):
-        if stage is not None:
-            stage.finalize(context)
+    stages = [s for s in (loop, backend) if s is not None]
+    for stage in stages:  # as the runner ends a run: every stage settles, then every stage finalizes
+        stage.settle(context)
+    for stage in stages:
+        stage.finalize(context)
     return Run(context, loops, estimates)

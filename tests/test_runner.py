@@ -126,6 +126,35 @@ def test_stage_error_names_stage_and_frame_and_keeps_the_run_dir(plugins, tmp_pa
     assert not (tmp_path / "metrics.json").exists()
 
 
+def test_every_stage_settles_before_any_stage_finalizes(plugins):
+    """A later stage's settle is seen by an earlier stage's finalize (as the back-end's by the association's)."""
+    cfg = config(enhance={"name": "none"}, measure={"name": "brightness"}, backend={"name": "trust_odometry"})
+    pipeline = Pipeline.from_config(cfg, plugins=plugins)
+    calls: list[str] = []
+    seen: dict[str, object] = {}
+    for node in pipeline.order[1:]:
+        stage, kind = node.stage, node.kind
+
+        def settle(context, kind=kind):
+            calls.append(f"settle {kind}")
+            context.artifacts[f"settled by {kind}"] = True
+
+        def finalize(context, kind=kind, original=stage.finalize):
+            calls.append(f"finalize {kind}")
+            seen[kind] = sorted(context.artifacts)
+            original(context)
+
+        stage.settle, stage.finalize = settle, finalize  # type: ignore[method-assign]
+    for frame in pipeline.dataset.frames():
+        pipeline.process(frame)
+    metrics = pipeline.finish()
+    kinds = [n.kind for n in pipeline.order[1:]]
+    assert calls == [f"settle {k}" for k in kinds] + [f"finalize {k}" for k in kinds]
+    assert sorted(kinds) == ["backend", "enhance", "measure"]
+    assert seen[kinds[0]] == ["settled by backend", "settled by enhance", "settled by measure"]
+    assert metrics["backend"] == {"nodes": 30}
+
+
 def test_process_returns_the_pose_estimate_for_embedding(plugins):
     cfg = config(backend={"name": "trust_odometry"})
     pipeline = Pipeline.from_config(cfg, plugins=plugins)

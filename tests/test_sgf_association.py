@@ -192,6 +192,7 @@ def test_the_loop_stage_keeps_assignments_for_the_map_without_pixels():
         frame = Frame(k, 0.1 * k, np.zeros((2, 2), np.uint8), pose, toy_calibration())
         loop.process(frame, GroupAssignments(tuple(items)), None)
         assert len(items[0].descriptor.sgf.pixels) > 100  # what the frame's stages saw
+    loop.settle(context)
     loop.finalize(context)
     kept = context.artifacts["group_assignments"]
     assert [a.descriptor.sgf.frame_index for a in kept] == [1, 2]
@@ -376,6 +377,27 @@ def test_a_group_the_final_estimate_spreads_beyond_the_gate_is_split_at_the_end(
     s.finalize(context)
     assert context.metrics["sgf"]["purity"] == pytest.approx(2 / 3) and len(s.groups) == 1
     assert "groups_split" not in context.metrics["sgf"]
+
+
+def test_the_split_at_the_end_goes_by_the_estimate_without_the_loops_taken_back():
+    """The newest estimate still holds a false loop that pulled the look-alike onto A: by it, nothing is split.
+    The back-end's settled estimate (re-solved without that loop) puts it where it was: the group is split."""
+    far = ARROW.placed(65.0, 0.0, 0.3, instance_id=9)
+    p4 = seen_from(far, 3.0, 0.0)
+    for settled in (False, True):
+        s, first = _a_look_alike_joined_early()
+        truly = s._estimate
+        assert truly is not None and np.allclose(truly.poses[4], p4)
+        s._estimate = PoseEstimate(6, {1: truly.poses[1], 4: pose_from_xy_yaw(-58.0, 0.0, 0.0) @ p4, 6: truly.poses[6]})
+        context = RunContext(None)
+        context.truth = SequenceTruth(passes=[], revisits=[])
+        if settled:
+            context.artifacts["settled_estimate"] = truly
+        s.finalize(context)
+        assert context.metrics["sgf"]["groups_split"] == int(settled)
+        assert context.metrics["sgf"]["purity"] == pytest.approx(1.0 if settled else 2 / 3)
+        assert [[m.sgf.frame_index for m in g.members] for g in s.groups] == ([[1, 6], [4]] if settled else [[1, 4, 6]])
+        assert s.groups[0].group_id == first
 
 
 def _a_revisit_joined_a_look_alike(shape_back=ARROW, **params):

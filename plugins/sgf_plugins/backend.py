@@ -262,6 +262,7 @@ class _GraphBackend(_Backend):
         self.optimizations = 0
         self.optimize_seconds = 0.0
         self.loops_dropped = 0
+        self.resolved = False  # settle re-solved in batch (an iSAM2 solver still holds the loops taken out)
 
     def _add(
         self, frame: Frame, loops: LoopConstraints | None, odometry_scale: OdometryScale | None
@@ -293,8 +294,21 @@ class _GraphBackend(_Backend):
         dropped = context.artifacts.get("dropped_loops")
         if not isinstance(dropped, LoopConstraints):
             return 0
-        self.loops_dropped = self.graph.remove_loops(dropped.items)
-        return self.loops_dropped
+        count = self.graph.remove_loops(dropped.items)  # a loop already out counts no more
+        self.loops_dropped += count
+        return count
+
+    def settle(self, context: RunContext) -> None:
+        """Take out the loops the loop stage took back and re-solve (``artifacts['settled_estimate']``).
+
+        The association regroups, and the loop stage's final pass matches, by this estimate: the
+        one the run's newest estimate would be without the false loops the consistency test found.
+        """
+        if self.graph.timestamps and self._drop_loops(context):
+            self.graph.take_new()
+            self.resolve()
+            self.resolved = True
+            context.artifacts["settled_estimate"] = self.estimate()
 
     def resolve(self) -> None:
         """Batch LM over the whole graph from the current estimate and from dead reckoning; the lower error wins.
@@ -489,7 +503,8 @@ class Isam2Backend(_GraphBackend):
     def finalize(self, context: RunContext) -> None:
         """The loops closed at the end, the final iSAM2 estimate (optionally refined by batch LM), then the rest.
 
-        When the loop stage took loops back, the graph without them is solved by batch LM instead.
+        When the loop stage took loops back (here or in :meth:`settle`), the graph without them is
+        solved by batch LM instead.
         """
         if self.graph.timestamps:
             final = self._add_final_loops(context)
@@ -497,6 +512,9 @@ class Isam2Backend(_GraphBackend):
                 # iSAM2 holds the loops taken back: the graph without them is solved in batch
                 self.graph.take_new()
                 self.resolve()
+            elif self.resolved:  # settle solved the graph without them in batch: so on
+                self.graph.take_new()
+                self.batch_optimize()
             else:
                 self._finish_isam2(final)
         super().finalize(context)

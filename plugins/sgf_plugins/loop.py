@@ -302,7 +302,8 @@ class IcpLoopParams(StageParams):
     drop_inconsistent: bool = Field(
         True,
         description="take the loops outside the largest consistent set back out of the estimate before the "
-        "back-end's last optimisation (false: only list them)",
+        "association's split and merge at the end (and the final pass's, before the last optimisation; "
+        "false: only list them)",
     )
     final_pass: bool = Field(
         True,
@@ -470,6 +471,7 @@ class IcpLoopClosing(Stage):
         self._gate_refusal = ""  # why the gate alone did not decide the last match
         self._estimate: PoseEstimate | None = None  # the newest estimate (for the final pass)
         self.final_tried = 0
+        self._consistency_entry: dict[str, Any] | None = None  # the end-of-run consistency test, both rounds
 
     # -- per frame --------------------------------------------------------------------------
 
@@ -1263,31 +1265,37 @@ class IcpLoopClosing(Stage):
             return True
         return None
 
-    def finalize(self, context: RunContext) -> None:
-        """Loop metrics (Table 3: loops closed, reverse ones, false ones) and the accepted loops for plots."""
+    def settle(self, context: RunContext) -> None:
+        """Refuse the candidates still waiting, and take back the loops outside the largest consistent set.
+
+        The back-end re-solves without them (``artifacts['dropped_loops']``) before the association
+        regroups by its estimate and this stage's final pass matches against it.
+        """
         for w in self.waiting:  # the run ended before they were settled
             support = [self._support(a, c.constraint, unlike=w.unlike) for a, c in w.options]
             detail = _support_detail(support, w.need) + " when the run ended"
             self._refuse(w.options[0][0], w.refused, w.options[0][1].gate, detail)
         self.waiting = []
+        self._take_back_inconsistent(context)
+
+    def finalize(self, context: RunContext) -> None:
+        """The final pass, the consistency test once more with its loops, and the loop metrics (Table 3).
+
+        The final pass matches against the back-end's estimate without the loops taken back
+        (``artifacts['settled_estimate']``) when it re-solved one, else against the newest estimate.
+        """
+        settled = context.artifacts.get("settled_estimate")
+        estimate = settled if isinstance(settled, PoseEstimate) else self._estimate
         final: list[LoopConstraint] = []
         groups = context.artifacts.get("sgf_groups")
-        if self.p.final_pass and groups is not None and self._estimate is not None:
-            final = self._final_pass(groups, context.artifacts.get("sgf_group_of", {}), self._estimate)
+        if self.p.final_pass and groups is not None and estimate is not None:
+            final = self._final_pass(groups, context.artifacts.get("sgf_group_of", {}), estimate)
         context.artifacts["final_loops"] = LoopConstraints(tuple(final))
+        context.artifacts["dropped_loops"] = LoopConstraints(())  # those of settle are out of the graph already
+        if final:
+            self._take_back_inconsistent(context)  # the final pass's loops judged with the others
         errors = [self._truth_error(c) for c in self.accepted]
         truths = [self._true(c, e) for c, e in zip(self.accepted, errors, strict=True)]
-        consistency: dict[str, Any] | None = None
-        if self.p.consistency_threshold is not None:
-            consistency, outside = self._consistency(self.p.consistency_threshold, truths)
-            if self.p.drop_inconsistent and outside:
-                dropped = [self.accepted[k] for k in outside]
-                context.artifacts["dropped_loops"] = LoopConstraints(tuple(c.constraint for c in dropped))
-                for c in dropped:
-                    self._taken_back(c, consistency["threshold"])
-                kept = sorted(set(range(len(self.accepted))) - set(outside))
-                self.accepted = [self.accepted[k] for k in kept]
-                errors, truths = [errors[k] for k in kept], [truths[k] for k in kept]
         known = [t for t in truths if t is not None]
         loops: dict[str, Any] = {
             "accepted": len(self.accepted),
@@ -1310,14 +1318,38 @@ class IcpLoopClosing(Stage):
             closed = [r for r in truth.revisits if self._closes(r, truths, truth)]
             loops["closed"] = len(closed)
             loops["closed_reverse"] = sum(bool(r.reverse) for r in closed)
-        if consistency is not None:
-            loops["consistency"] = consistency
+        if self._consistency_entry is not None:
+            loops["consistency"] = self._consistency_entry
         context.metrics.setdefault("loops", {}).update(loops)
         context.artifacts["loops"] = [
             self._loop_entry(c, e, t) for c, e, t in zip(self.accepted, errors, truths, strict=True)
         ]
         context.artifacts["group_assignments"] = list(self.assignments)
         context.artifacts["loop_candidates"] = list(self.decisions)
+
+    def _take_back_inconsistent(self, context: RunContext) -> None:
+        """The consistency test over the accepted loops; with ``drop_inconsistent``, those outside are taken back.
+
+        The loops taken back are published as ``artifacts['dropped_loops']`` for the back-end. A
+        second round (after the final pass) adds to the first round's record.
+        """
+        threshold = self.p.consistency_threshold
+        if threshold is None:
+            return
+        truths = [self._true(c, self._truth_error(c)) for c in self.accepted]
+        entry, outside = self._consistency(threshold, truths)
+        dropped = [self.accepted[k] for k in outside] if self.p.drop_inconsistent else []
+        for c in dropped:
+            self._taken_back(c, threshold)
+        if dropped:
+            self.accepted = [c for k, c in enumerate(self.accepted) if k not in set(outside)]
+        context.artifacts["dropped_loops"] = LoopConstraints(tuple(c.constraint for c in dropped))
+        before = self._consistency_entry
+        if before is not None and self.p.drop_inconsistent:  # the rounds judged different loops: add them up
+            entry["outside_largest_set"] = before["outside_largest_set"] + entry["outside_largest_set"]
+            counts = [n for n in (before["false_outside"], entry["false_outside"]) if n is not None]
+            entry["false_outside"] = sum(counts) if counts else None
+        self._consistency_entry = entry
 
     def _consistency(self, threshold: float, truths: list[bool | None]) -> tuple[dict[str, Any], list[int]]:
         """Accepted loops outside the largest mutually consistent set (:mod:`sgf_plugins.loop_consistency`).

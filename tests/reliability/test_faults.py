@@ -64,6 +64,20 @@ class AlsoFailingFinalize(FailingFinalize):
         raise OSError("disk full")
 
 
+class FailingSettle(FailingFinalize):
+    """A stage failing at the end of the run before any stage finalizes."""
+
+    kind = "bang"
+    name = "settle"
+    output = "bang"
+
+    def settle(self, context: RunContext) -> None:
+        raise OSError("disk full")
+
+    def finalize(self, context: RunContext) -> None:
+        context.metrics["bang"] = "finalized"
+
+
 class BrokenDisk(Dataset):
     """Yields four frames, then the disk goes away; frame 2's image cannot be loaded when asked to."""
 
@@ -105,7 +119,7 @@ class FaultPlugin:
 
     @hookimpl
     def sgf_register_stages(self, registry: Any) -> None:
-        for cls in (FailingFinalize, AlsoFailingFinalize, BrokenDisk, BadImage):
+        for cls in (FailingFinalize, AlsoFailingFinalize, FailingSettle, BrokenDisk, BadImage):
             registry.add(cls)
 
 
@@ -215,7 +229,7 @@ def test_a_finalize_error_names_the_stage_and_every_stage_still_finalizes(plugin
     with pytest.raises(
         StageError,
         match=r"^stage boom=finalize failed in finalize: RuntimeError: cannot save the map "
-        r"\(finalize also failed in bang=finalize\)$",
+        r"\(also failed: bang=finalize in finalize\)$",
     ) as err:
         pipeline.run()
     assert (err.value.kind, err.value.name, err.value.frame_index) == ("boom", "finalize", None)
@@ -229,6 +243,19 @@ def test_a_finalize_error_names_the_stage_and_every_stage_still_finalizes(plugin
     Pipeline.from_config(config(), run_dir=tmp_path, plugins=plugins).run()
     assert not (tmp_path / "failure.json").exists() and not list(tmp_path.glob("*.partial.tum"))
     assert json.loads((tmp_path / "metrics.json").read_text())["status"] == "finished"
+
+
+def test_a_settle_error_is_reported_first_and_every_stage_still_finalizes(plugins, tmp_path: Path):
+    cfg = config(boom={"name": "finalize"}, bang={"name": "settle"}, backend={"name": "trust_odometry"})
+    pipeline = Pipeline.from_config(cfg, run_dir=tmp_path, plugins=plugins)
+    with pytest.raises(
+        StageError,
+        match=r"^stage bang=settle failed in settle: OSError: disk full \(also failed: boom=finalize in finalize\)$",
+    ):
+        pipeline.run()
+    assert pipeline.context.metrics["bang"] == "finalized"  # its own finalize ran after its settle failed
+    assert json.loads((tmp_path / "failure.json").read_text())["stage"] == "bang=settle"
+    assert len(read_tum(tmp_path / "trajectory_sgf.partial.tum")) == 20
 
 
 def test_a_stage_error_names_stage_and_frame_in_failure_json(plugins, tmp_path: Path):

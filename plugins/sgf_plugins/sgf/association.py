@@ -1000,7 +1000,8 @@ class OnlineSgfGroups(Stage):
     def finalize(self, context: RunContext) -> None:
         """Publish the groups (``artifacts['sgf_groups']``) and write purity and loop-pair metrics.
 
-        With ``split_at_end`` the groups are first split by the newest estimate (:meth:`split_groups`),
+        With ``split_at_end`` the groups are first split by the newest estimate (:meth:`split_groups`:
+        the back-end's ``artifacts['settled_estimate']``, re-solved without the loops taken back, when set),
         and with ``merge_at_end`` look-alikes it puts at one place merged (:meth:`merge_groups`);
         ``artifacts['sgf_group_of']`` maps each run member's ``(frame_index, track_id)`` to its final
         group, for the SGF map. ``purity_online`` and ``pairs_found_online`` are from before both.
@@ -1008,10 +1009,12 @@ class OnlineSgfGroups(Stage):
         sgf: dict[str, Any] = context.metrics.setdefault("sgf", {})
         online = group_purity(self._groups) if context.truth is not None else None
         online_pairs = loop_pairs(self._groups, context.truth) if context.truth is not None else None
+        settled = context.artifacts.get("settled_estimate")  # without the loops the loop stage took back
+        estimate = settled if isinstance(settled, PoseEstimate) else self._estimate
         if self.params.split_at_end and self.params.spatial_gate:
-            sgf["groups_split"] = self.split_groups(self._estimate)
+            sgf["groups_split"] = self.split_groups(estimate)
         if self.params.merge_at_end:
-            sgf["groups_merged"] = self.merge_groups(self._estimate)
+            sgf["groups_merged"] = self.merge_groups(estimate)
         context.artifacts["sgf_groups"] = list(self._groups)
         context.artifacts["sgf_group_of"] = {
             (m.sgf.frame_index, m.sgf.track_id): g.group_id
