@@ -101,7 +101,10 @@ class OnlineGroupsParams(StageParams):
         "columns are occupied in both (a sliver lining up with two columns of another marking is no match); 0 = off",
     )
     symmetry_threshold: float = Field(
-        0.1, ge=0.0, description="a group whose self-distance over all column shifts varies less is symmetric"
+        0.065,
+        ge=0.0,
+        description="a group whose self-distance over all column shifts varies less is symmetric (a round manhole "
+        "as the saliency network fills it: at most 0.06; a wheelchair symbol, a logo in a ring: 0.07 and more)",
     )
     spatial_gate: bool = Field(True, description="only consider groups with a member near the SGF on the map")
     gate_radius: float = Field(1.5, gt=0.0, description="gate radius (m) between SGF centroids seen from one place")
