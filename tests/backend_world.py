@@ -339,8 +339,11 @@ class Run:
     estimates: list
 
 
-def run_stages(world: World, loop=None, backend=None, association=None, run_dir=None, frames=None) -> Run:  # type: ignore[no-untyped-def]
-    """Stream a world's frames through an association, the loop stage and a back-end, as the runner would."""
+def run_stages(world: World, loop=None, backend=None, association=None, run_dir=None, frames=None, settle=True) -> Run:  # type: ignore[no-untyped-def]
+    """Stream a world's frames through an association, the loop stage and a back-end, as the runner would.
+
+    ``settle=False`` ends the run with ``finalize`` alone, as a caller that does not know ``settle`` would.
+    """
     from sgf_pipeline.context import RunContext
 
     context = RunContext(run_dir=run_dir, sequence="toy", calibration=CALIBRATION, truth=world.truth)
@@ -359,7 +362,7 @@ def run_stages(world: World, loop=None, backend=None, association=None, run_dir=
             estimate = backend.process(frame=frame, loops=found)
             estimates.append(estimate)
     stages = [s for s in (loop, backend) if s is not None]
-    for stage in stages:  # as the runner ends a run: every stage settles, then every stage finalizes
+    for stage in stages if settle else []:  # as the runner ends a run: every stage settles, then every stage finalizes
         stage.settle(context)
     for stage in stages:
         stage.finalize(context)

@@ -133,6 +133,9 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     assert lenient.context.metrics["loops"]["false_closed"] == 3
     # the loops' consistency through the odometry takes those three back at the end
     taken_back = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False))).context.metrics["loops"]
+    # a caller that ends the run with finalize alone gets the same (finalize settles first)
+    unsettled = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False)), settle=False).context.metrics
+    assert unsettled["loops"] == taken_back
     assert taken_back["false_closed"] == 0 and taken_back["consistency"]["false_outside"] == 3
     assert taken_back["accepted"] == lenient.context.metrics["loops"]["accepted"] - 3
     # taken back when the run settles: the back-end re-solves without them before any stage finalizes

@@ -472,6 +472,7 @@ class IcpLoopClosing(Stage):
         self._estimate: PoseEstimate | None = None  # the newest estimate (for the final pass)
         self.final_tried = 0
         self._consistency_entry: dict[str, Any] | None = None  # the end-of-run consistency test, both rounds
+        self._settled = False
 
     # -- per frame --------------------------------------------------------------------------
 
@@ -1277,13 +1278,17 @@ class IcpLoopClosing(Stage):
             self._refuse(w.options[0][0], w.refused, w.options[0][1].gate, detail)
         self.waiting = []
         self._take_back_inconsistent(context)
+        self._settled = True
 
     def finalize(self, context: RunContext) -> None:
         """The final pass, the consistency test once more with its loops, and the loop metrics (Table 3).
 
         The final pass matches against the back-end's estimate without the loops taken back
         (``artifacts['settled_estimate']``) when it re-solved one, else against the newest estimate.
+        A caller that ends the run without :meth:`settle` gets it here first.
         """
+        if not self._settled:
+            self.settle(context)
         settled = context.artifacts.get("settled_estimate")
         estimate = settled if isinstance(settled, PoseEstimate) else self._estimate
         final: list[LoopConstraint] = []
