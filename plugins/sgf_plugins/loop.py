@@ -1343,11 +1343,11 @@ class IcpLoopClosing(Stage):
             return
         truths = [self._true(c, self._truth_error(c)) for c in self.accepted]
         entry, outside = self._consistency(threshold, truths)
-        dropped = [self.accepted[k] for k in outside] if self.p.drop_inconsistent else []
+        out = set(outside) if self.p.drop_inconsistent else set()
+        dropped = [c for k, c in enumerate(self.accepted) if k in out]
         for c in dropped:
             self._taken_back(c, threshold)
-        if dropped:
-            self.accepted = [c for k, c in enumerate(self.accepted) if k not in set(outside)]
+        self.accepted = [c for k, c in enumerate(self.accepted) if k not in out]
         context.artifacts["dropped_loops"] = LoopConstraints(tuple(c.constraint for c in dropped))
         before = self._consistency_entry
         if before is not None and self.p.drop_inconsistent:  # the rounds judged different loops: add them up
