@@ -207,3 +207,19 @@ def test_without_the_spatial_gate_identical_arrows_merge(recorded):
     metrics = Pipeline.from_config(cfg, plugins=plugins).run()
     assert metrics["sgf"]["detected"] == 7
     assert metrics["sgf"]["mixed_groups"] >= 1 and metrics["sgf"]["purity"] < 1.0
+
+
+def test_the_learning_free_detector_drives_the_same_loop(recorded, tmp_path):
+    """#7 must also work with ``saliency=classical``: top-hat and threshold on the recorded BEVs."""
+    plugins = load_plugins(extra=[("sgf_test_stream", TestPlugin())])
+    cfg = config()
+    cfg["saliency"] = conf_node("saliency/classical.yaml")
+    pipeline = Pipeline.from_config(cfg, run_dir=tmp_path / "run", plugins=plugins)
+    for frame in pipeline.frames():
+        pipeline.process(frame)
+    metrics = pipeline.finish()
+    sgf, loops = metrics["sgf"], metrics["loops"]
+    # The recorded BEVs are grey (a mono camera): the detector takes them as they are.
+    assert (sgf["detected"], sgf["total"], sgf["selected"], sgf["false_selected"]) == (7, 7, 14, 0)
+    assert sgf["purity"] == 1.0 and sgf["groups"] == 7 and sgf["symmetric_groups"] == 1
+    assert (loops["pairs_found"], loops["pairs_found_reverse"], loops["pairs_total"]) == (7, 7, 7)

@@ -5,8 +5,10 @@ from __future__ import annotations
 import subprocess
 import sys
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -196,6 +198,26 @@ def test_classical_finds_drawn_markings() -> None:
         acc.add_probability(prob, mask.astype(np.uint8) * 255)
     r = acc.results()
     assert r["maxF"] > 0.7 and r["mae"] < 0.05, r
+
+
+def test_a_grey_bev_is_read_as_its_three_equal_channels(untrained_weights: Callable[[str], Path]) -> None:
+    """A mono camera (KITTI's image_0, EuRoC) gives grey BEVs: every saliency stage takes them."""
+    bev, _ = _bev()
+    grey = cv2.cvtColor(np.ascontiguousarray(bev.image), cv2.COLOR_RGB2GRAY)
+    as_three = replace(bev, image=np.repeat(grey[:, :, None], 3, axis=2))
+    classical = {c.name: c for c in VARIANTS}["classical"]
+    for image in (grey, grey[:, :, None]):
+        as_grey = replace(bev, image=image)
+        for cls, params in (
+            (classical, {}),
+            ({c.name: c for c in LEARNED_VARIANTS}["u2netp"], {"weights": str(untrained_weights("u2netp"))}),
+        ):
+            stage = cls(cls.Params(**params))
+            expected = stage.process(as_three).probability
+            assert expected.max() > 0.0
+            np.testing.assert_array_equal(stage.process(as_grey).probability, expected)
+    with pytest.raises(ValueError, match=r"\(H, W\) grey image, got shape \(128, 128, 2\)"):
+        classical(classical.Params()).process(replace(bev, image=np.zeros((128, 128, 2), np.uint8)))
 
 
 def test_classical_is_quiet_on_bare_ground_and_scales_with_resolution() -> None:

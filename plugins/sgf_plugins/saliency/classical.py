@@ -16,6 +16,8 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from sgf_plugins.saliency.data import as_rgb
+
 
 def _odd(n: float) -> int:
     k = max(3, round(n))
@@ -33,9 +35,8 @@ def marking_saliency(
     min_area_m2: float = 0.01,
     smooth_px: float = 1.0,
 ) -> np.ndarray:
-    """Saliency ``(H, W)`` float32 in [0, 1] of painted markings in an RGB BEV with ``resolution`` metres per pixel."""
-    if rgb.ndim != 3 or rgb.shape[2] != 3:
-        raise ValueError(f"expected an (H, W, 3) RGB image, got shape {rgb.shape}")
+    """Saliency ``(H, W)`` float32 in [0, 1] of painted markings in an RGB (or grey) BEV of ``resolution`` m/px."""
+    rgb = as_rgb(rgb)
     h, w = rgb.shape[:2]
     seen = np.ones((h, w), bool) if valid is None else np.asarray(valid, dtype=bool)
     if not seen.any():

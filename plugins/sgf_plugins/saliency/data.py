@@ -337,6 +337,18 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
+def as_rgb(image: np.ndarray) -> np.ndarray:
+    """An RGB image ``(H, W, 3)``; a grey one (``(H, W)`` or ``(H, W, 1)``: KITTI's image_0, EuRoC) in all three."""
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 2:
+        return np.repeat(image[:, :, None], 3, axis=2)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) RGB or (H, W) grey image, got shape {image.shape}")
+    return image
+
+
 def normalize_image(rgb: np.ndarray, size: int) -> np.ndarray:
     """Network input ``(3, size, size)`` float32: area-resized, scaled to [0, 1], normalised by channel."""
     if rgb.shape[0] != size or rgb.shape[1] != size:

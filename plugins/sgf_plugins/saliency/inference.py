@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from sgf_pipeline.errors import DataError
-from sgf_plugins.saliency.data import normalize_image
+from sgf_plugins.saliency.data import as_rgb, normalize_image
 
 if TYPE_CHECKING:
     import torch
@@ -176,9 +176,8 @@ class SaliencyPredictor:
             return self._torch(torch.from_numpy(x)).numpy()[:, 0]
 
     def predict(self, rgb: np.ndarray) -> np.ndarray:
-        """Saliency probability ``(H, W)`` float32 in [0, 1] of an RGB image ``(H, W, 3)``."""
-        if rgb.ndim != 3 or rgb.shape[2] != 3:
-            raise ValueError(f"expected an (H, W, 3) RGB image, got shape {rgb.shape}")
+        """Saliency probability ``(H, W)`` float32 in [0, 1] of an RGB image ``(H, W, 3)`` (or a grey one)."""
+        rgb = as_rgb(rgb)
         h, w = rgb.shape[:2]
         prob = self.predict_network(self.network_input(rgb))[0]
         if prob.shape != (h, w):
