@@ -18,6 +18,29 @@ from sgf_pipeline.geometry import rotation_from_quaternion, rpy_from_rotation
 GRAVITY = 9.80665
 
 
+def shrink_noise(deviation: float, sigma: float) -> float:
+    """``d^3 / (d^2 + sigma^2)``: a deviation ``d`` with the noise of standard deviation ``sigma`` shrunk out.
+
+    Deviations of the noise's size are mostly dropped, large ones (a speed bump's pitch) kept whole;
+    ``sigma <= 0`` keeps every deviation.
+    """
+    if sigma <= 0.0:
+        return deviation
+    return deviation * deviation * deviation / (deviation * deviation + sigma * sigma)
+
+
+def steadied_roll_pitch(roll_pitch: np.ndarray, centre: int, sigma: float) -> tuple[float, float]:
+    """Roll and pitch (rad) of sample ``centre`` of (N, 2) samples around it, the IMU's white noise shrunk out.
+
+    The median of the samples, plus the centre's own deviation from it through :func:`shrink_noise`:
+    on steady ground the noise averages away, on a bump the centre keeps its own attitude.
+    """
+    samples = np.asarray(roll_pitch, dtype=np.float64).reshape(-1, 2)
+    median = np.median(samples, axis=0)
+    roll, pitch = (float(m) + shrink_noise(float(samples[centre, k] - m), sigma) for k, m in enumerate(median))
+    return roll, pitch
+
+
 def roll_pitch_of_base(imu_orientation: np.ndarray, imu_to_base: np.ndarray | None = None) -> tuple[float, float]:
     """Roll and pitch (rad) of the base from an IMU orientation ``(x, y, z, w)`` in a z-up world frame.
 

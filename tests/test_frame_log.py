@@ -86,3 +86,20 @@ def test_ground_truth_is_kept_from_the_first_frame_that_has_one() -> None:
     assert without.ground_truth(0) is None and not without.has_truth()
     truth = log.ground_truth(65)
     assert truth is not None and truth[2, 3] == pytest.approx(7.0) and truth[0, 3] == pytest.approx(6.5)
+
+
+def test_around_gives_the_frames_within_the_metres_driven_and_the_frame_s_row() -> None:
+    log = FrameLog()
+    xs = [0.0, 0.1, 0.2, 0.2, 0.3, 0.5, 0.9]  # frames 2 and 3 stand at the same place
+    for k, x in enumerate(xs):
+        log.append(_frame(k, x))
+    poses, row = log.around(3, 0.15)
+    np.testing.assert_allclose(poses[:, 0, 3], [0.1, 0.2, 0.2, 0.3])
+    assert row == 2 and poses[row][0, 3] == pytest.approx(0.2)
+    poses, row = log.around(6, 0.2)  # nothing else within 0.2 m: the frame alone
+    assert len(poses) == 1 and row == 0
+    poses, row = log.around(0, 0.25)
+    np.testing.assert_allclose(poses[:, 0, 3], [0.0, 0.1, 0.2, 0.2])
+    assert row == 0
+    with pytest.raises(KeyError):
+        log.around(9, 1.0)

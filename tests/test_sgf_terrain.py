@@ -15,6 +15,7 @@ from sgf_plugins.world.terrain import Terrain
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.geometry import pose_from_xy_yaw
+from sgf_pipeline.imu import steadied_roll_pitch
 from sgf_pipeline.types import Frame, SalientGroundFeature, SgfDetections
 
 CALIBRATION = toy_calibration()  # 0.5 m high, 30 degrees down
@@ -264,3 +265,52 @@ def test_marched_rays_that_never_reach_the_ground_are_not_covered():
     assert hit[0] == pytest.approx([5.0, 0.0, 0.0], abs=1e-9)
     with pytest.raises(ValueError, match="contacts"):
         wheel_ground(np.array([np.eye(4)]), ahead=1.0, step=0.25, contacts=())
+
+
+def test_steadied_roll_pitch_drops_the_imu_noise_and_keeps_a_bump():
+    rng = np.random.default_rng(3)
+    noise = rng.normal(0.0, 0.0026, (11, 2))  # the world's IMU: 0.15 degrees, on level ground
+    noise[5] = (0.004, -0.0045)  # the frame's own reading: a large draw
+    level = np.array(steadied_roll_pitch(noise, 5, 0.005))
+    d = noise[5] - np.median(noise, axis=0)
+    np.testing.assert_allclose(level, np.median(noise, axis=0) + d**3 / (d**2 + 0.005**2), atol=1e-12)
+    assert np.all(np.abs(level) < 0.5 * np.abs(noise[5]))
+    bump = noise.copy()
+    bump[4:7, 1] += 0.06  # three frames on a speed bump's ramp: a real pitch, not noise
+    _, pitch = steadied_roll_pitch(bump, 5, 0.005)
+    assert pitch == pytest.approx(bump[5, 1], abs=0.002)
+    assert steadied_roll_pitch(bump, 5, 0.0) == pytest.approx(tuple(bump[5]))  # no noise scale: the frame's own
+
+
+def _lift_with_a_tilted_view(error: float, window: float) -> np.ndarray:
+    """The stage's points of paint 4 to 4.6 m ahead on level ground, the view's odometry pitched by ``error``."""
+    stage = PolarContext(PolarContextParams(ground="driven", attitude_window=window))
+    stage.begin(RunContext(None))
+    feature = sgf(patch(4.0, 4.6), frame=5)
+    out = None
+    for k in range(30):
+        pose = pitched(0.1 * k, 0.0, error if k == 5 else 0.0)
+        items = (feature,) if k == 29 else ()
+        out = stage.process(Frame(k, 0.1 * k, np.zeros((2, 2), np.uint8), pose, CALIBRATION), SgfDetections(items))
+    assert out is not None and len(out.items) == 1
+    return np.asarray(out.items[0].points)
+
+
+def test_the_view_s_imu_noise_no_longer_tilts_the_ground_under_far_paint():
+    truth = _lift_with_a_tilted_view(0.0, 0.6)  # level ground, level odometry: eq. 9
+    np.testing.assert_allclose(truth, _lift_with_a_tilted_view(0.0, 0.0), atol=1e-9)
+    error = math.radians(0.25)  # a noisy IMU reading at the view only
+    own = _lift_with_a_tilted_view(error, 0.0)
+    steadied = _lift_with_a_tilted_view(error, 0.6)
+    length = float(np.ptp(truth[:, 0]))
+    # The view's own reading tilts the whole driven ground under the camera: paint 4.3 m ahead by 0.6 m high
+    # moves by about d^2 / h * error and stretches by 2 d / h * error (about 6 %).
+    shift = abs(own[:, 0].mean() - truth[:, 0].mean())
+    assert shift == pytest.approx(4.3**2 / 0.5 * error, rel=0.35)
+    assert np.ptp(own[:, 0]) / length - 1.0 == pytest.approx(2 * 4.3 / 0.5 * error, abs=0.02)
+    # Steadied over 0.6 m either side (the median: level), the reading counts d^3 / (d^2 + sigma^2): with
+    # sigma 0.005 rad, 43 % of a 0.25 degree error is left (21 % of a one-sigma reading of the world's IMU).
+    kept = error**2 / (error**2 + 0.005**2)
+    assert abs(steadied[:, 0].mean() - truth[:, 0].mean()) / shift == pytest.approx(kept, rel=0.1)
+    stretch_own, stretch = np.ptp(own[:, 0]) / length - 1.0, np.ptp(steadied[:, 0]) / length - 1.0
+    assert stretch / stretch_own == pytest.approx(kept, rel=0.15)

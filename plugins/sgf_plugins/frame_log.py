@@ -141,6 +141,18 @@ class FrameLog:
         k = int(np.searchsorted(self._index[: self._size], frame_index))
         return self._rows[k : self._size, :16].reshape(-1, 4, 4).copy()
 
+    def around(self, frame_index: int, half_width: float) -> tuple[np.ndarray, int]:
+        """The remembered frames' odometry poses (N, 4, 4) within ``half_width`` metres driven of a frame.
+
+        Also the frame's own row among them; KeyError when the frame is not remembered.
+        """
+        k = self._found(frame_index)
+        travelled = self._rows[: self._size, 16]
+        lo = int(np.searchsorted(travelled, travelled[k] - half_width, side="left"))
+        hi = int(np.searchsorted(travelled, travelled[k] + half_width, side="right"))
+        lo, hi = min(lo, k), max(hi, k + 1)  # a standing robot's frames share its distance: the frame itself stays
+        return self._rows[lo:hi, :16].reshape(-1, 4, 4).copy(), k - lo
+
     def path(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every remembered frame's index (N,), odometry pose (N, 4, 4) and distance travelled (N,), as copies."""
         n = self._size

@@ -13,6 +13,7 @@ from pydantic import Field, model_validator
 from sgf_pipeline import ConfigError, DataError, RunContext, Stage, StageParams
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.geometry import rpy_from_rotation
+from sgf_pipeline.imu import shrink_noise
 from sgf_pipeline.types import Bev, BevGrid, CameraImage, Frame
 from sgf_plugins.ipm.geometry import RollAxis, bev_to_image_homography, visible_mask
 from sgf_plugins.ipm.ground_plane import GradeFilter, GroundPlaneTracker
@@ -175,13 +176,6 @@ def _odometry_attitude(frame: Frame) -> tuple[float, float]:
         return math.nan, math.nan
     roll, pitch, _ = rpy_from_rotation(odometry[:3, :3])
     return roll, pitch
-
-
-def _shrink(deviation: float, sigma: float) -> float:
-    """``d^3 / (d^2 + sigma^2)``: a deviation ``d`` with the noise of standard deviation ``sigma`` shrunk out."""
-    if sigma <= 0.0:
-        return deviation
-    return deviation * deviation * deviation / (deviation * deviation + sigma * sigma)
 
 
 def _nearest_visible(calibration: Calibration) -> float:
@@ -354,8 +348,8 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
         noise = self.params.attitude_noise
         # a deviation d from the reference is motion plus the IMU's noise: shrunk by d^2 / (d^2 + sigma^2),
         # it is kept whole when large (a bump) and mostly dropped when of the noise's size
-        roll_motion = _shrink(roll - reference.roll, noise)
-        pitch_motion = _shrink(pitch - reference.pitch, noise)
+        roll_motion = shrink_noise(roll - reference.roll, noise)
+        pitch_motion = shrink_noise(pitch - reference.pitch, noise)
         self.last_motion = (-roll_motion, pitch_motion)  # the robot's own (psi, theta) against its ground
         psi = -roll_motion if self.params.compensate_roll else 0.0
         # the ground ahead's pitch against the ground under the robot: exactly 0.0 for the paper's mean
@@ -608,8 +602,8 @@ class HindsightMotionCompensatedIPM(MotionCompensatedIPM):
             return fallback
         self.hindsight_counts["hindsight_planes"] += 1
         noise = self.params.attitude_noise
-        body_roll = smooth[0] + _shrink(roll - smooth[0], noise)
-        body_pitch = smooth[1] + _shrink(pitch - smooth[1], noise)
+        body_roll = smooth[0] + shrink_noise(roll - smooth[0], noise)
+        body_pitch = smooth[1] + shrink_noise(pitch - smooth[1], noise)
         ground_roll = body_roll if ground.roll is None else ground.roll
         psi = -(body_roll - ground_roll) if self.params.compensate_roll else 0.0
         theta = body_pitch - ground.pitch if self.params.compensate_pitch else 0.0
