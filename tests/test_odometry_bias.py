@@ -95,6 +95,25 @@ def test_a_false_loop_among_true_ones_barely_moves_the_estimate_and_alone_it_is_
     assert lone.agreeing < 2 and lone.value == 0.0
 
 
+def test_a_false_loop_observed_first_does_not_decide_how_the_true_ones_are_read():
+    """A turn is known modulo a full turn: each reading is a valley of the cost, and its global minimum wins."""
+    rng = np.random.default_rng(1)
+    gt, odo = circuit(2, BIAS, rng)
+    lap = len(gt) // 2
+    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
+    feed(estimator, odo)
+    # first a look-alike laid the wrong way round, over a whole lap: 160 degrees off (campus_reverse_slope)
+    a, b = 5, 5 + lap
+    estimator.observe(a, b, xy_yaw(invert(gt[a]) @ gt[b])[2] - math.radians(160.0), math.radians(1.0) ** 2)
+    # its turn, 35 + 160 degrees, is read the nearest way: -165 degrees
+    assert math.degrees(estimator.estimate) == pytest.approx((0.07 * lap + 160.0 - 360.0) / lap, abs=0.01)
+    for a in range(20, 220, 25):  # then eight true loops: read around that estimate, each would claim a turn more
+        b = a + lap
+        assert estimator.observe(a, b, xy_yaw(invert(gt[a]) @ gt[b])[2], math.radians(1.0) ** 2)
+    assert math.degrees(estimator.value) == pytest.approx(0.07, abs=0.005)
+    assert estimator.agreeing == 8
+
+
 def test_a_loop_to_an_unknown_frame_is_not_observed_and_frames_must_increase():
     estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
     estimator.correct(0, np.eye(4))
