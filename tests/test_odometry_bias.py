@@ -114,6 +114,25 @@ def test_a_false_loop_observed_first_does_not_decide_how_the_true_ones_are_read(
     assert estimator.agreeing == 8
 
 
+@pytest.mark.parametrize("off_deg", [-160.0, 160.0])
+def test_a_false_loop_and_one_true_loop_do_not_agree_on_an_alias(off_deg: float) -> None:
+    """Loops of 452, 493 and 535 m (campus_reverse_slope's first three): each turn read some way, two
+    loops can meet at a bias of 0.6 deg/m. A cost that still grows with the outlier's residual (Cauchy)
+    chose that alias, and the back-end turned 30 m of odometry by it; the bounded cost counts agreement."""
+    rng = np.random.default_rng(1)
+    gt, odo = circuit(2, BIAS, rng)
+    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
+    feed(estimator, odo)
+    applied = []
+    for a, b, off in ((5, 5 + 452, off_deg), (20, 20 + 493, 0.0), (40, 40 + 535, 0.0)):
+        yaw = xy_yaw(invert(gt[a]) @ gt[b])[2] + math.radians(off)
+        assert estimator.observe(a, b, yaw, math.radians(1.5) ** 2)
+        applied.append(math.degrees(estimator.value))
+    assert applied[:2] == [0.0, 0.0]  # the two first disagree: nothing applied
+    assert applied[2] == pytest.approx(0.07, abs=0.01)  # the two true loops agree, the false one does not
+    assert estimator.agreeing == 2
+
+
 def test_a_loop_to_an_unknown_frame_is_not_observed_and_frames_must_increase():
     estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
     estimator.correct(0, np.eye(4))

@@ -13,12 +13,14 @@ share that stretch's heading noise, so the uncertainty counts the best single lo
 not their sum: a bias the heading noise could explain is left alone.
 
 The raw turn between two frames is known modulo a full turn, so each bias b gives each loop the
-residual wrap(turn - b * length): the robust cost has a valley for every way to read the turns.
-The estimate is its global minimum over +-``max_bias`` (a grid of ``GRID`` biases), refined by
-the re-weighted least squares in that valley. A false loop accepted first, whose turn claims
-another reading (a look-alike laid the wrong way round: 160 degrees over 450 m), therefore no
-longer decides how the true loops that follow are read. A lone loop over which the bias turns
-the odometry by more than half a turn (0.07 deg/m over 2.6 km) is still read the nearest way.
+residual wrap(turn - b * length), and the cost has a valley for every way to read the turns. The
+valley is chosen on a grid of ``GRID`` biases over +-``max_bias`` by a bounded cost (each loop's
+whitened residual squared, at most the kernel width squared: the loops that agree with a reading
+choose it, not how far the others lie), and the re-weighted least squares refine the estimate
+in it. So a false loop accepted first, whose turn claims another reading (a look-alike laid the
+wrong way round: 160 degrees over 450 m), decides neither how the true loops that follow are read
+nor, with one of them, an alias between them. A lone loop over which the bias turns the odometry
+by more than half a turn (0.07 deg/m over 2.6 km) is still read the nearest way.
 """
 
 from __future__ import annotations
@@ -131,7 +133,7 @@ class HeadingBias:
         return True
 
     def _estimate(self) -> None:
-        """The robust cost's global minimum, refined by least squares with the prior and a Cauchy kernel."""
+        """The valley of least bounded cost, refined there by least squares with the prior and a Cauchy kernel."""
         raw, lengths, variances = np.array(self._turns), np.array(self._lengths), np.array(self._variances)
         bias = self._valley(raw, lengths, variances)
         turns = bias * lengths + _wrap(raw - bias * lengths)  # each turn read the way that valley reads it
@@ -158,11 +160,11 @@ class HeadingBias:
             self.since = int(self._frames[self._size - 1])
 
     def _valley(self, raw: np.ndarray, lengths: np.ndarray, variances: np.ndarray) -> float:
-        """The bias of least Cauchy cost (with the prior) on a grid over +-``max_bias``, each turn wrapped."""
+        """The bias of least bounded cost (with the prior) on a grid over +-``max_bias``, each turn wrapped."""
         grid = np.linspace(-self.max_bias, self.max_bias, GRID)
         residual = _wrap(raw[None, :] - grid[:, None] * lengths[None, :]) / np.sqrt(variances)[None, :]
-        width = self.kernel_width
-        cost = 0.5 * width**2 * np.log1p((residual / width) ** 2).sum(axis=1) + 0.5 * (grid / self.prior_sigma) ** 2
+        bounded = np.minimum(residual**2, self.kernel_width**2)
+        cost = 0.5 * bounded.sum(axis=1) + 0.5 * (grid / self.prior_sigma) ** 2
         return float(grid[int(np.argmin(cost))])
 
 
