@@ -237,6 +237,12 @@ class PoseGraph:
         self._node_of_row = np.zeros(64, dtype=np.int64)  # per processed frame: its node's place in ``nodes``
         self._offset = np.zeros((64, 4, 4))  # per processed frame: its pose in its node's frame (odometry)
         self._node_odometries: list[np.ndarray] = []  # per node, in order: its (corrected) odometry pose
+        self._odometry_factors: list[Any] = []  # per node from the second: the odometry factor that reaches it
+        self._node_spans: list[tuple[float, int]] = []  # ...and the path length and frames that factor spans
+        # For a replay of the heading bias without loops taken back: per processed frame its odometry
+        # before the bias correction, and per loop the bias saw (newest frame then, ends, yaw, variance).
+        self._scaled = np.zeros((64, 4, 4))
+        self._bias_loops: list[tuple[int, tuple[int, int, bool], float, float]] = []
         self._pending_distance = 0.0
         self._pending_steps = 0
         self._pending_imu: tuple[float, float] | None = None
@@ -319,6 +325,7 @@ class PoseGraph:
         if odometry.shape != (4, 4) or not np.all(np.isfinite(odometry)):
             raise ValueError(f"frame {index}: odometry must be a finite 4x4 pose")
         odometry = self.scaled_odometry.correct(odometry, scale)
+        scaled = odometry
         if self.heading_bias is not None:
             odometry = self.heading_bias.correct(index, odometry)
         lift = None
@@ -335,6 +342,8 @@ class PoseGraph:
         if row == len(self._node_of_row):
             self._node_of_row = _grown(self._node_of_row, row)
             self._offset = _grown(self._offset, row)
+            self._scaled = _grown(self._scaled, row)
+        self._scaled[row] = scaled
         self.timestamps.append(float(frame.timestamp))
         if not self.nodes or self._pending_distance >= self.node_distance:
             self.store.append(index, np.eye(4), lift)
@@ -373,7 +382,10 @@ class PoseGraph:
             assert node_pose is not None
             initial = node_pose @ relative
             model = self.odometry_noise(relative, self._pending_distance, self._pending_steps)
-            self._add(self._between_factor(X(self.nodes[-1]), key, relative, model))
+            factor = self._between_factor(X(self.nodes[-1]), key, relative, model)
+            self._add(factor)
+            self._odometry_factors.append(factor)
+            self._node_spans.append((self._pending_distance, self._pending_steps))
         if self.pose3 and self._pending_imu is not None:
             roll, pitch = self._pending_imu
             up = rotation_rpy(float(roll), float(pitch), 0.0).T @ np.array([0.0, 0.0, 1.0])
@@ -449,7 +461,10 @@ class PoseGraph:
         if relative.shape != (4, 4) or not np.all(np.isfinite(relative)):
             raise ValueError("a loop constraint's relative pose must be a finite 4x4 matrix")
         if self.heading_bias is not None and not loop.from_map:
-            self.heading_bias.observe(loop.frame_from, loop.frame_to, xy_yaw(relative)[2], float(loop.covariance[2][2]))
+            yaw, variance = xy_yaw(relative)[2], float(loop.covariance[2][2])
+            self.heading_bias.observe(loop.frame_from, loop.frame_to, yaw, variance)
+            key = (loop.frame_from, loop.frame_to, loop.from_map)
+            self._bias_loops.append((self.store.frames[-1], key, yaw, variance))
         if not self.pose3:
             relative = planar(relative)
         node_to, relative, adjoint = self._on_node(loop.frame_to, relative, "to")
@@ -482,9 +497,14 @@ class PoseGraph:
     def remove_loops(self, loops: Sequence[LoopConstraint]) -> int:
         """Take loop factors back out of the graph (an incremental solver must then start over); their number.
 
-        The odometry the heading bias corrected while they were in stays as it was.
+        With the heading bias estimated, the odometry is corrected again as if those loops had never
+        come (:meth:`_replay_heading_bias`): two false loops that agree would otherwise leave the
+        bias they claimed in the odometry they were in for.
         """
         gone: list[Any] = []
+        keys = {(loop.frame_from, loop.frame_to, loop.from_map) for loop in loops}
+        if self.heading_bias is not None and any(b[1] in keys for b in self._bias_loops):
+            self._replay_heading_bias(keys)
         for loop in loops:
             factors = self._loop_factor.pop((loop.frame_from, loop.frame_to, loop.from_map), [])
             gone.extend(factors)
@@ -497,6 +517,44 @@ class PoseGraph:
             self.factors = [f for f in self.factors if id(f) not in ids]
             self.rebuild_new()
         return len(gone)
+
+    def _replay_heading_bias(self, keys: set[tuple[int, int, bool]]) -> None:
+        """Correct the odometry again from the first frame on, the loops ``keys`` left out of the bias.
+
+        Every frame and every other loop is given to a new estimator in the order they came, so the
+        correction of each step is the one it would have had without those loops; the nodes'
+        odometry, the frames' offsets on their nodes and the odometry factors follow it.
+        """
+        assert self.heading_bias is not None
+        old = self.heading_bias
+        bias = HeadingBias(
+            old.prior_sigma, old.odometry_sigma_yaw, old.kernel_width, old.max_bias, old.min_loops, old.significance
+        )
+        self._bias_loops = [b for b in self._bias_loops if b[1] not in keys]
+        size = self.store.size
+        corrected = np.empty((size, 4, 4))
+        k = 0
+        for row, frame in enumerate(self.store.frames):
+            corrected[row] = bias.correct(frame, self._scaled[row])
+            while k < len(self._bias_loops) and self._bias_loops[k][0] == frame:
+                _, (frame_from, frame_to, _), yaw, variance = self._bias_loops[k]
+                bias.observe(frame_from, frame_to, yaw, variance)
+                k += 1
+        self.heading_bias = bias
+        if not self.pose3:
+            corrected = np.stack([planar(pose) for pose in corrected])
+        self._node_odometries = [corrected[self.store.rows[node]] for node in self.nodes]
+        nodes = np.array(self._node_odometries)
+        self._offset[:size] = np.matmul(np.linalg.inv(nodes[self._node_of_row[:size]]), corrected)
+        self._last_odometry = corrected[-1]
+        replaced: dict[int, Any] = {}
+        for i, (old_factor, (distance, steps)) in enumerate(zip(self._odometry_factors, self._node_spans, strict=True)):
+            relative = invert(self._node_odometries[i]) @ self._node_odometries[i + 1]
+            model = self.odometry_noise(relative, distance, steps)
+            factor = self._between_factor(X(self.nodes[i]), X(self.nodes[i + 1]), relative, model)
+            replaced[id(old_factor)] = factor
+            self._odometry_factors[i] = factor
+        self.factors = [replaced.get(id(f), f) for f in self.factors]
 
     def dead_reckoned(self) -> Any:
         """The estimate with every node placed by the odometry from the first node's current pose.
