@@ -31,6 +31,14 @@ def feed(estimator: HeadingBias, odometry: np.ndarray) -> np.ndarray:
     return np.stack([estimator.correct(k, pose) for k, pose in enumerate(odometry)])
 
 
+def two_laps() -> tuple[np.ndarray, np.ndarray, HeadingBias]:
+    """Two laps of the circuit (seed 1): truth, odometry, and an estimator that has seen every frame."""
+    gt, odo = circuit(2, BIAS, np.random.default_rng(1))
+    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
+    feed(estimator, odo)
+    return gt, odo, estimator
+
+
 def test_loops_measure_the_bias_and_the_odometry_after_them_is_turned_back():
     rng = np.random.default_rng(0)
     gt, odo = circuit(3, BIAS, rng)
@@ -71,11 +79,8 @@ def test_loops_measure_the_bias_and_the_odometry_after_them_is_turned_back():
 
 
 def test_a_false_loop_among_true_ones_barely_moves_the_estimate_and_alone_it_is_bounded():
-    rng = np.random.default_rng(1)
-    gt, odo = circuit(2, BIAS, rng)
+    gt, odo, estimator = two_laps()
     lap = len(gt) // 2
-    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
-    feed(estimator, odo)
     for a in range(0, 200, 25):
         b = a + lap
         assert estimator.observe(a, b, xy_yaw(invert(gt[a]) @ gt[b])[2], math.radians(1.0) ** 2)
@@ -97,11 +102,8 @@ def test_a_false_loop_among_true_ones_barely_moves_the_estimate_and_alone_it_is_
 
 def test_a_false_loop_observed_first_does_not_decide_how_the_true_ones_are_read():
     """A turn is known modulo a full turn: each reading is a valley of the cost, and its global minimum wins."""
-    rng = np.random.default_rng(1)
-    gt, odo = circuit(2, BIAS, rng)
+    gt, _, estimator = two_laps()
     lap = len(gt) // 2
-    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
-    feed(estimator, odo)
     # first a look-alike laid the wrong way round, over a whole lap: 160 degrees off (campus_reverse_slope)
     a, b = 5, 5 + lap
     estimator.observe(a, b, xy_yaw(invert(gt[a]) @ gt[b])[2] - math.radians(160.0), math.radians(1.0) ** 2)
@@ -119,10 +121,7 @@ def test_a_false_loop_and_one_true_loop_do_not_agree_on_an_alias(off_deg: float)
     """Loops of 452, 493 and 535 m (campus_reverse_slope's first three): each turn read some way, two
     loops can meet at a bias of 0.6 deg/m. A cost that still grows with the outlier's residual (Cauchy)
     chose that alias, and the back-end turned 30 m of odometry by it; the bounded cost counts agreement."""
-    rng = np.random.default_rng(1)
-    gt, odo = circuit(2, BIAS, rng)
-    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
-    feed(estimator, odo)
+    gt, _, estimator = two_laps()
     applied = []
     for a, b, off in ((5, 5 + 452, off_deg), (20, 20 + 493, 0.0), (40, 40 + 535, 0.0)):
         yaw = xy_yaw(invert(gt[a]) @ gt[b])[2] + math.radians(off)
