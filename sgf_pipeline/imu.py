@@ -29,6 +29,11 @@ def shrink_noise(deviation: float, sigma: float) -> float:
     return deviation * deviation * deviation / (deviation * deviation + sigma * sigma)
 
 
+def steadied(own: float, smooth: float, sigma: float) -> float:
+    """``smooth`` plus ``own``'s deviation from it through :func:`shrink_noise` (the angle steadied)."""
+    return smooth + shrink_noise(own - smooth, sigma)
+
+
 def steadied_roll_pitch(roll_pitch: np.ndarray, centre: int, sigma: float) -> tuple[float, float]:
     """Roll and pitch (rad) of sample ``centre`` of (N, 2) samples around it, the IMU's white noise shrunk out.
 
@@ -37,7 +42,7 @@ def steadied_roll_pitch(roll_pitch: np.ndarray, centre: int, sigma: float) -> tu
     """
     samples = np.asarray(roll_pitch, dtype=np.float64).reshape(-1, 2)
     median = np.median(samples, axis=0)
-    roll, pitch = (float(m) + shrink_noise(float(samples[centre, k] - m), sigma) for k, m in enumerate(median))
+    roll, pitch = (steadied(float(samples[centre, k]), float(m), sigma) for k, m in enumerate(median))
     return roll, pitch
 
 

@@ -13,7 +13,7 @@ from pydantic import Field, model_validator
 from sgf_pipeline import ConfigError, DataError, RunContext, Stage, StageParams
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.geometry import rpy_from_rotation
-from sgf_pipeline.imu import shrink_noise
+from sgf_pipeline.imu import shrink_noise, steadied
 from sgf_pipeline.types import Bev, BevGrid, CameraImage, Frame
 from sgf_plugins.ipm.geometry import RollAxis, bev_to_image_homography, visible_mask
 from sgf_plugins.ipm.ground_plane import GradeFilter, GroundPlaneTracker
@@ -602,8 +602,8 @@ class HindsightMotionCompensatedIPM(MotionCompensatedIPM):
             return fallback
         self.hindsight_counts["hindsight_planes"] += 1
         noise = self.params.attitude_noise
-        body_roll = smooth[0] + shrink_noise(roll - smooth[0], noise)
-        body_pitch = smooth[1] + shrink_noise(pitch - smooth[1], noise)
+        body_roll = steadied(roll, smooth[0], noise)
+        body_pitch = steadied(pitch, smooth[1], noise)
         ground_roll = body_roll if ground.roll is None else ground.roll
         psi = -(body_roll - ground_roll) if self.params.compensate_roll else 0.0
         theta = body_pitch - ground.pitch if self.params.compensate_pitch else 0.0
