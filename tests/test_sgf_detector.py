@@ -7,7 +7,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from sgf_plugins.sgf.detector import HuMomentDetector, HuWindowParams, border_band
+from sgf_plugins.sgf.detector import FeatureTrack, FeatureView, HuMomentDetector, HuWindowParams, Region, border_band
 from sgf_plugins.sgf.synthetic import (
     DEFAULT_GRID,
     Annulus,
@@ -23,7 +23,7 @@ from sgf_plugins.sgf.synthetic import (
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.geometry import pose_from_xy_yaw
-from sgf_pipeline.types import Bev, Frame, SaliencyMap, SalientGroundFeature
+from sgf_pipeline.types import Bev, BevGrid, Frame, SaliencyMap, SalientGroundFeature
 
 DIAMOND = (ConvexPart(np.array([[-0.8, 0.0], [0.0, -0.4], [0.8, 0.0], [0.0, 0.4]])),)
 
@@ -251,3 +251,24 @@ def test_salient_near_takes_the_nearest_of_the_nearly_most_salient_views(diamond
     params = HuWindowParams(view_choice=view_choice, near_margin=margin)
     _, out, _ = run(stream, params)
     assert [sgf.frame_index for _, sgf in out] == [(peak, later)[pick]]
+
+
+@pytest.mark.parametrize(
+    ("view_choice", "margin", "pick"),
+    [("most_salient", 0.1, 1), ("salient_near", 0.1, 1), ("track_near", 0.1, 3), ("track_near", 0.05, 1)],
+)
+def test_track_near_looks_past_groups_of_one_view(view_choice, margin, pick):
+    """Where eq. 8 splits every view into its own group, only track_near still finds the nearer view."""
+    grid = BevGrid(0.02, 0.5, 5.62, -2.56, 2.56)
+    saliency = [0.90, 0.95, 0.80, 0.88]  # frames 0-3, driving at the feature: each view 20 rows nearer
+    views = []
+    for k, s in enumerate(saliency):
+        rows = 40 + 20 * k
+        pixels = np.array([[c, r] for r in range(rows, rows + 10) for c in range(120, 130)])
+        hu = np.full(7, 0.1 * (k + 1))  # eq. 8 distances far above the threshold: groups of one
+        region = Region(pixels, s, hu, touches_border=False, instance_id=None)
+        views.append(FeatureView(k, 0.1 * k, pose_from_xy_yaw(0.2 * k, 0.0, 0.0), region))
+    detector = HuMomentDetector(HuWindowParams(view_choice=view_choice, near_margin=margin))
+    sgf = detector.select(FeatureTrack(0, views), grid)
+    assert sgf is not None and sgf.frame_index == pick
+    assert sgf.saliency == saliency[pick]

@@ -85,6 +85,11 @@ class GraphParams(BackendParams):
     odometry_yaw_bias_sigma_deg_per_m: float = Field(
         0.5, gt=0.0, description="prior sigma of that bias (deg per metre; the prior's mean is 0)"
     )
+    odometry_yaw_bias_hindsight: bool = Field(
+        True,
+        description="at the end of the run, take the final heading bias off the whole drive from its first frame "
+        "(online it corrects only the drive after the loops that measured it) and solve the graph again in batch",
+    )
 
     def noise(self) -> NoiseSettings:
         """The noise models in the graph's units (radians)."""
@@ -263,6 +268,7 @@ class _GraphBackend(_Backend):
         self.optimize_seconds = 0.0
         self.loops_dropped = 0
         self.resolved = False  # settle re-solved in batch (an iSAM2 solver still holds the loops taken out)
+        self.hindsight = False  # the final heading bias was taken off the whole drive
 
     def _add(
         self, frame: Frame, loops: LoopConstraints | None, odometry_scale: OdometryScale | None
@@ -309,6 +315,15 @@ class _GraphBackend(_Backend):
             self.resolve()
             self.resolved = True
             context.artifacts["settled_estimate"] = self.estimate()
+
+    def _hindsight(self) -> bool:
+        """The final heading bias taken off the whole drive (``odometry_yaw_bias_hindsight``); False if none moved."""
+        params = self.params
+        assert isinstance(params, GraphParams)
+        if not params.odometry_yaw_bias_hindsight:
+            return False
+        self.hindsight = self.graph.hindsight_heading_bias()
+        return self.hindsight
 
     def resolve(self) -> None:
         """Batch LM over the whole graph from the current estimate and from dead reckoning; the lower error wins.
@@ -375,6 +390,7 @@ class _GraphBackend(_Backend):
                 "sigma_deg_per_m": math.degrees(bias.sigma),
                 "loops": bias.loops,
                 "agreeing": bias.agreeing,
+                "hindsight": self.hindsight,
             }
         if self.prior is not None:
             out["prior_map"] = {"map_id": self.prior.map_id, "anchored": self.graph.anchored}
@@ -406,8 +422,9 @@ class GtsamLmBackend(_GraphBackend):
         if self.graph.timestamps:
             self._add_final_loops(context)
             dropped = self._drop_loops(context)
+            hindsight = self._hindsight()
             self.graph.take_new()
-            if dropped:
+            if dropped or hindsight:
                 self.resolve()
             else:
                 self.batch_optimize()
@@ -508,8 +525,9 @@ class Isam2Backend(_GraphBackend):
         """
         if self.graph.timestamps:
             final = self._add_final_loops(context)
-            if self._drop_loops(context):
-                # iSAM2 holds the loops taken back: the graph without them is solved in batch
+            dropped = self._drop_loops(context)
+            if self._hindsight() or dropped:
+                # iSAM2 holds the loops taken back, or the odometry before the hindsight: solved in batch
                 self.graph.take_new()
                 self.resolve()
             elif self.resolved:  # settle solved the graph without them in batch: so on

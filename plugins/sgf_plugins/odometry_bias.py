@@ -168,6 +168,13 @@ class HeadingBias:
         return float(grid[int(np.argmin(cost))])
 
 
+def with_heading_bias(odometry: np.ndarray, bias: float) -> np.ndarray:
+    """Odometry poses (N, 4, 4) with every step since the first turned by ``-bias`` (rad/m) times its length."""
+    fixed = HeadingBias(prior_sigma=1.0, odometry_sigma_yaw=1.0)
+    fixed.value = bias
+    return np.stack([fixed.correct(k, pose) for k, pose in enumerate(np.asarray(odometry, dtype=np.float64))])
+
+
 def _wrap(angles: np.ndarray) -> np.ndarray:
     """Angles (rad) wrapped into [-pi, pi)."""
     return (angles + math.pi) % (2.0 * math.pi) - math.pi

@@ -22,7 +22,7 @@ import numpy as np
 
 from sgf_pipeline.geometry import invert, rotation_rpy, xy_yaw
 from sgf_pipeline.types import Frame, LoopConstraint
-from sgf_plugins.odometry_bias import HeadingBias, ScaledOdometry
+from sgf_plugins.odometry_bias import HeadingBias, ScaledOdometry, with_heading_bias
 
 PoseKind = Literal["pose2", "pose3"]
 FREE_ROLL_PITCH = 0.1  # rad, first-pose prior on roll and pitch (observed by the IMU, not a gauge)
@@ -541,6 +541,24 @@ class PoseGraph:
                 bias.observe(frame_from, frame_to, yaw, variance)
                 k += 1
         self.heading_bias = bias
+        self._set_odometry(corrected)
+
+    def hindsight_heading_bias(self) -> bool:
+        """Take the heading bias now known off every odometry step from the first frame on; False if none is.
+
+        Online, a bias corrects only the drive after the loops that measured it; at the end of a run
+        the whole drive is known to share it. A loop far from the drive's start (a route whose first
+        revisit comes after kilometres) otherwise has to bend all the uncorrected drive back alone.
+        """
+        if self.heading_bias is None or self.heading_bias.value == 0.0 or not self.store.size:
+            return False
+        self._set_odometry(with_heading_bias(self._scaled[: self.store.size], self.heading_bias.value))
+        self.rebuild_new()
+        return True
+
+    def _set_odometry(self, corrected: np.ndarray) -> None:
+        """New odometry (N, 4, 4) of the processed frames: the nodes', the frames' offsets and the odometry factors."""
+        size = self.store.size
         if not self.pose3:
             corrected = np.stack([planar(pose) for pose in corrected])
         self._node_odometries = [corrected[self.store.rows[node]] for node in self.nodes]

@@ -137,12 +137,13 @@ class HuWindowParams(StageParams):
         "largest",
         description="which group gives the SGF: the largest (ties: higher mean saliency) or the most salient",
     )
-    view_choice: Literal["most_salient", "salient_near"] = Field(
+    view_choice: Literal["most_salient", "salient_near", "track_near"] = Field(
         "most_salient",
-        description="the group's view that becomes the SGF: the most salient (paper), or among views within "
-        "near_margin of it the nearest to the camera (the BEV is sharpest and most exact near the robot)",
+        description="the view that becomes the SGF: the chosen group's most salient (paper); among the group's views "
+        "within near_margin of it the nearest to the camera (salient_near: the BEV is sharpest and most exact near "
+        "the robot); or the nearest such view of the whole track (track_near: where every view is its own group)",
     )
-    near_margin: float = Field(0.1, ge=0.0, le=1.0, description="saliency margin of salient_near")
+    near_margin: float = Field(0.1, ge=0.0, le=1.0, description="saliency margin of salient_near and track_near")
     truth_min_fraction: float = Field(
         0.3, gt=0.0, le=1.0, description="share of a region a ground-truth marking must cover to label it"
     )
@@ -369,8 +370,9 @@ class HuMomentDetector(Stage):
         else:
             chosen = max(groups, key=mean_saliency)
         best = max(chosen, key=lambda v: v.region.saliency)
-        if self.params.view_choice == "salient_near":
-            near = [v for v in chosen if v.region.saliency >= best.region.saliency - self.params.near_margin]
+        if self.params.view_choice != "most_salient":
+            pool = chosen if self.params.view_choice == "salient_near" else [v for g in groups for v in g]
+            near = [v for v in pool if v.region.saliency >= best.region.saliency - self.params.near_margin]
             best = max(near, key=lambda v: float(v.region.pixels[:, 1].mean()))  # rows grow towards the robot
         region = best.region
         return SalientGroundFeature(
