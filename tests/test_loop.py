@@ -7,6 +7,8 @@ import itertools
 import math
 import re
 from dataclasses import replace
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -47,9 +49,12 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
         assert c.frame_from < c.frame_to and not c.from_map
         truth = invert(world.gt[c.frame_from]) @ world.gt[c.frame_to]
         x, y, yaw = xy_yaw(invert(truth) @ c.relative)
-        # within the covariance floor (5 cm, 1 deg): a yaw error moves the robot by its lever arm
-        assert math.hypot(x, y) < 0.05
-        assert abs(math.degrees(yaw)) < 1.0
+        # within 7 cm and 1.5 deg (a yaw error moves the robot by its lever arm), and well inside the
+        # constraint's own covariance (ICP's yaw probes widen it where the fit's heading is shallow)
+        assert math.hypot(x, y) < 0.07
+        assert abs(math.degrees(yaw)) < 1.5
+        error = np.array([x, y, yaw])
+        assert float(error @ np.linalg.solve(c.covariance, error)) < 2.0
         assert c.reverse == (abs(xy_yaw(truth)[2]) > math.pi / 2)
         assert np.all(np.diag(c.covariance) >= np.diag(floor))
         assert np.allclose(c.covariance, c.covariance.T)
@@ -817,7 +822,7 @@ def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
     for f in frames[:50]:
         loose.process(frame=f, assignments=None, estimate=None)
         tight.process(frame=f, assignments=None, estimate=None)
-    fits = loose._fits(loose._align(match), np.asarray(match.descriptor.points))
+    fits = loose._fits(*loose._align(match)[:1], np.asarray(match.descriptor.points))
     assert len(fits) == 2 and abs(abs(wrap_angle(fits[0].pose[2] - fits[1].pose[2])) - math.pi) < 0.02
     assert loose._evaluate(match, None) == "not_unique"
     c = tight._evaluate(match, None)
@@ -825,7 +830,7 @@ def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
     # an arrow has one fit
     arrow = Marking(1, "arrow", (12.0, 0.3, 0.2))
     single = GroupAssignment(_view(frames[49], arrow), 1, False, 0.01, 0, 0.0, _view(frames[9], arrow), False)  # type: ignore[arg-type]
-    assert len(tight._fits(tight._align(single), np.asarray(single.descriptor.points))) == 1
+    assert len(tight._fits(*tight._align(single)[:1], np.asarray(single.descriptor.points))) == 1
 
 
 @pytest.mark.parametrize("extra", [None, 0])
@@ -897,6 +902,34 @@ def test_fits_that_agree_on_the_place_but_not_the_heading_give_no_factor(limit: 
     # 5 degrees apart (an elongated marking's shallow valley) stay one fit under the default limit
     (one,) = IcpLoopClosing(IcpLoopParams())._fits([result(0.0, 0.018), result(math.radians(5.0), 0.019)], ring)
     assert math.degrees(math.atan2(one.transform[1, 0], one.transform[0, 0])) == pytest.approx(2.5)
+
+
+@pytest.mark.parametrize(("probe", "off_deg", "sigma_deg"), [(0.0, 5.78, 0.046), (5.0, 3.13, 2.86)])
+def test_seeds_probed_either_side_find_both_ends_of_a_shallow_valley(
+    probe: float, off_deg: float, sigma_deg: float
+) -> None:
+    # Two real SGFs of one direction sign (1.6 x 1 m) on the full-length campus_large_loop, seed 0 (frames
+    # 2094 and 13866): the first seen 3.6 to 5.1 m ahead, stretched by the BEV's range error, the second
+    # 2.6 to 4 m ahead. ICP's yaw has two stops: 0.2 degrees off the truth (RMS 0.0166 m), reached from
+    # seeds 4 degrees or more below it, and 5.8 degrees off (RMS 0.0134 m) from every seed above. The column
+    # shift's seed (0 degrees, the truth 0.66) reached only the second: a false loop by the 5 degree tolerance.
+    data = np.load(Path(__file__).parent / "data" / "direction_sign_far_views.npz")
+    matched, query = data["matched"].astype(np.float64), data["query"].astype(np.float64)
+
+    def sgf(points: np.ndarray, centroid: np.ndarray) -> SimpleNamespace:
+        return SimpleNamespace(points=points, centroid=centroid)
+
+    match = SimpleNamespace(
+        yaw=0.0, descriptor=sgf(query, data["query_centroid"]), matched=sgf(matched, data["matched_centroid"])
+    )
+    stage = IcpLoopClosing(IcpLoopParams(yaw_probe_deg=probe))
+    results, probed = stage._align(match)  # type: ignore[arg-type]
+    (fit,) = stage._fits(results, query, probed)
+    yaw_off = math.degrees(abs(wrap_angle(fit.pose[2] - float(data["truth"][2]))))
+    # probed 5 degrees either side, ICP stops at both ends (0.2 and 6.1 degrees off): their middle, 3.1 degrees off
+    # (within the tolerance), with a yaw sigma as wide as their spread instead of the Hessian's 0.05 degrees
+    assert yaw_off == pytest.approx(off_deg, abs=0.05)
+    assert math.degrees(math.sqrt(fit.covariance[2, 2])) == pytest.approx(sigma_deg, rel=0.1)
 
 
 @pytest.mark.parametrize(

@@ -6,7 +6,9 @@ pass), their point sets are aligned by 2-D ICP seeded by the relative yaw of the
 (so reverse loops converge) and by the centroids. ``GroupAssignment.yaw`` is read as the
 rotation (rad, counter-clockwise) that turns the new SGF's points about their centroid onto
 the matched SGF's; with ``seed_both_signs`` the opposite sign is tried too, so the
-association's sign convention does not matter (one more ICP of ~300 points, a few ms).
+association's sign convention does not matter (one more ICP of ~300 points, a few ms), and
+``yaw_probe_deg`` either side of each seed as well: a long, thin marking fixes its heading weakly,
+ICP stops on either wall of that shallow valley, and the loop takes the middle of its stops.
 A converged alignment with a low RMS residual and a high two-way inlier ratio becomes a
 relative-pose constraint between the two frames, unless the current estimate says it cannot
 be the same place (the gate below). Symmetric groups (a round manhole) never give loop factors.
@@ -81,6 +83,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Literal
 
@@ -116,6 +119,8 @@ from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, y
 _MAP = -1  # the prior map as one node of the anchoring graph
 #: Two ICP fits that put the query's points further apart than this (RMS, m) are distinct fits of one match.
 FIT_TOLERANCE_M = 0.25
+#: ...and closer than this (RMS, m) they are the same stop of ICP, counted once in their mean.
+SAME_FIT_M = 0.005
 #: Look-alike SGFs nearer each other than this (m) are one marking seen twice, not two copies of a pattern.
 COPY_MIN_SPACING_M = 0.5
 
@@ -148,6 +153,13 @@ class IcpLoopParams(StageParams):
     )
     extra_yaw_seeds: int = Field(
         1, ge=0, le=16, description="further seeds evenly spaced in yaw around the first (1: its half-turn alternative)"
+    )
+    yaw_probe_deg: float = Field(
+        5.0,
+        ge=0.0,
+        le=30.0,
+        description="ICP is also seeded this far (deg) either side of each yaw seed; what it finds there only refines "
+        "the seeds' own fits (the middle of a shallow valley in yaw, and its width in the covariance) (0: off)",
     )
     max_fit_spread_deg: float | None = Field(
         10.0,
@@ -751,7 +763,7 @@ class IcpLoopClosing(Stage):
                 return "separation"
         if min(len(query.points), len(matched.points)) < self.p.min_points:
             return "too_few_points"
-        results = self._align(a)
+        results, probed = self._align(a)
         if not results:
             return "icp"
         map_pose = np.asarray(matched.map_pose, dtype=np.float64) if isinstance(matched, MapDescriptor) else None
@@ -767,7 +779,7 @@ class IcpLoopClosing(Stage):
             assert map_pose is not None
             distance = self._anchored_distance(_MAP, j, estimate)
             predicted = (invert(map_pose) @ self._pose(j, estimate), self._drift(distance, j, estimate))
-        fits = self._fits(results, np.asarray(query.points, dtype=np.float64))
+        fits = self._fits(results, np.asarray(query.points, dtype=np.float64), probed)
         if not fits:
             return "icp"
         if predicted is not None:
@@ -1013,8 +1025,8 @@ class IcpLoopClosing(Stage):
 
     # -- ICP --------------------------------------------------------------------------------
 
-    def _align(self, a: GroupAssignment) -> list[IcpResult]:
-        """ICP from each yaw seed; the results that pass the acceptance tests."""
+    def _align(self, a: GroupAssignment) -> tuple[list[IcpResult], list[IcpResult]]:
+        """ICP from each yaw seed, and from its probes: the results of each that pass the acceptance tests."""
         assert a.matched is not None
         query, matched = a.descriptor, a.matched
         yaws = [float(a.yaw)]
@@ -1022,14 +1034,14 @@ class IcpLoopClosing(Stage):
             yaws.append(-float(a.yaw))
         n = self.p.extra_yaw_seeds
         yaws += [float(a.yaw) + 2.0 * math.pi * (k + 1) / (n + 1) for k in range(n)]
-        seeds: list[float] = []
-        for y in yaws:
-            if all(abs(wrap_angle(y - s)) > 1e-6 for s in seeds):
-                seeds.append(y)
+        seeds = _distinct_yaws(yaws, [])
+        probe = math.radians(self.p.yaw_probe_deg)
+        probes = _distinct_yaws([y + d for y in seeds for d in (-probe, probe)], seeds) if probe > 0.0 else []
         icp = Icp2d(np.asarray(matched.points, dtype=np.float64), self.settings)
         source = np.asarray(query.points, dtype=np.float64)
-        good, tried = [], []
-        for yaw in seeds:
+        passed: tuple[list[IcpResult], list[IcpResult]] = ([], [])
+        tried = []
+        for yaw in seeds + probes:
             r = icp.align(source, centroid_seed(query.centroid, matched.centroid, yaw))
             tried.append(r)
             if (
@@ -1038,10 +1050,10 @@ class IcpLoopClosing(Stage):
                 and r.inlier_ratio >= self.p.min_inlier_ratio
                 and _largest_sigma(r) <= self.p.degenerate_sigma
             ):
-                good.append(r)
-        if not good:
-            self._icp_detail = self._failed_fit(tried)
-        return good
+                passed[len(tried) > len(seeds)].append(r)
+        if not passed[0]:
+            self._icp_detail = self._failed_fit(tried[: len(seeds)])
+        return passed
 
     def _failure(self, test: str) -> str:
         """A failed test's name, with what ICP's best fit missed when it was ICP."""
@@ -1057,7 +1069,7 @@ class IcpLoopClosing(Stage):
             + ("" if r.converged else ", not converged")
         )
 
-    def _fits(self, results: list[IcpResult], points: np.ndarray) -> list[IcpResult]:
+    def _fits(self, results: list[IcpResult], points: np.ndarray, probed: Sequence[IcpResult] = ()) -> list[IcpResult]:
         """The distinct near-equal fits of a match (RMS within ``ambiguity_ratio`` of the best), best first.
 
         Several come from a twofold symmetric shape turned by 180 degrees, or from a row of
@@ -1066,6 +1078,9 @@ class IcpLoopClosing(Stage):
         robot, where a few degrees of yaw about the marking move the pose by its lever arm): ICP
         seeded from either side of a shallow valley (an elongated marking turned a little) stops
         on both sides of the truth, so one fit is their mean, its covariance widened by their spread.
+        The ``probed`` fits (from seeds a few degrees either side) join the seeds' fits they lie
+        within that tolerance of, and never make a fit of their own; the spread test
+        (``max_fit_spread_deg``) is on the seeds' fits alone.
         """
         best = min(r.fitness for r in results)
         clusters: list[list[IcpResult]] = []
@@ -1085,7 +1100,13 @@ class IcpLoopClosing(Stage):
                 # a marking nearly round (a ring-framed pick-up marker): its fits agree on the place, not the heading
                 self._icp_detail = f"fits of one alignment {apart:.1f} degrees apart ({limit:g} at most)"
                 return []
-        return [_merged(cluster) for cluster in clusters]
+        for r in probed:
+            if r.fitness > best * self.p.ambiguity_ratio:
+                continue
+            near = [c for c in clusters if _displacement(r.transform, c[0].transform, points) <= FIT_TOLERANCE_M]
+            if near:
+                near[0].append(r)
+        return [_merged(_distinct_fits(cluster, points)) for cluster in clusters]
 
     def _select(self, results: list[IcpResult], predicted: tuple[np.ndarray, np.ndarray] | None) -> IcpResult:
         """The first fit; among several (a twofold symmetric shape), the one nearest the prediction (gate off)."""
@@ -1569,15 +1590,38 @@ def _agreement(
 
 
 def _merged(fits: list[IcpResult]) -> IcpResult:
-    """One fit from ICP results of the same alignment: their mean pose, the best's covariance plus their spread."""
+    """One fit from ICP results of one alignment: the middle of their yaws, the best's covariance plus their spread.
+
+    The middle is the SE(2) mean of the two fits furthest apart in yaw (ICP stops on both walls of a
+    shallow valley; stops on one wall are not votes for it).
+    """
     if len(fits) == 1:
         return fits[0]
     first = fits[0].transform
     offsets = np.array([se2_params(invert(first) @ r.transform) for r in fits])
-    mean = first @ se2(*offsets.mean(axis=0))
+    ends = offsets[[int(np.argmin(offsets[:, 2])), int(np.argmax(offsets[:, 2]))]]
+    mean = first @ se2(*ends.mean(axis=0))
     spread = np.array([se2_params(invert(mean) @ r.transform) for r in fits])
     covariance = fits[0].covariance + spread.T @ spread / len(fits)
     return replace(fits[0], transform=mean, covariance=covariance)
+
+
+def _distinct_yaws(yaws: list[float], taken: list[float]) -> list[float]:
+    """``yaws`` without repeats (and without those in ``taken``), in order."""
+    out: list[float] = []
+    for y in yaws:
+        if all(abs(wrap_angle(y - s)) > 1e-6 for s in taken + out):
+            out.append(y)
+    return out
+
+
+def _distinct_fits(fits: list[IcpResult], points: np.ndarray) -> list[IcpResult]:
+    """``fits`` without those laying ``points`` within ``SAME_FIT_M`` of an earlier one (the same stop of ICP)."""
+    out: list[IcpResult] = []
+    for r in fits:
+        if all(_displacement(r.transform, o.transform, points) > SAME_FIT_M for o in out):
+            out.append(r)
+    return out
 
 
 def _yaw_spread(fits: list[IcpResult]) -> float:
