@@ -904,6 +904,30 @@ def test_fits_that_agree_on_the_place_but_not_the_heading_give_no_factor(limit: 
     assert math.degrees(math.atan2(one.transform[1, 0], one.transform[0, 0])) == pytest.approx(2.5)
 
 
+def test_probed_fits_only_refine_the_seeds_fits() -> None:
+    # a ring: ICP's stops from the probes agree with the seed's on the place, a few degrees apart in yaw
+    angles = np.linspace(0.0, 2 * math.pi, 120, endpoint=False)
+    ring = np.stack([0.4 * np.cos(angles), 0.4 * np.sin(angles)], axis=1)
+
+    def result(yaw_deg: float, fitness: float, x: float = 0.0) -> IcpResult:
+        return IcpResult(se2(x, 0.0, math.radians(yaw_deg)), True, 10, fitness, 1.0, np.eye(3) * 1e-6, len(ring))
+
+    loop = IcpLoopClosing(IcpLoopParams())
+    seed = result(0.0, 0.015)
+    # stops on one wall (4 degrees, and 4.1: the same stop, under a millimetre on the ring) and on the other (-2):
+    # the middle of the walls, 1 degree
+    probed = [result(4.0, 0.016), result(4.1, 0.0165), result(-2.0, 0.017)]
+    (one,) = loop._fits([seed], ring, probed)
+    assert math.degrees(one.pose[2]) == pytest.approx(1.0, abs=1e-6)
+    assert math.degrees(math.sqrt(one.covariance[2, 2])) > 2.0  # their spread, not ICP's 0.06 degrees
+    # a probe's stop elsewhere (1 m off) makes no fit of its own, one much worse than the seed's refines nothing,
+    # and the spread test is the seeds' alone (a probe 15 degrees off is no reason to refuse the match)
+    assert loop._fits([seed], ring, [result(0.0, 0.015, x=1.0)]) == [seed]
+    assert loop._fits([seed], ring, [result(3.0, 0.03)]) == [seed]
+    (wide,) = loop._fits([seed], ring, [result(15.0, 0.016)])
+    assert math.degrees(wide.pose[2]) == pytest.approx(7.5)
+
+
 @pytest.mark.parametrize(("probe", "off_deg", "sigma_deg"), [(0.0, 5.78, 0.046), (5.0, 3.13, 2.86)])
 def test_seeds_probed_either_side_find_both_ends_of_a_shallow_valley(
     probe: float, off_deg: float, sigma_deg: float

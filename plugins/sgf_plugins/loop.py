@@ -119,7 +119,7 @@ from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, y
 _MAP = -1  # the prior map as one node of the anchoring graph
 #: Two ICP fits that put the query's points further apart than this (RMS, m) are distinct fits of one match.
 FIT_TOLERANCE_M = 0.25
-#: ...and closer than this (RMS, m) they are the same stop of ICP, counted once in their mean.
+#: ...and closer than this (RMS, m) they are the same stop of ICP, counted once.
 SAME_FIT_M = 0.005
 #: Look-alike SGFs nearer each other than this (m) are one marking seen twice, not two copies of a pattern.
 COPY_MIN_SPACING_M = 0.5
@@ -1039,7 +1039,8 @@ class IcpLoopClosing(Stage):
         probes = _distinct_yaws([y + d for y in seeds for d in (-probe, probe)], seeds) if probe > 0.0 else []
         icp = Icp2d(np.asarray(matched.points, dtype=np.float64), self.settings)
         source = np.asarray(query.points, dtype=np.float64)
-        passed: tuple[list[IcpResult], list[IcpResult]] = ([], [])
+        good: list[IcpResult] = []
+        probed: list[IcpResult] = []
         tried = []
         for yaw in seeds + probes:
             r = icp.align(source, centroid_seed(query.centroid, matched.centroid, yaw))
@@ -1050,10 +1051,10 @@ class IcpLoopClosing(Stage):
                 and r.inlier_ratio >= self.p.min_inlier_ratio
                 and _largest_sigma(r) <= self.p.degenerate_sigma
             ):
-                passed[len(tried) > len(seeds)].append(r)
-        if not passed[0]:
+                (good if len(tried) <= len(seeds) else probed).append(r)
+        if not good:
             self._icp_detail = self._failed_fit(tried[: len(seeds)])
-        return passed
+        return good, probed
 
     def _failure(self, test: str) -> str:
         """A failed test's name, with what ICP's best fit missed when it was ICP."""
@@ -1077,10 +1078,10 @@ class IcpLoopClosing(Stage):
         ``FIT_TOLERANCE_M`` (RMS) of each other are one (measured on the marking, not at the
         robot, where a few degrees of yaw about the marking move the pose by its lever arm): ICP
         seeded from either side of a shallow valley (an elongated marking turned a little) stops
-        on both sides of the truth, so one fit is their mean, its covariance widened by their spread.
-        The ``probed`` fits (from seeds a few degrees either side) join the seeds' fits they lie
-        within that tolerance of, and never make a fit of their own; the spread test
-        (``max_fit_spread_deg``) is on the seeds' fits alone.
+        on both sides of the truth, so one fit is the middle of their stops (:func:`_merged`), its
+        covariance widened by their spread. The ``probed`` fits (from seeds a few degrees either
+        side) join the seeds' fits they lie within that tolerance of, and never make a fit of their
+        own; the spread test (``max_fit_spread_deg``) is on the seeds' fits alone.
         """
         best = min(r.fitness for r in results)
         clusters: list[list[IcpResult]] = []
