@@ -46,6 +46,22 @@ def test_odometry_starts_at_the_true_pose_and_drifts(delivery):
     assert 0.05 < np.abs(diff).mean() < 1.0 and np.abs(diff).max() < 1.5
 
 
+def test_another_odometry_seed_is_a_second_session_of_the_same_world(delivery):
+    # the same drive, markings and camera images; only the wheel odometry's and the IMU's noise differ
+    second = build_world("campus_delivery", seed=0, odometry_seed=1)
+    assert np.array_equal(second.drive.poses, delivery.drive.poses)
+    assert [(m.x, m.y, m.yaw) for m in second.layout.markings] == [(m.x, m.y, m.yaw) for m in delivery.layout.markings]
+    assert np.array_equal(second.frame(100).image, delivery.frame(100).image)
+    odo, first = second.sensors.odometry, delivery.sensors.odometry
+    assert np.array_equal(odo[0], first[0])  # both start at the true start pose
+    apart = np.linalg.norm(odo[:, :3, 3] - first[:, :3, 3], axis=1)
+    assert apart[-1] > 0.5  # drifted another way
+    assert not np.allclose(second.sensors.imu_roll_pitch, delivery.sensors.imu_roll_pitch)
+    # null is the world's seed
+    same = build_world("campus_delivery", seed=0, odometry_seed=0)
+    assert np.array_equal(same.sensors.odometry, first)
+
+
 def test_large_loop_odometry_error_is_in_the_papers_range():
     world = build_world("campus_large_loop", seed=0)
     drive = world.drive

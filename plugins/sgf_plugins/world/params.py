@@ -27,6 +27,11 @@ class WorldParams(StageParams):
     camera_tilt_deg: float = Field(25.0, ge=5.0, le=70.0, description="camera tilt below the horizon (deg)")
     speed_min: float = Field(1.0, gt=0.0, description="slowest cruising speed (m/s)")
     speed_max: float = Field(1.5, gt=0.0, description="fastest cruising speed (m/s)")
+    odometry_seed: int | None = Field(
+        None,
+        description="seed of the wheel odometry's and the IMU's noise alone (null: seed); another value drives the "
+        "same world, route and camera images with other sensor noise: a second session",
+    )
     odometry_scale_error: float = Field(0.012, description="relative error of the wheel distance")
     odometry_yaw_bias_deg_per_m: float = Field(0.07, ge=0.0, description="heading drift per metre driven (deg/m)")
     odometry_yaw_random_walk_deg_per_m: float = Field(

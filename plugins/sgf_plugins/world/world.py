@@ -90,7 +90,7 @@ class CampusWorld:
             imu_noise_deg=p.imu_noise_deg,
             imu_bias_deg=p.imu_bias_deg,
         )
-        return simulate_sensors(self.drive, model, p.seed)
+        return simulate_sensors(self.drive, model, p.seed if p.odometry_seed is None else p.odometry_seed)
 
     @cached_property
     def truth(self) -> SequenceTruth:
