@@ -57,7 +57,7 @@ def test_another_odometry_seed_is_a_second_session_of_the_same_world(delivery):
     apart = np.linalg.norm(odo[:, :3, 3] - first[:, :3, 3], axis=1)
     assert apart[-1] > 0.5  # drifted another way
     assert not np.allclose(second.sensors.imu_roll_pitch, delivery.sensors.imu_roll_pitch)
-    # null is the world's seed
+    # the world's own seed gives the default's odometry (null stands for it)
     same = build_world("campus_delivery", seed=0, odometry_seed=0)
     assert np.array_equal(same.sensors.odometry, first)
 
