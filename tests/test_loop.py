@@ -822,7 +822,7 @@ def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
     for f in frames[:50]:
         loose.process(frame=f, assignments=None, estimate=None)
         tight.process(frame=f, assignments=None, estimate=None)
-    fits = loose._fits(*loose._align(match)[:1], np.asarray(match.descriptor.points))
+    fits = loose._fits(loose._align(match)[0], np.asarray(match.descriptor.points))
     assert len(fits) == 2 and abs(abs(wrap_angle(fits[0].pose[2] - fits[1].pose[2])) - math.pi) < 0.02
     assert loose._evaluate(match, None) == "not_unique"
     c = tight._evaluate(match, None)
@@ -830,7 +830,7 @@ def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
     # an arrow has one fit
     arrow = Marking(1, "arrow", (12.0, 0.3, 0.2))
     single = GroupAssignment(_view(frames[49], arrow), 1, False, 0.01, 0, 0.0, _view(frames[9], arrow), False)  # type: ignore[arg-type]
-    assert len(tight._fits(*tight._align(single)[:1], np.asarray(single.descriptor.points))) == 1
+    assert len(tight._fits(tight._align(single)[0], np.asarray(single.descriptor.points))) == 1
 
 
 @pytest.mark.parametrize("extra", [None, 0])

@@ -1026,7 +1026,7 @@ class IcpLoopClosing(Stage):
     # -- ICP --------------------------------------------------------------------------------
 
     def _align(self, a: GroupAssignment) -> tuple[list[IcpResult], list[IcpResult]]:
-        """ICP from each yaw seed, and from its probes: the results of each that pass the acceptance tests."""
+        """ICP from each yaw seed, then (when one passed) from its probes: the results of each that pass the tests."""
         assert a.matched is not None
         query, matched = a.descriptor, a.matched
         yaws = [float(a.yaw)]
@@ -1035,26 +1035,32 @@ class IcpLoopClosing(Stage):
         n = self.p.extra_yaw_seeds
         yaws += [float(a.yaw) + 2.0 * math.pi * (k + 1) / (n + 1) for k in range(n)]
         seeds = _distinct_yaws(yaws, [])
-        probe = math.radians(self.p.yaw_probe_deg)
-        probes = _distinct_yaws([y + d for y in seeds for d in (-probe, probe)], seeds) if probe > 0.0 else []
         icp = Icp2d(np.asarray(matched.points, dtype=np.float64), self.settings)
         source = np.asarray(query.points, dtype=np.float64)
-        good: list[IcpResult] = []
-        probed: list[IcpResult] = []
-        tried = []
-        for yaw in seeds + probes:
-            r = icp.align(source, centroid_seed(query.centroid, matched.centroid, yaw))
-            tried.append(r)
-            if (
-                r.converged
-                and r.fitness <= self.p.max_fitness
-                and r.inlier_ratio >= self.p.min_inlier_ratio
-                and _largest_sigma(r) <= self.p.degenerate_sigma
-            ):
-                (good if len(tried) <= len(seeds) else probed).append(r)
+
+        def from_seeds(yaws: list[float]) -> tuple[list[IcpResult], list[IcpResult]]:
+            tried = [icp.align(source, centroid_seed(query.centroid, matched.centroid, y)) for y in yaws]
+            return [r for r in tried if self._passes(r)], tried
+
+        good, tried = from_seeds(seeds)
         if not good:
-            self._icp_detail = self._failed_fit(tried[: len(seeds)])
+            self._icp_detail = self._failed_fit(tried)
+            return [], []
+        probe = math.radians(self.p.yaw_probe_deg)
+        if probe == 0.0:
+            return good, []
+        # probes only refine the seeds' fits: without one to refine they are not run
+        probed, _ = from_seeds(_distinct_yaws([y + d for y in seeds for d in (-probe, probe)], seeds))
         return good, probed
+
+    def _passes(self, r: IcpResult) -> bool:
+        """Whether an ICP result passes the acceptance tests: converged, RMS, two-way inliers, not degenerate."""
+        return (
+            r.converged
+            and r.fitness <= self.p.max_fitness
+            and r.inlier_ratio >= self.p.min_inlier_ratio
+            and _largest_sigma(r) <= self.p.degenerate_sigma
+        )
 
     def _failure(self, test: str) -> str:
         """A failed test's name, with what ICP's best fit missed when it was ICP."""
@@ -1104,9 +1110,11 @@ class IcpLoopClosing(Stage):
         for r in probed:
             if r.fitness > best * self.p.ambiguity_ratio:
                 continue
-            near = [c for c in clusters if _displacement(r.transform, c[0].transform, points) <= FIT_TOLERANCE_M]
-            if near:
-                near[0].append(r)
+            joined = next(
+                (c for c in clusters if _displacement(r.transform, c[0].transform, points) <= FIT_TOLERANCE_M), None
+            )
+            if joined is not None:
+                joined.append(r)
         return [_merged(_distinct_fits(cluster, points)) for cluster in clusters]
 
     def _select(self, results: list[IcpResult], predicted: tuple[np.ndarray, np.ndarray] | None) -> IcpResult:
@@ -1601,10 +1609,10 @@ def _merged(fits: list[IcpResult]) -> IcpResult:
     first = fits[0].transform
     offsets = np.array([se2_params(invert(first) @ r.transform) for r in fits])
     ends = offsets[[int(np.argmin(offsets[:, 2])), int(np.argmax(offsets[:, 2]))]]
-    mean = first @ se2(*ends.mean(axis=0))
-    spread = np.array([se2_params(invert(mean) @ r.transform) for r in fits])
+    middle = first @ se2(*ends.mean(axis=0))
+    spread = np.array([se2_params(invert(middle) @ r.transform) for r in fits])
     covariance = fits[0].covariance + spread.T @ spread / len(fits)
-    return replace(fits[0], transform=mean, covariance=covariance)
+    return replace(fits[0], transform=middle, covariance=covariance)
 
 
 def _distinct_yaws(yaws: list[float], taken: list[float]) -> list[float]:
