@@ -1,4 +1,4 @@
-"""The Fig. 10 picture: a folder-format sequence over a speed bump, plain IPM vs MC-IPM."""
+"""The Fig. 10 picture: a folder-format sequence over a speed bump, plain IPM vs MC-IPM, by command and in a run."""
 
 from __future__ import annotations
 
@@ -8,8 +8,9 @@ import cv2
 import numpy as np
 import pytest
 from ipm_scene import GroundScene, render, scene_calibration
-from sgf_plugins.ipm.figure import PANEL, main, read_sequence
+from sgf_plugins.ipm.figure import PANEL, RUN_FIGURE, figure_from_frames, main, read_sequence
 
+from sgf_pipeline import Pipeline, load_plugins
 from sgf_pipeline.folder_format import FolderDatasetWriter
 from sgf_pipeline.geometry import pose_from_xyz_rpy
 
@@ -57,3 +58,28 @@ def test_the_figure_command_reports_bad_input(tmp_path: Path, capsys) -> None:
     assert main([str(tmp_path), "--frame", "0", "--out", str(tmp_path / "x.png")]) == 1
     assert "no images" in capsys.readouterr().err
     assert not (tmp_path / "x.png").exists()
+
+
+def _run_over_the_bump(sequence: Path, run_dir: Path, ipm: str, plots: bool = True) -> None:
+    plugins = load_plugins(allow=["dataset_folder", "enhance", "ipm", "ipm_figure"])
+    config = {
+        "pipeline": ["dataset", "enhance", "ipm"],
+        "dataset": {"name": "folder", "path": str(sequence)},
+        "enhance": {"name": "none"},
+        "ipm": {"name": ipm},
+        "run": {"progress": False, "plots": plots},
+    }
+    Pipeline.from_config(config, run_dir=run_dir, plugins=plugins).run()
+
+
+def test_a_run_with_mc_ipm_draws_the_frame_it_compensated_most(bump_sequence: Path, tmp_path: Path) -> None:
+    _run_over_the_bump(bump_sequence, tmp_path / "mc", "mc")
+    drawn = cv2.imread(str(tmp_path / "mc" / RUN_FIGURE))
+    # frames 11 and 12 pitch by 0.06 rad either way, the most of the drive: the first of them is drawn
+    expected = figure_from_frames(read_sequence(bump_sequence), 11)
+    np.testing.assert_array_equal(cv2.cvtColor(drawn, cv2.COLOR_BGR2RGB), expected)
+    assert not (figure_from_frames(read_sequence(bump_sequence), 10) == expected).all()
+    # plain IPM has nothing to compare, and a run without plots draws nothing
+    _run_over_the_bump(bump_sequence, tmp_path / "plain", "plain")
+    _run_over_the_bump(bump_sequence, tmp_path / "quiet", "mc", plots=False)
+    assert not (tmp_path / "plain" / RUN_FIGURE).exists() and not (tmp_path / "quiet" / RUN_FIGURE).exists()

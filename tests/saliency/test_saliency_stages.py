@@ -242,6 +242,7 @@ def test_sod_eval_runs_models_on_a_folder(
         "data": {"root": str(toy_folder), "split": "test", "resolution": 0.08},
         "save_predictions": True,
         "warmup": 1,
+        "examples": 2,
     }
     results = sod_eval_run(cfg, tmp_path)
     for model in ("classical", "u2net"):
@@ -249,6 +250,19 @@ def test_sod_eval_runs_models_on_a_folder(
         assert r["fps"] > 0 and r["images"] == 3 and r["split"] == "test"
         assert set(r) >= {"maxF", "meanF", "adpF", "mae", "sm", "em", "fps"}
         assert len(list((tmp_path / "preds" / model).glob("*.png"))) == 3
+    # the figure: two samples of the split with an object, their masks and both models' saved maps
+    from sgf_plugins.saliency.data import SodFolder
+    from sgf_plugins.saliency.figures import Example, example_grid, example_names
+
+    sod = SodFolder(toy_folder)
+    names = example_names(sod.split("test"), lambda n: int((sod.mask(n) > 128).sum()), 2)
+    assert len(names) == 2
+    saved = {
+        m: {n: cv2.imread(str(tmp_path / "preds" / m / f"{n}.png"), 0) for n in names} for m in ("classical", "u2net")
+    }
+    rows = [Example(n, sod.image(n), sod.mask(n), {m: saved[m][n] for m in saved}) for n in names]
+    figure = cv2.cvtColor(cv2.imread(str(tmp_path / "sod_examples.png")), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(figure, example_grid(rows, ["classical", "u2net"]))
     with pytest.raises(ConfigError, match="nothing to evaluate"):
         sod_eval_run({}, tmp_path)
     with pytest.raises(ConfigError, match="unknown variant"):

@@ -3,6 +3,10 @@
 ``python -m sgf_plugins.ipm.figure SEQUENCE_DIR --frame N --out fig10.png`` reads a sequence in
 the project's folder format (what ``sgf-world`` writes), runs both IPM variants over frames
 ``0..N`` (MC-IPM needs the pose queue) and writes camera | IPM | MC-IPM as one PNG.
+
+In a run whose IPM compensates the robot's motion, an observer keeps the keyframe it compensated
+most (the largest roll and pitch it applied) and writes that frame's figure as
+``ipm_comparison.png`` in the run directory at the end, which ``sgf-report`` shows.
 """
 
 from __future__ import annotations
@@ -10,14 +14,18 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
+from sgf_pipeline import hookimpl
 from sgf_pipeline.errors import DataError, SgfError
 from sgf_pipeline.folder_format import read_calibration_yaml
 from sgf_pipeline.io import atomic_write_bytes
+from sgf_pipeline.runner import RunInfo, StageNode
 from sgf_pipeline.trajectory import TrajectoryError, read_tum
 from sgf_pipeline.types import Bev, CameraImage, Frame
 from sgf_plugins.ipm.stages import (
@@ -28,6 +36,7 @@ from sgf_plugins.ipm.stages import (
 )
 
 PANEL = 384  # pixels of each panel's height
+RUN_FIGURE = "ipm_comparison.png"
 
 
 def _rgb(image: np.ndarray) -> np.ndarray:
@@ -112,13 +121,17 @@ def read_sequence(root: str | Path) -> Iterator[Frame]:
         yield Frame(i, float(odometry.timestamps[i]), image, odometry.poses[i], calibration, attitude)
 
 
+def plain_params(params: IpmParams) -> IpmParams:
+    """The plain-IPM parameters of an IPM stage's (the same grid and resampling)."""
+    return IpmParams(**{k: getattr(params, k) for k in IpmParams.model_fields})
+
+
 def figure_from_frames(
     frames: Iterator[Frame], index: int, params: MotionCompensatedIpmParams | None = None
 ) -> np.ndarray:
     """Run MC-IPM over frames ``0..index`` and return the comparison figure of frame ``index``."""
     mc_params = params or MotionCompensatedIpmParams()
-    plain_params = IpmParams(**{k: getattr(mc_params, k) for k in IpmParams.model_fields})
-    plain, mc = InversePerspectiveMapping(plain_params), MotionCompensatedIPM(mc_params)
+    plain, mc = InversePerspectiveMapping(plain_params(mc_params)), MotionCompensatedIPM(mc_params)
     for frame in frames:
         image = CameraImage(_rgb(frame.image), frame.index)
         if frame.index < index:
@@ -126,6 +139,68 @@ def figure_from_frames(
             continue
         return comparison_figure(frame.image, plain.process(frame, image), mc.process(frame, image))
     raise DataError(f"the sequence ends before frame {index}")
+
+
+@dataclass
+class _Compensated:
+    """The keyframe a run's MC-IPM compensated most so far, with what its figure needs."""
+
+    size: float
+    frame: Frame
+    image: CameraImage
+    bev: Bev
+    params: IpmParams
+
+
+class IpmFigureObserver:
+    """Writes Fig. 10 of the keyframe a run's motion-compensated IPM compensated most."""
+
+    def __init__(self) -> None:
+        self._images: dict[int, CameraImage] = {}
+        self._best: dict[int, _Compensated] = {}
+
+    @hookimpl
+    def sgf_run_start(self, run: RunInfo) -> None:
+        """Start with nothing kept."""
+        self._images.pop(id(run), None)
+        self._best.pop(id(run), None)
+
+    @hookimpl
+    def sgf_after_stage(self, run: RunInfo, stage: StageNode, frame: Frame, output: Any, seconds: float) -> None:
+        """Keep the image IPM warps, and the frame with the largest compensation."""
+        if run.run_dir is None or not getattr(run.options, "plots", True):
+            return
+        if isinstance(output, CameraImage):
+            self._images[id(run)] = output
+            return
+        ipm = stage.stage
+        if not isinstance(output, Bev) or not isinstance(ipm, MotionCompensatedIPM):
+            return
+        image = self._images.get(id(run))  # what this IPM warped: the stage before it made it
+        if image is None or image.frame_index != frame.index:
+            return
+        size = float(np.hypot(output.roll, output.pitch))
+        best = self._best.get(id(run))
+        if best is None or size > best.size:
+            self._best[id(run)] = _Compensated(size, frame, image, output, ipm.params)
+
+    @hookimpl
+    def sgf_run_end(self, run: RunInfo, metrics: dict[str, Any]) -> None:
+        """Write ipm_comparison.png: camera | plain IPM | the run's MC-IPM of that keyframe."""
+        best = self._best.pop(id(run), None)
+        self._images.pop(id(run), None)
+        if best is None or run.run_dir is None:
+            return
+        plain = InversePerspectiveMapping(plain_params(best.params)).process(best.frame, best.image)
+        save_png(run.run_dir / RUN_FIGURE, comparison_figure(best.frame.image, plain, best.bev))
+
+
+_OBSERVER = IpmFigureObserver()
+
+# pluggy registers this module (entry point ``ipm_figure``); its hook implementations are these names.
+sgf_run_start = _OBSERVER.sgf_run_start
+sgf_after_stage = _OBSERVER.sgf_after_stage
+sgf_run_end = _OBSERVER.sgf_run_end
 
 
 def main(argv: Sequence[str] | None = None) -> int:

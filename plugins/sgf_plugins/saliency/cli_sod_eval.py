@@ -20,9 +20,11 @@ from sgf_pipeline.errors import ConfigError, DataError
 from sgf_pipeline.io import atomic_write_json
 from sgf_pipeline.types import Bev, BevGrid
 from sgf_plugins.saliency.data import IMAGE_SUFFIXES, SodFolder, write_png
+from sgf_plugins.saliency.figures import Example, example_names, write_examples
 from sgf_plugins.saliency.metrics import SodMetrics, format_table, to_uint8
 
 OUTPUT = "sod_metrics.json"
+EXAMPLES = "sod_examples.png"
 
 
 def _summary(acc: SodMetrics, fps: float | None, **extra: Any) -> dict[str, Any]:
@@ -72,8 +74,12 @@ def evaluate_models(
     threads: int | None = None,
     warmup: int = 2,
     save_dir: Path | None = None,
+    examples: Mapping[str, Example] | None = None,
 ) -> dict[str, dict[str, Any]]:
-    """Run each registered saliency variant on the samples and measure SOD metrics and frames per second."""
+    """Run each registered saliency variant on the samples and measure SOD metrics and frames per second.
+
+    ``examples`` (by name) receive each model's map of their sample, for the figure.
+    """
     from sgf_pipeline.registry import load_plugins
 
     registry = load_plugins().registry
@@ -101,6 +107,8 @@ def evaluate_models(
             acc.add_probability(out.probability, folder.mask(name))
             if save_dir is not None:
                 write_png(save_dir / model / f"{name}.png", to_uint8(out.probability))
+            if examples is not None and name in examples:
+                examples[name].maps[model] = to_uint8(out.probability)
         results[model] = _summary(acc, len(names) / seconds if seconds > 0 else None, source=str(folder.root))
     return results
 
@@ -136,6 +144,8 @@ def run(cfg: Mapping[str, Any], out_dir: Path) -> dict[str, dict[str, Any]]:
         if not names:
             raise DataError(f"{sod.root}: split {data.get('split')!r} is empty")
         save_dir = out_dir / "preds" if cfg.get("save_predictions") else None
+        chosen = example_names(names, lambda n: int((sod.mask(n) > 128).sum()), int(cfg.get("examples") or 0))
+        examples = {n: Example(n, sod.image(n), sod.mask(n)) for n in chosen}
         found = evaluate_models(
             models,
             sod,
@@ -145,9 +155,12 @@ def run(cfg: Mapping[str, Any], out_dir: Path) -> dict[str, dict[str, Any]]:
             cfg.get("threads"),
             int(cfg.get("warmup", 2)),
             save_dir,
+            examples,
         )
         for model, values in found.items():
             results[model] = {**values, "split": data.get("split")}
+        if examples:
+            write_examples(out_dir / EXAMPLES, list(examples.values()), models)
     atomic_write_json(out_dir / OUTPUT, results)
     return results
 
@@ -162,6 +175,8 @@ def app(cfg: DictConfig) -> None:
     results = run({str(k): v for k, v in raw.items()}, out_dir)
     print(format_table(results))
     print(f"\n  {out_dir / OUTPUT}", flush=True)
+    if (out_dir / EXAMPLES).is_file():
+        print(f"  {out_dir / EXAMPLES}", flush=True)
 
 
 #: The console script.
