@@ -20,7 +20,7 @@ TOP_LEVEL_KEYS = ("pipeline", "run", "plugins", "map")
 #: The paper's pipeline, in data-flow order (DESIGN.md section 1).
 PAPER_STAGES = ("dataset", "enhance", "ipm", "saliency", "detector", "descriptor", "association", "loop", "backend")
 
-#: Stage kinds the shipped default config runs besides the paper's (extensions, docs/results.md).
+#: Stage kinds the shipped default config runs besides the paper's (extensions, docs/measurements.md).
 EXTENSION_STAGES = ("odometry_scale",)
 
 

@@ -37,11 +37,11 @@ through the neighbour consensus (:meth:`IcpLoopClosing._support`): the SGFs seen
 into the earlier pass, must land on look-alike SGFs of that pass (with ``consensus_heading_deg``
 set, look-alike at the heading the match predicts for them, and a neighbour that looks alike
 turned half a turn too, a bar or a disc, fixes no heading and counts
-``consensus_unoriented_weight``; off by default, see docs/results.md). A neighbour of a common
+``consensus_unoriented_weight``; off by default, see docs/measurements.md). A neighbour of a common
 design (look-alikes in more than ``consensus_common_groups`` other groups, 3 by default) counts that
 limit over their number: a wrong match finds copies of a common design where it predicts them by
 chance, and at a crossing laid out like another one, several at once (it can also refuse a true
-loop whose one agreeing neighbour is common; docs/results.md). The one option with at
+loop whose one agreeing neighbour is common; docs/measurements.md). The one option with at
 least ``tie_support`` agreeing markings wins; none or several, and the match gives no factor.
 ``min_support`` asks the same of every loop, except a match into a distinct marking: one the
 query looks like (eq. 10 within ``consensus_distance``) while no SGF of any other group comes within
