@@ -7,6 +7,7 @@ import io
 import logging
 import math
 import traceback
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -138,6 +139,18 @@ def write_run(pipeline: Pipeline, trajectories: dict[str, Trajectory], metrics: 
         plot_trajectories(run_dir / "trajectory.png", trajectories, metrics, loops)
         atomic_write_text(run_dir / "report.md", render_report(metrics, loops))
     atomic_write_json(run_dir / "metrics.json", metrics)
+
+
+def link_figures(run_dir: Path) -> list[str]:
+    """Add the figures the observers drew at the end of the run (the PNGs beside the plot) to report.md."""
+    report = run_dir / "report.md"
+    if not report.is_file():
+        return []
+    figures = sorted(p.name for p in run_dir.glob("*.png") if p.name != "trajectory.png")
+    if figures:
+        section = "\n".join(f"![{name[:-4]}]({name})\n" for name in figures)
+        atomic_write_text(report, report.read_text().rstrip("\n") + "\n\n## Figures\n\n" + section)
+    return figures
 
 
 def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:

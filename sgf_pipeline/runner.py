@@ -529,6 +529,9 @@ class Pipeline:
             self._written = True
         self.release()
         self.plugins.manager.hook.sgf_run_end(run=self.info, metrics=metrics)
+        if self._written and self.config.run.plots:
+            assert self.run_dir is not None
+            outputs.link_figures(self.run_dir)  # what the observers drew at the end
         return metrics
 
     def _write_failure(self, exc: BaseException) -> None:

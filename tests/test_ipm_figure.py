@@ -79,6 +79,7 @@ def test_a_run_with_mc_ipm_draws_the_frame_it_compensated_most(bump_sequence: Pa
     expected = figure_from_frames(read_sequence(bump_sequence), 11)
     np.testing.assert_array_equal(cv2.cvtColor(drawn, cv2.COLOR_BGR2RGB), expected)
     assert not (figure_from_frames(read_sequence(bump_sequence), 10) == expected).all()
+    assert "![ipm_comparison](ipm_comparison.png)" in (tmp_path / "mc" / "report.md").read_text()
     # plain IPM has nothing to compare, and a run without plots draws nothing
     _run_over_the_bump(bump_sequence, tmp_path / "plain", "plain")
     _run_over_the_bump(bump_sequence, tmp_path / "quiet", "mc", plots=False)

@@ -23,6 +23,10 @@ def test_figures_of_selected_sgfs_and_groups(recorded, tmp_path: Path):  # noqa:
     # The outlines are drawn in saturated group colours, which the grey synthetic BEVs do not have.
     hsv = cv2.cvtColor(frames, cv2.COLOR_BGR2HSV)
     assert np.count_nonzero(hsv[:, :, 1] > 150) > 500
+    # the run's report shows them under the trajectories, once each
+    report = (run_dir / "report.md").read_text()
+    assert report.count("![sgf_frames](sgf_frames.png)") == 1 and report.count("![sgf_groups](sgf_groups.png)") == 1
+    assert report.index("![trajectories](trajectory.png)") < report.index("## Figures") < report.index("sgf_frames.png")
 
 
 def test_no_figures_without_plots(recorded, tmp_path: Path):  # noqa: F811
