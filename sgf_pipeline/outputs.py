@@ -141,16 +141,13 @@ def write_run(pipeline: Pipeline, trajectories: dict[str, Trajectory], metrics: 
     atomic_write_json(run_dir / "metrics.json", metrics)
 
 
-def link_figures(run_dir: Path) -> list[str]:
+def link_figures(run_dir: Path) -> None:
     """Add the figures the observers drew at the end of the run (the PNGs beside the plot) to report.md."""
     report = run_dir / "report.md"
-    if not report.is_file():
-        return []
     figures = sorted(p.name for p in run_dir.glob("*.png") if p.name != "trajectory.png")
-    if figures:
+    if report.is_file() and figures:
         section = "\n".join(f"![{name[:-4]}]({name})\n" for name in figures)
         atomic_write_text(report, report.read_text().rstrip("\n") + "\n\n## Figures\n\n" + section)
-    return figures
 
 
 def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:

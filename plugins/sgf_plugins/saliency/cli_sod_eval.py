@@ -134,18 +134,25 @@ def run(cfg: Mapping[str, Any], out_dir: Path) -> dict[str, dict[str, Any]]:
         sod = SodFolder(data["root"])
         names = sod.split(str(data.get("split", "test")))
         min_pixels = int(data.get("min_salient_pixels") or 0)
+        count = int(cfg.get("examples") or 0)
+        salient: dict[str, int] = {}
+
+        def salient_pixels(name: str) -> int:  # each mask read once for the filter and the figure
+            if name not in salient:
+                salient[name] = int((sod.mask(name) > 128).sum())
+            return salient[name]
+
         if min_pixels > 0:
             # SOD benchmarks have a salient object in every image: an image whose mask is empty scores
             # F = 0 at every threshold, and a marking that barely entered the view is not an object yet.
-            names = [n for n in names if int((sod.mask(n) > 128).sum()) >= min_pixels]
+            names = [n for n in names if salient_pixels(n) >= min_pixels]
         limit = data.get("max_images")
         if limit is not None and len(names) > int(limit):
             names = names[:: max(1, len(names) // int(limit))][: int(limit)]  # spread over the whole split
         if not names:
             raise DataError(f"{sod.root}: split {data.get('split')!r} is empty")
         save_dir = out_dir / "preds" if cfg.get("save_predictions") else None
-        chosen = example_names(names, lambda n: int((sod.mask(n) > 128).sum()), int(cfg.get("examples") or 0))
-        examples = {n: Example(n, sod.image(n), sod.mask(n)) for n in chosen}
+        examples = {n: Example(n, sod.image(n), sod.mask(n)) for n in example_names(names, salient_pixels, count)}
         found = evaluate_models(
             models,
             sod,
