@@ -267,6 +267,13 @@ def test_sod_eval_runs_models_on_a_folder(
         sod_eval_run({}, tmp_path)
     with pytest.raises(ConfigError, match="unknown variant"):
         sod_eval_run({"models": ["nope"], "data": {"root": str(toy_folder)}}, tmp_path)
+    # a mistyped option fails before any model runs, naming the key
+    with pytest.raises(ConfigError, match=r"sgf-sod-eval\.examples: .*got 'many'"):
+        sod_eval_run({**cfg, "examples": "many"}, tmp_path)
+    with pytest.raises(ConfigError, match=r"sgf-sod-eval\.data\.splt: unknown parameter"):
+        sod_eval_run({**cfg, "data": {"root": str(toy_folder), "splt": "val"}}, tmp_path)
+    with pytest.raises(ConfigError, match=r"sgf-sod-eval\.warmup: .*greater than or equal to 0"):
+        sod_eval_run({**cfg, "warmup": -1}, tmp_path)
 
 
 # -- in a pipeline ------------------------------------------------------------------------------

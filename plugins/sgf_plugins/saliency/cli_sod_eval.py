@@ -12,10 +12,11 @@ import hydra
 import numpy as np
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
+from pydantic import BaseModel, ConfigDict, Field
 
 from sgf_pipeline import Stage
 from sgf_pipeline.cli.common import console, friendly_errors
-from sgf_pipeline.config import config_dir
+from sgf_pipeline.config import config_dir, validate_options
 from sgf_pipeline.errors import ConfigError, DataError
 from sgf_pipeline.io import atomic_write_json
 from sgf_pipeline.types import Bev, BevGrid
@@ -25,6 +26,34 @@ from sgf_plugins.saliency.metrics import SodMetrics, format_table, to_uint8
 
 OUTPUT = "sod_metrics.json"
 EXAMPLES = "sod_examples.png"
+
+
+class SodEvalData(BaseModel):
+    """The SOD folder that ``models`` run on (``data`` of conf/sgf_sod_eval.yaml)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    root: str | None = Field(None, description="SOD folder with images/ and masks/")
+    split: str = Field("test", description="train | val | test | test_heldout | all")
+    resolution: float = Field(0.02, gt=0.0, description="metres per BEV pixel (the classical detector's scale)")
+    max_images: int | None = Field(None, ge=1, description="at most this many images, spread over the split")
+    min_salient_pixels: int = Field(0, ge=0, description="leave out images whose mask has fewer salient pixels")
+
+
+class SodEvalOptions(BaseModel):
+    """The options of ``sgf-sod-eval`` (conf/sgf_sod_eval.yaml)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    preds: dict[str, str] = Field(default_factory=dict, description="name -> folder of saved predictions")
+    masks: str | None = Field(None, description="folder of ground-truth masks for preds")
+    models: list[str] = Field(default_factory=list, description="saliency variants to run on data.root")
+    params: dict[str, dict[str, Any]] = Field(default_factory=dict, description="per-model parameter overrides")
+    data: SodEvalData = Field(default_factory=SodEvalData)
+    save_predictions: bool = False
+    examples: int = Field(6, ge=0, description="rows of sod_examples.png (0 = no figure)")
+    threads: int | None = Field(None, ge=1, description="intra-op threads of the networks")
+    warmup: int = Field(2, ge=0, description="frames run before timing")
 
 
 def _summary(acc: SodMetrics, fps: float | None, **extra: Any) -> dict[str, Any]:
@@ -115,26 +144,23 @@ def evaluate_models(
 
 def run(cfg: Mapping[str, Any], out_dir: Path) -> dict[str, dict[str, Any]]:
     """Evaluate what the config names; writes ``sod_metrics.json`` in ``out_dir`` and returns it."""
-    preds = dict(cfg.get("preds") or {})
-    models = list(cfg.get("models") or [])
-    if not preds and not models:
+    opts: SodEvalOptions = validate_options("sgf-sod-eval", SodEvalOptions, dict(cfg))
+    if not opts.preds and not opts.models:
         raise ConfigError(
             "nothing to evaluate: give +preds.<name>=<folder> masks=<folder>, or models=[...] data.root=..."
         )
     results: dict[str, dict[str, Any]] = {}
-    if preds:
-        if not cfg.get("masks"):
+    if opts.preds:
+        if not opts.masks:
             raise ConfigError("preds need the ground truth: masks=<folder of masks>")
-        for name, folder in preds.items():
-            results[name] = evaluate_prediction_folder(folder, cfg["masks"])
-    if models:
-        data = cfg.get("data") or {}
-        if not data.get("root"):
+        for name, folder in opts.preds.items():
+            results[name] = evaluate_prediction_folder(folder, opts.masks)
+    if opts.models:
+        data = opts.data
+        if not data.root:
             raise ConfigError("models need a SOD folder: data.root=<folder with images/ and masks/>")
-        sod = SodFolder(data["root"])
-        names = sod.split(str(data.get("split", "test")))
-        min_pixels = int(data.get("min_salient_pixels") or 0)
-        count = int(cfg.get("examples") or 0)
+        sod = SodFolder(data.root)
+        names = sod.split(data.split)
         salient: dict[str, int] = {}
 
         def salient_pixels(name: str) -> int:  # each mask read once for the filter and the figure
@@ -142,32 +168,33 @@ def run(cfg: Mapping[str, Any], out_dir: Path) -> dict[str, dict[str, Any]]:
                 salient[name] = int((sod.mask(name) > 128).sum())
             return salient[name]
 
-        if min_pixels > 0:
+        if data.min_salient_pixels > 0:
             # SOD benchmarks have a salient object in every image: an image whose mask is empty scores
             # F = 0 at every threshold, and a marking that barely entered the view is not an object yet.
-            names = [n for n in names if salient_pixels(n) >= min_pixels]
-        limit = data.get("max_images")
-        if limit is not None and len(names) > int(limit):
-            names = names[:: max(1, len(names) // int(limit))][: int(limit)]  # spread over the whole split
+            names = [n for n in names if salient_pixels(n) >= data.min_salient_pixels]
+        if data.max_images is not None and len(names) > data.max_images:
+            names = names[:: max(1, len(names) // data.max_images)][: data.max_images]  # spread over the split
         if not names:
-            raise DataError(f"{sod.root}: split {data.get('split')!r} is empty")
-        save_dir = out_dir / "preds" if cfg.get("save_predictions") else None
-        examples = {n: Example(n, sod.image(n), sod.mask(n)) for n in example_names(names, salient_pixels, count)}
+            raise DataError(f"{sod.root}: split {data.split!r} is empty")
+        save_dir = out_dir / "preds" if opts.save_predictions else None
+        examples = {
+            n: Example(n, sod.image(n), sod.mask(n)) for n in example_names(names, salient_pixels, opts.examples)
+        }
         found = evaluate_models(
-            models,
+            opts.models,
             sod,
             names,
-            cfg.get("params") or {},
-            float(data.get("resolution", 0.02)),
-            cfg.get("threads"),
-            int(cfg.get("warmup", 2)),
+            opts.params,
+            data.resolution,
+            opts.threads,
+            opts.warmup,
             save_dir,
             examples,
         )
         for model, values in found.items():
-            results[model] = {**values, "split": data.get("split")}
+            results[model] = {**values, "split": data.split}
         if examples:
-            write_examples(out_dir / EXAMPLES, list(examples.values()), models)
+            write_examples(out_dir / EXAMPLES, list(examples.values()), opts.models)
     atomic_write_json(out_dir / OUTPUT, results)
     return results
 
