@@ -237,6 +237,32 @@ def test_merge_distance_joins_the_glyphs_of_one_sign_into_one_sgf():
     assert len(too_close) == 3  # 0.14 m apart is more than 0.1 m
 
 
+def test_border_reach_merge_treats_a_row_cut_by_the_view_as_not_fully_appeared():
+    """A chevron row whose next part could lie just outside the camera's view has not fully appeared."""
+    grid = DEFAULT_GRID
+    valid = np.zeros((256, 256), bool)
+    valid[:, 40:] = True  # the camera sees nothing left of column 40
+    prob = np.zeros((256, 256), np.float32)
+    for left in (45, 75, 105):  # a row of three parts, 10 px (0.2 m) apart; the first 5 px (0.1 m) from the edge
+        prob[150:170, left : left + 20] = 1.0
+    prob[60:80, 120:140] = 1.0  # a marking far from any edge
+    prob[60:80, 200:220] = 1.0  # and one 36 px (0.72 m) from the image's right border
+    bev = Bev(np.zeros((256, 256), np.uint8), valid, grid, 0, 0.0)
+
+    def touching(reach: str, merge: float = 0.3) -> dict[int, bool]:
+        params = HuWindowParams(border_reach=reach, merge_distance=merge)
+        regions = HuMomentDetector(params).regions(bev, SaliencyMap(prob, bev))[1]
+        return {int(r.pixels[:, 0].min()): r.touches_border for r in regions}
+
+    # The row is one SGF (gaps 0.2 m < 0.3 m); its pixels keep 5 px from the edge, within the 8 px reach.
+    assert touching("region") == {45: False, 120: False, 200: False}
+    assert touching("merge") == {45: True, 120: False, 200: False}
+    # Half of a 0.2 m merge distance is 5 px: the first part's 5 px gap (the margin band takes 1) is reached.
+    assert touching("merge", 0.2)[45] is True
+    # Without merging nothing joins a region from outside the view, so the reach is the margin alone.
+    assert touching("merge", 0.0) == {45: False, 75: False, 105: False, 120: False, 200: False}
+
+
 @pytest.mark.parametrize(
     ("view_choice", "margin", "pick"), [("most_salient", 0.1, 0), ("salient_near", 0.1, 1), ("salient_near", 0.01, 0)]
 )

@@ -125,6 +125,12 @@ class HuWindowParams(StageParams):
     border_margin: int = Field(
         1, ge=1, description="a region within this many pixels of the image border or the invalid area touches it"
     )
+    border_reach: Literal["region", "merge"] = Field(
+        "merge",
+        description="what must keep border_margin from the border for a view to have fully appeared: the region's "
+        "pixels (the paper's test), or also the half merge_distance around them, where a further part of the same "
+        "SGF would merge in (the cut-off end of a row of chevrons; docs/measurements.md, forty-third session)",
+    )
     min_overlap: float = Field(
         0.3, gt=0.0, le=1.0, description="share of a view's predicted pixels on a region to continue its track"
     )
@@ -176,7 +182,9 @@ class HuMomentDetector(Stage):
        leaves the view, or after ``max_missed`` frames without a region.
     3. Over the range, compute the Hu invariants (eq. 5-7) and the distance of each view to the
        previous one (eq. 8); views touching the image border or the boundary of ``Bev.valid`` are
-       rejected (the feature is not wholly in view) and break groups; the remaining consecutive
+       rejected (the feature is not wholly in view) and break groups (``border_reach=merge`` also
+       rejects a view with the border within half ``merge_distance`` of it, where a further part of
+       the same SGF, the next chevron of a row, may lie just out of view); the remaining consecutive
        views group while their distance stays below ``hu_threshold``.
     4. The SGF is the most salient view (highest mean saliency) of the largest group (ties go to the
        group of higher mean saliency): a shape seen the same way over the most frames is the feature
@@ -242,6 +250,11 @@ class HuMomentDetector(Stage):
 
     # -- step 1: candidate regions ---------------------------------------------------------
 
+    def _merge_kernel(self, resolution: float) -> np.ndarray:
+        """The disk of half ``merge_distance`` that joins regions into one SGF."""
+        radius = max(1, round(0.5 * self.params.merge_distance / resolution))
+        return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
     def regions(self, bev: Bev, saliency: SaliencyMap) -> tuple[np.ndarray, list[Region]]:
         """Label image and candidate regions of one frame (label k is ``regions[k - 1]``)."""
         raw = np.asarray(saliency.probability)
@@ -260,9 +273,7 @@ class HuMomentDetector(Stage):
             mask = (cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel) > 0) & valid
         if self.params.merge_distance > 0.0:
             # Label the mask dilated by half the merge distance: regions with a smaller gap share a label.
-            radius = max(1, round(0.5 * self.params.merge_distance / bev.grid.resolution))
-            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-            grown = cv2.dilate(mask.astype(np.uint8), kernel)
+            grown = cv2.dilate(mask.astype(np.uint8), self._merge_kernel(bev.grid.resolution))
             count, grown_labels = cv2.connectedComponents(grown, connectivity=8)
             grown_labels = np.where(mask, grown_labels, 0).astype(np.int32)
             areas = np.bincount(grown_labels.ravel(), minlength=count)
@@ -280,6 +291,8 @@ class HuMomentDetector(Stage):
         if len(keep) == 0:
             return labels, []
         band = border_band(valid, self.params.border_margin)
+        if self.params.border_reach == "merge" and self.params.merge_distance > 0.0:
+            band = cv2.dilate(band.astype(np.uint8), self._merge_kernel(bev.grid.resolution)) > 0
         flat = np.flatnonzero(labels)
         order = np.argsort(labels.flat[flat], kind="stable")
         flat = flat[order]
