@@ -85,6 +85,12 @@ class GraphParams(BackendParams):
     odometry_yaw_bias_sigma_deg_per_m: float = Field(
         0.5, gt=0.0, description="prior sigma of that bias (deg per metre; the prior's mean is 0)"
     )
+    odometry_yaw_bias_reading_sigma_deg_per_m: float = Field(
+        0.1,
+        gt=0.0,
+        description="the bias wheel odometry is expected to have (deg per metre): it chooses between readings of "
+        "the loops' turns that the loops cannot tell apart (loops one lap long: b and b + 360 deg / lap)",
+    )
     odometry_yaw_bias_hindsight: bool = Field(
         True,
         description="at the end of the run, take the final heading bias off the whole drive from its first frame "
@@ -111,6 +117,7 @@ class GraphParams(BackendParams):
             map_sigma_xy=self.map_sigma_xy,
             map_sigma_yaw=r(self.map_sigma_yaw_deg),
             yaw_bias_sigma=r(self.odometry_yaw_bias_sigma_deg_per_m) if self.odometry_yaw_bias else None,
+            yaw_bias_reading_sigma=r(self.odometry_yaw_bias_reading_sigma_deg_per_m),
         )
 
 

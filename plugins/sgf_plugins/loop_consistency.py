@@ -49,6 +49,7 @@ def loop_heading_bias(
     prior_sigma: float = math.radians(0.5),
     odometry_sigma_yaw: float = math.radians(0.5),
     kernel_width: float = 3.0,
+    reading_sigma: float = math.radians(0.1),
 ) -> float:
     """The odometry's heading bias (rad per metre) the loops measure, as the back-end estimates it.
 
@@ -57,7 +58,7 @@ def loop_heading_bias(
     (:class:`sgf_plugins.odometry_bias.HeadingBias`), so one false loop among true ones hardly moves
     it; zero unless two loops agree on it and it stands out of its uncertainty.
     """
-    estimator = HeadingBias(prior_sigma, odometry_sigma_yaw, kernel_width)
+    estimator = HeadingBias(prior_sigma, odometry_sigma_yaw, kernel_width, reading_sigma=reading_sigma)
     for index, pose in zip(frames, odometry, strict=True):
         estimator.correct(int(index), pose)
     for frame_from, frame_to, yaw, variance in loops:

@@ -20,7 +20,10 @@ choose it, not how far the others lie), and the re-weighted least squares refine
 in it. So a false loop accepted first, whose turn claims another reading (a look-alike laid the
 wrong way round: 160 degrees over 450 m), decides neither how the true loops that follow are read
 nor, with one of them, an alias between them. A lone loop over which the bias turns the odometry
-by more than half a turn (0.07 deg/m over 2.6 km) is still read the nearest way.
+by more than half a turn (0.07 deg/m over 2.6 km) is still read the nearest way. Loops that are
+all one length (each one lap of a loop route) cannot tell b from b + 360 degrees / lap at all:
+the valley is therefore chosen with the bias wheel odometry is expected to have (``reading_sigma``,
+0.1 deg/m in the back-end), and refined with the looser prior, which barely pulls it to zero.
 """
 
 from __future__ import annotations
@@ -55,6 +58,7 @@ class HeadingBias:
         max_bias: float = MAX_YAW_BIAS,
         min_loops: int = 2,
         significance: float = 2.0,
+        reading_sigma: float | None = None,
     ) -> None:
         self.min_loops = min_loops
         self.significance = significance
@@ -62,6 +66,7 @@ class HeadingBias:
         self.estimate = 0.0  # the least-squares estimate; ``value`` is what is applied
         self.agreeing = 0
         self.prior_sigma = prior_sigma
+        self.reading_sigma = prior_sigma if reading_sigma is None else reading_sigma  # chooses the valley
         self.odometry_sigma_yaw = odometry_sigma_yaw
         self.kernel_width = kernel_width
         self.max_bias = max_bias
@@ -160,11 +165,11 @@ class HeadingBias:
             self.since = int(self._frames[self._size - 1])
 
     def _valley(self, raw: np.ndarray, lengths: np.ndarray, variances: np.ndarray) -> float:
-        """The bias of least bounded cost (with the prior) on a grid over +-``max_bias``, each turn wrapped."""
+        """The bias of least bounded cost on a grid over +-``max_bias``, each turn wrapped (prior: reading_sigma)."""
         grid = np.linspace(-self.max_bias, self.max_bias, GRID)
         residual = _wrap(raw[None, :] - grid[:, None] * lengths[None, :]) / np.sqrt(variances)[None, :]
         bounded = np.minimum(residual**2, self.kernel_width**2)
-        cost = 0.5 * bounded.sum(axis=1) + 0.5 * (grid / self.prior_sigma) ** 2
+        cost = 0.5 * bounded.sum(axis=1) + 0.5 * (grid / self.reading_sigma) ** 2
         return float(grid[int(np.argmin(cost))])
 
 

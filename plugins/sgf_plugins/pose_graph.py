@@ -158,6 +158,7 @@ class NoiseSettings:
     map_sigma_xy: float = 0.05
     map_sigma_yaw: float = math.radians(0.5)
     yaw_bias_sigma: float | None = None  # rad/m, prior sigma of the odometry's heading bias (None: not estimated)
+    yaw_bias_reading_sigma: float = math.radians(0.1)  # rad/m, the sigma that chooses between aliased readings
 
 
 FRAME_SYMBOL = "x"  # GTSAM key character of a processed frame's pose
@@ -250,7 +251,12 @@ class PoseGraph:
         self.heading_bias = (
             None
             if noise.yaw_bias_sigma is None
-            else HeadingBias(noise.yaw_bias_sigma, noise.odometry_sigma_yaw, noise.loop_kernel_width)
+            else HeadingBias(
+                noise.yaw_bias_sigma,
+                noise.odometry_sigma_yaw,
+                noise.loop_kernel_width,
+                reading_sigma=noise.yaw_bias_reading_sigma,
+            )
         )
 
     # -- gtsam conversions ------------------------------------------------------------------
@@ -528,7 +534,13 @@ class PoseGraph:
         assert self.heading_bias is not None
         old = self.heading_bias
         bias = HeadingBias(
-            old.prior_sigma, old.odometry_sigma_yaw, old.kernel_width, old.max_bias, old.min_loops, old.significance
+            old.prior_sigma,
+            old.odometry_sigma_yaw,
+            old.kernel_width,
+            old.max_bias,
+            old.min_loops,
+            old.significance,
+            old.reading_sigma,
         )
         self._bias_loops = [b for b in self._bias_loops if b[1] not in keys]
         size = self.store.size
