@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sgf_plugins.odometry_bias import HeadingBias
+from sgf_plugins.odometry_bias import EXPECTED_YAW_BIAS, HeadingBias
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,7 @@ def loop_heading_bias(
     prior_sigma: float = math.radians(0.5),
     odometry_sigma_yaw: float = math.radians(0.5),
     kernel_width: float = 3.0,
-    reading_sigma: float = math.radians(0.1),
+    reading_sigma: float = EXPECTED_YAW_BIAS,
 ) -> float:
     """The odometry's heading bias (rad per metre) the loops measure, as the back-end estimates it.
 

@@ -36,6 +36,9 @@ from sgf_pipeline.geometry import invert, pose_from_xy_yaw, xy_yaw
 
 #: Largest bias the estimate may take (rad per metre: 1 degree per metre turns a robot round in 360 m).
 MAX_YAW_BIAS = math.radians(1.0)
+#: The bias wheel odometry is expected to have (rad per metre): it chooses between readings of the loops'
+#: turns that the loops cannot tell apart (the campus presets drift by 0.07 deg/m).
+EXPECTED_YAW_BIAS = math.radians(0.1)
 #: Biases tried over +-max_bias for the global minimum (a step of 0.002 deg/m at 1 deg/m: a loop over
 #: 2.6 km, the longest here, has a valley about 0.01 deg/m wide).
 GRID = 1001
@@ -83,6 +86,18 @@ class HeadingBias:
         self._turns: list[float] = []  # per loop: the raw odometry's turn less the loop's (rad, modulo a full turn)
         self._lengths: list[float] = []  # ...the path between its frames (m)
         self._variances: list[float] = []  # ...and the variance of that difference (rad^2)
+
+    def restarted(self) -> HeadingBias:
+        """A new estimator with this one's settings, no frame and no loop seen."""
+        return HeadingBias(
+            self.prior_sigma,
+            self.odometry_sigma_yaw,
+            self.kernel_width,
+            self.max_bias,
+            self.min_loops,
+            self.significance,
+            self.reading_sigma,
+        )
 
     @property
     def loops(self) -> int:

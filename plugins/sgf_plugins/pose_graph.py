@@ -22,7 +22,7 @@ import numpy as np
 
 from sgf_pipeline.geometry import invert, rotation_rpy, xy_yaw
 from sgf_pipeline.types import Frame, LoopConstraint
-from sgf_plugins.odometry_bias import HeadingBias, ScaledOdometry, with_heading_bias
+from sgf_plugins.odometry_bias import EXPECTED_YAW_BIAS, HeadingBias, ScaledOdometry, with_heading_bias
 
 PoseKind = Literal["pose2", "pose3"]
 FREE_ROLL_PITCH = 0.1  # rad, first-pose prior on roll and pitch (observed by the IMU, not a gauge)
@@ -158,7 +158,7 @@ class NoiseSettings:
     map_sigma_xy: float = 0.05
     map_sigma_yaw: float = math.radians(0.5)
     yaw_bias_sigma: float | None = None  # rad/m, prior sigma of the odometry's heading bias (None: not estimated)
-    yaw_bias_reading_sigma: float = math.radians(0.1)  # rad/m, the sigma that chooses between aliased readings
+    yaw_bias_reading_sigma: float = EXPECTED_YAW_BIAS  # rad/m, the sigma that chooses between aliased readings
 
 
 FRAME_SYMBOL = "x"  # GTSAM key character of a processed frame's pose
@@ -532,16 +532,7 @@ class PoseGraph:
         odometry, the frames' offsets on their nodes and the odometry factors follow it.
         """
         assert self.heading_bias is not None
-        old = self.heading_bias
-        bias = HeadingBias(
-            old.prior_sigma,
-            old.odometry_sigma_yaw,
-            old.kernel_width,
-            old.max_bias,
-            old.min_loops,
-            old.significance,
-            old.reading_sigma,
-        )
+        bias = self.heading_bias.restarted()
         self._bias_loops = [b for b in self._bias_loops if b[1] not in keys]
         size = self.store.size
         corrected = np.empty((size, 4, 4))

@@ -250,11 +250,6 @@ class HuMomentDetector(Stage):
 
     # -- step 1: candidate regions ---------------------------------------------------------
 
-    def _merge_kernel(self, resolution: float) -> np.ndarray:
-        """The disk of half ``merge_distance`` that joins regions into one SGF."""
-        radius = max(1, round(0.5 * self.params.merge_distance / resolution))
-        return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-
     def regions(self, bev: Bev, saliency: SaliencyMap) -> tuple[np.ndarray, list[Region]]:
         """Label image and candidate regions of one frame (label k is ``regions[k - 1]``)."""
         raw = np.asarray(saliency.probability)
@@ -271,9 +266,12 @@ class HuMomentDetector(Stage):
             size = 2 * self.params.closing + 1
             kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
             mask = (cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel) > 0) & valid
+        merge: np.ndarray | None = None  # the disk of half merge_distance that joins regions into one SGF
         if self.params.merge_distance > 0.0:
             # Label the mask dilated by half the merge distance: regions with a smaller gap share a label.
-            grown = cv2.dilate(mask.astype(np.uint8), self._merge_kernel(bev.grid.resolution))
+            radius = max(1, round(0.5 * self.params.merge_distance / bev.grid.resolution))
+            merge = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+            grown = cv2.dilate(mask.astype(np.uint8), merge)
             count, grown_labels = cv2.connectedComponents(grown, connectivity=8)
             grown_labels = np.where(mask, grown_labels, 0).astype(np.int32)
             areas = np.bincount(grown_labels.ravel(), minlength=count)
@@ -291,8 +289,8 @@ class HuMomentDetector(Stage):
         if len(keep) == 0:
             return labels, []
         band = border_band(valid, self.params.border_margin)
-        if self.params.border_reach == "merge" and self.params.merge_distance > 0.0:
-            band = cv2.dilate(band.astype(np.uint8), self._merge_kernel(bev.grid.resolution)) > 0
+        if self.params.border_reach == "merge" and merge is not None:
+            band = cv2.dilate(band.astype(np.uint8), merge) > 0
         flat = np.flatnonzero(labels)
         order = np.argsort(labels.flat[flat], kind="stable")
         flat = flat[order]
