@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from sgf_plugins.loop import IcpLoopParams
 
 from sgf_pipeline import Pipeline, load_plugins
 from sgf_pipeline.config import RESERVED_KEYS, config_dir
@@ -54,6 +55,25 @@ def test_the_default_config_builds_a_valid_pipeline():
     assert [n.kind for n in pipeline.order] == list(cfg.pipeline) or set(n.kind for n in pipeline.order) == set(
         cfg.pipeline
     )
+
+
+def test_the_loop_consistency_test_takes_the_back_ends_heading_bias_sigmas():
+    keys = {  # loop's key: the back-end's key it follows, and its value without a back-end
+        "consistency_yaw_bias_sigma_deg_per_m": ("odometry_yaw_bias_sigma_deg_per_m", 0.5),
+        "consistency_yaw_bias_reading_sigma_deg_per_m": ("odometry_yaw_bias_reading_sigma_deg_per_m", 0.1),
+        "consistency_odometry_sigma_yaw_deg": ("odometry_sigma_yaw_deg", 0.5),
+        "consistency_kernel_width": ("loop_kernel_width", 3.0),
+    }
+    changed = [f"backend.{backend_key}={2 * alone}" for backend_key, alone in keys.values()]
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        for backend in ("isam2", "gtsam_lm"):
+            cfg = compose("config", overrides=[f"backend={backend}", *changed])
+            for key, (backend_key, alone) in keys.items():
+                assert cfg.loop[key] == cfg.backend[backend_key] == 2 * alone, (backend, key)
+        cfg = compose("config", overrides=["backend=none"])
+        assert {key: cfg.loop[key] for key in keys} == {key: alone for key, (_, alone) in keys.items()}
+    defaults = IcpLoopParams()  # the stage's own defaults are the back-end's
+    assert {key: getattr(defaults, key) for key in keys} == {key: alone for key, (_, alone) in keys.items()}
 
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))

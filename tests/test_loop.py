@@ -169,6 +169,21 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     assert headed.context.metrics["loops"]["closed"] == 4
 
 
+def test_the_consistency_test_estimates_the_heading_bias_with_its_configured_sigmas() -> None:
+    # odometry turning 0.2 deg per metre: the consistency test takes the bias its loops measure off the odometry
+    biased = make_world(seed=1, odometry_noise=(0.01, math.radians(0.3), 0.01, math.radians(0.2)))
+
+    def consistency(**sigmas: float) -> dict:  # type: ignore[type-arg]
+        params = IcpLoopParams(gate=False, drop_inconsistent=False, **sigmas)  # type: ignore[arg-type]
+        return run_stages(biased, loop=IcpLoopClosing(params)).context.metrics["loops"]["consistency"]
+
+    default = consistency()
+    assert default["heading_bias_deg_per_m"] == pytest.approx(0.2, abs=0.03)
+    assert default["outside_largest_set"] == [[22, 103], [214, 295], [466, 547]]  # the three look-alikes
+    # a prior that allows no bias: nothing is taken off (conf/loop/icp.yaml takes the back-end's sigmas)
+    assert consistency(consistency_yaw_bias_sigma_deg_per_m=1e-3)["heading_bias_deg_per_m"] == 0.0
+
+
 def _straight_run(n: int, yaw_at_end: float) -> list[Frame]:
     """Frames 1 m apart along x, and a last frame back at the origin turned by ``yaw_at_end``."""
     poses = [pose_from_xy_yaw(float(k), 0.0, 0.0) for k in range(n)] + [pose_from_xy_yaw(0.3, 0.1, yaw_at_end)]

@@ -311,6 +311,28 @@ class IcpLoopParams(StageParams):
         "5 % of the path between their ends) are listed in metrics.json as loops.consistency and, with "
         "drop_inconsistent, taken back (null: no test)",
     )
+    consistency_yaw_bias_sigma_deg_per_m: float = Field(
+        0.5,
+        gt=0.0,
+        description="the test's estimate of the odometry's heading bias, as the back-end's: its prior sigma "
+        "(deg per metre; the config takes backend.odometry_yaw_bias_sigma_deg_per_m)",
+    )
+    consistency_yaw_bias_reading_sigma_deg_per_m: float = Field(
+        0.1,
+        gt=0.0,
+        description="...the bias odometry is expected to have, which chooses between readings of the loops' turns "
+        "(the config takes backend.odometry_yaw_bias_reading_sigma_deg_per_m)",
+    )
+    consistency_odometry_sigma_yaw_deg: float = Field(
+        0.5,
+        gt=0.0,
+        description="...the odometry's heading sigma over one metre (the config takes backend.odometry_sigma_yaw_deg)",
+    )
+    consistency_kernel_width: float = Field(
+        3.0,
+        gt=0.0,
+        description="...and its Cauchy kernel width in sigmas (the config takes backend.loop_kernel_width)",
+    )
     drop_inconsistent: bool = Field(
         True,
         description="take the loops outside the largest consistent set back out of the estimate before the "
@@ -1398,7 +1420,16 @@ class IcpLoopClosing(Stage):
             return entry | {"heading_bias_deg_per_m": None, "outside_largest_set": [], "false_outside": 0}, []
         frames, odometry, travelled = self.frames.path()
         measured = [(c.frame_from, c.frame_to, xy_yaw(c.relative)[2], float(c.covariance[2][2])) for c in constraints]
-        bias = loop_heading_bias(frames, odometry, measured)  # taken off the odometry the cycles run through
+        r = math.radians
+        bias = loop_heading_bias(  # taken off the odometry the cycles run through
+            frames,
+            odometry,
+            measured,
+            prior_sigma=r(self.p.consistency_yaw_bias_sigma_deg_per_m),
+            odometry_sigma_yaw=r(self.p.consistency_odometry_sigma_yaw_deg),
+            kernel_width=self.p.consistency_kernel_width,
+            reading_sigma=r(self.p.consistency_yaw_bias_reading_sigma_deg_per_m),
+        )
         path = bias_corrected_path(odometry, travelled, bias)
         row = {int(f): k for k, f in enumerate(frames)}
         ends = [
