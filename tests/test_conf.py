@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from sgf_plugins.backend import Isam2Params
 from sgf_plugins.loop import IcpLoopParams
 
 from sgf_pipeline import Pipeline, load_plugins
@@ -72,8 +73,12 @@ def test_the_loop_consistency_test_takes_the_back_ends_heading_bias_sigmas():
                 assert cfg.loop[key] == cfg.backend[backend_key] == 2 * alone, (backend, key)
         cfg = compose("config", overrides=["backend=none"])
         assert {key: cfg.loop[key] for key in keys} == {key: alone for key, (_, alone) in keys.items()}
-    defaults = IcpLoopParams()  # the stage's own defaults are the back-end's
-    assert {key: getattr(defaults, key) for key in keys} == {key: alone for key, (_, alone) in keys.items()}
+    # the stage's own defaults are the back-end's
+    loop, backend = IcpLoopParams(), Isam2Params()
+    assert {key: getattr(loop, key) for key in keys} == {key: alone for key, (_, alone) in keys.items()}
+    assert {key: getattr(backend, backend_key) for key, (backend_key, _) in keys.items()} == {
+        key: alone for key, (_, alone) in keys.items()
+    }
 
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
