@@ -46,6 +46,7 @@ LOOP_COLUMNS = (
     "time_to",
     "reverse",
     "from_map",
+    "position_only",
     "group_id",
     "x",
     "y",

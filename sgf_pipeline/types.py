@@ -283,6 +283,10 @@ class LoopConstraint:
     is 3x3 over the planar part ``(x, y, yaw)`` of that relative pose, in its local (right)
     tangent space (GTSAM's ``Pose2`` convention). With ``from_map``, ``frame_from`` is a frame
     of the prior SGF map (:mod:`sgf_pipeline.sgf_map`), not of this run: an inter-session factor.
+    With ``marking`` (a round marking, whose heading cannot be read: a position-only loop), the
+    constraint fixes where that marking, at ``marking`` (x, y) in ``frame_to``'s base, lies from
+    both poses, not the turn between them: ``relative``'s turn about the marking is the estimate's,
+    and ``covariance`` leaves it almost free.
     """
 
     frame_from: int
@@ -295,6 +299,12 @@ class LoopConstraint:
     inlier_ratio: float
     instance_ids: tuple[int | None, int | None] = (None, None)
     from_map: bool = False
+    marking: tuple[float, float] | None = None
+
+    @property
+    def position_only(self) -> bool:
+        """Whether the constraint fixes only where its marking lies (see ``marking``)."""
+        return self.marking is not None
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -16,11 +17,11 @@ from sgf_plugins.backend import (
     LmParams,
     OdometryBackend,
 )
-from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams
+from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, position_only_loop
 from sgf_testing import conf_node
 
 from sgf_pipeline.context import RunContext
-from sgf_pipeline.geometry import invert, pose_from_xy_yaw, rpy_from_rotation, xy_yaw
+from sgf_pipeline.geometry import invert, pose_from_xy_yaw, rpy_from_rotation, wrap_angle, xy_yaw
 from sgf_pipeline.sgf_map import load_map
 from sgf_pipeline.types import Frame, LoopConstraint, LoopConstraints
 
@@ -627,3 +628,38 @@ def test_loops_closed_at_the_end_of_the_run_enter_the_final_optimisation(world, 
     context, _ = feed(world, backend, {}, context)
     assert context.metrics["backend"]["loop_factors"] == len(world.truth.revisits) == backend.loops_received
     assert ate(context.trajectories["sgf"].poses, world.gt) < 0.15 * ate(world.odometry, world.gt)
+
+
+@pytest.mark.parametrize(
+    "backend",
+    [
+        GtsamLmBackend(LmParams(save_map=False, odometry_yaw_bias=True)),
+        Isam2Backend(Isam2Params(save_map=False, odometry_yaw_bias=True)),
+        GtsamLmBackend(LmParams(save_map=False, pose="pose3", odometry_yaw_bias=True)),
+        Isam2Backend(Isam2Params(save_map=False, pose="pose3", odometry_yaw_bias=True)),
+    ],
+    ids=["lm-pose2", "isam2-pose2", "lm-pose3", "isam2-pose3"],
+)
+def test_position_only_loops_join_their_markings_and_leave_the_turn_to_the_odometry(world, backend) -> None:  # type: ignore[no-untyped-def]
+    # every revisit as a round marking 3 m ahead of the later view, each loop's turn 20 degrees off the truth
+    centre = np.array([3.0, 0.4])
+    loops: dict[int, list[LoopConstraint]] = {}
+    for k, (at, items) in enumerate(sorted(true_loops(world).items())):
+        c = items[0]
+        turn = xy_yaw(c.relative)[2] + math.radians(20.0 if k % 2 else -20.0)
+        relative, cov = position_only_loop(c.relative, centre, turn, 0.03**2, math.radians(90.0))
+        loops[at] = [replace(c, relative=relative, covariance=cov, marking=(float(centre[0]), float(centre[1])))]
+    context, _ = feed(world, backend, loops)
+    poses = context.trajectories["sgf"].poses
+    odometry_ate = ate(world.odometry, world.gt)
+    assert ate(poses, world.gt) < 0.06 * odometry_ate  # the places alone take out the drift (full loops: 3.6 %)
+    marking = np.array([*centre, 0.0, 1.0])
+    for items in loops.values():
+        c = items[0]
+        estimated = invert(poses[c.frame_from]) @ poses[c.frame_to]
+        truth = invert(world.gt[c.frame_from]) @ world.gt[c.frame_to]
+        assert np.linalg.norm((estimated @ marking - truth @ marking)[:2]) < 0.08  # the marking where both saw it
+        turn_error = abs(math.degrees(wrap_angle(xy_yaw(estimated)[2] - xy_yaw(truth)[2])))
+        assert turn_error < 6.0  # not the loop's 20 degrees
+    # the heading bias is read from loops' turns: position-only loops have none to give
+    assert context.metrics["backend"]["odometry_yaw_bias"]["loops"] == 0

@@ -24,7 +24,7 @@ from backend_world import (
 )
 from sgf_plugins.backend import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
 from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, se2
-from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, drift_covariance
+from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, drift_covariance, position_only_loop
 from sgf_plugins.sgf.association import SgfGroup
 from sgf_plugins.sgf.polar import shifted_distances
 
@@ -1154,3 +1154,52 @@ def test_a_revisit_the_association_regrouped_at_the_end_is_closed_by_the_final_p
         assert row["detail"] == "final pass" and row["gate_sigma_xy"] == pytest.approx(4.144, abs=1e-3)
     # Not tried twice: a pair of drive-bys that a loop joins is left alone.
     assert context.metrics["loops"]["final_pass"]["tried"] == (1 if final_pass else 0)
+
+
+def test_symmetric_loops_fix_where_a_round_marking_lies_and_leave_the_turn_to_the_estimate(world) -> None:  # type: ignore[no-untyped-def]
+    stage = IcpLoopClosing(IcpLoopParams(min_support=0, symmetric_loops=True))
+    run = run_stages(world, loop=stage, association=OracleAssociation(world, by="instance"))
+    loops = run.context.metrics["loops"]
+    # the manhole's two revisits are refused as symmetric by default; here the second is closed, position
+    # only, once the loops before it anchored the estimate; the first came while the gate's sigma was 23 m
+    assert (loops["closed"], loops["false_closed"], loops["position_only"]) == (9, 0, 1)
+    assert loops["rejected"]["symmetric"] == 0 and loops["rejected"]["consensus"] == 1
+    refused = [d for d in run.context.artifacts["loop_candidates"] if d["outcome"] == "consensus"]
+    assert refused[0]["detail"].startswith("position only: the gate's sigma (23.31 m) above gate_support_sigma")
+    round_loops = [c for c in run.loops if c.position_only]
+    assert len(round_loops) == 1
+    assert all(world.truth.markings[c.instance_ids[1]].symmetric for c in round_loops)
+    for c in round_loops:
+        assert c.marking is not None
+        centre = np.array([*c.marking, 0.0, 1.0])
+        truth = invert(world.gt[c.frame_from]) @ world.gt[c.frame_to]
+        # the manhole where both views put it, within 5 cm of the truth
+        assert np.linalg.norm((truth @ centre - c.relative @ centre)[:2]) < 0.05
+        # the turn is the odometry's (no estimate here), not ICP's guess at a disc's heading
+        odometry = invert(world.frames[c.frame_from].odometry) @ world.frames[c.frame_to].odometry
+        assert wrap_angle(xy_yaw(c.relative)[2] - xy_yaw(odometry)[2]) == pytest.approx(0.0, abs=1e-9)
+    entries = [e for e in run.context.artifacts["loops"] if e["position_only"]]
+    assert len(entries) == 1 and all(e["true"] is True and e["truth_error_deg"] == 0.0 for e in entries)
+    details = [d["detail"] for d in run.context.artifacts["loop_candidates"] if d["outcome"] == "accepted"]
+    assert details.count("position only: the gate decides") == 1
+
+
+def test_a_position_only_loop_whitens_its_turn_by_the_free_sigma_and_its_place_by_the_marking_sigma() -> None:
+    relative = pose_from_xy_yaw(-0.4, 0.2, 2.9)
+    centre = np.array([3.0, -0.5])
+    out, cov = position_only_loop(relative, centre, 2.5, 0.03**2, math.radians(90.0))
+    marking = np.array([*centre, 0.0, 1.0])
+    assert np.allclose(out @ marking, relative @ marking)  # the marking stays where ICP put it
+    assert xy_yaw(out)[2] == pytest.approx(2.5)
+
+    def whitened(measured: np.ndarray) -> float:  # as the back-end's between factor sees it: GTSAM's Pose2 Logmap
+        import gtsam
+
+        error = gtsam.Pose2.Logmap(gtsam.Pose2(*xy_yaw(out)).between(gtsam.Pose2(*xy_yaw(measured))))
+        return float(error @ np.linalg.solve(cov, error))
+
+    about = pose_from_xy_yaw(*centre, 0.0)
+    turned = out @ about @ pose_from_xy_yaw(0.0, 0.0, 0.3) @ invert(about)  # 0.3 rad more, about the marking
+    assert whitened(turned) == pytest.approx((0.3 / math.radians(90.0)) ** 2, rel=1e-9)
+    moved = out @ about @ pose_from_xy_yaw(0.06, 0.0, 0.0) @ invert(about)  # the marking 6 cm off
+    assert whitened(moved) == pytest.approx((0.06 / 0.03) ** 2, rel=1e-9)

@@ -298,6 +298,15 @@ class IcpLoopParams(StageParams):
         description="a look-alike in a symmetric group (a round manhole) never stands against a match into a "
         "shaped group",
     )
+    symmetric_loops: bool = Field(
+        False,
+        description="a match into a symmetric group (a round manhole, whose heading cannot be read) gives a "
+        "position-only loop: where the marking's centre lies from both poses, the turn left free; closed only when "
+        "the gate alone decides (gate_support_sigma); false = no factor",
+    )
+    position_only_yaw_sigma_deg: float = Field(
+        90.0, gt=0.0, description="a position-only loop's sigma of the turn about its marking (deg): nearly free"
+    )
     consensus_wait: bool = Field(
         True,
         description="a match short of agreeing neighbours waits while the robot drives consensus_window metres on: "
@@ -489,6 +498,7 @@ class IcpLoopClosing(Stage):
         self.aliases_resolved = 0
         self.distinct = 0
         self.gate_decided = 0
+        self.position_only = 0
         self.earlier_members = 0
         self.decisions: list[dict[str, Any]] = []  # every candidate's outcome: loop_candidates.csv
         self._icp_detail = ""  # what the last failed ICP missed
@@ -543,8 +553,10 @@ class IcpLoopClosing(Stage):
             return []
         self.counts["candidates"] += 1
         if a.symmetric:
-            self._refuse(a, "symmetric")
-            return []
+            if not self.p.symmetric_loops:
+                self._refuse(a, "symmetric")
+                return []
+            return self._close_position_only(a, estimate)
         if a.ambiguous:
             return self._resolve_tie(a, estimate)
         candidate = self._evaluate(a, estimate)
@@ -571,6 +583,35 @@ class IcpLoopClosing(Stage):
         if need > 0 and candidate.map_pose is None:
             return self._consensus(((a, candidate),), need, False, "consensus", None, estimate)
         return self._accept(candidate, estimate, basis)
+
+    def _close_position_only(self, a: GroupAssignment, estimate: PoseEstimate | None) -> list[LoopConstraint]:
+        """A match into a symmetric group (``symmetric_loops``): a position-only loop when the gate alone decides.
+
+        Round markings are the campus's most repeated design, so no neighbour vouches for one: the
+        gate must predict the match tightly (``gate_support_sigma``) with no look-alike seen within
+        its reach. Such loops are not matched against a prior map, whose anchoring needs a heading.
+        """
+        if isinstance(a.matched, MapDescriptor):
+            self._refuse(a, "symmetric", detail="no position-only loop into a prior map")
+            return []
+        if a.ambiguous:
+            self._refuse(a, "ambiguous", detail="a tie of symmetric groups")
+            return []
+        candidate = self._evaluate(a, estimate)
+        if candidate == "separation":
+            earlier = self._earlier_member(a)
+            if earlier is not None:
+                a, candidate = earlier, self._evaluate(earlier, estimate)
+                self.earlier_members += 1
+        if isinstance(candidate, str):
+            self._refuse(a, candidate, self._reading, self._icp_detail if candidate == "icp" else "")
+            return []
+        if not self._gate_decides(a, candidate, estimate):
+            self._refuse(a, "consensus", candidate.gate, f"position only: {self._gate_refusal}")
+            return []
+        self.gate_decided += 1
+        self.position_only += 1
+        return self._accept(candidate, estimate, "position only: the gate decides")
 
     def _gate_bounds_distinct(self, candidate: _Candidate) -> bool:
         """Whether the gate is tight enough for a distinct marking to vouch for itself (``distinct_gate_sigma``).
@@ -785,7 +826,8 @@ class IcpLoopClosing(Stage):
                 return "separation"
         if min(len(query.points), len(matched.points)) < self.p.min_points:
             return "too_few_points"
-        results, probed = self._align(a)
+        position_only = a.symmetric and self.p.symmetric_loops
+        results, probed = self._align(a, position_only)
         if not results:
             return "icp"
         map_pose = np.asarray(matched.map_pose, dtype=np.float64) if isinstance(matched, MapDescriptor) else None
@@ -801,11 +843,16 @@ class IcpLoopClosing(Stage):
             assert map_pose is not None
             distance = self._anchored_distance(_MAP, j, estimate)
             predicted = (invert(map_pose) @ self._pose(j, estimate), self._drift(distance, j, estimate))
-        fits = self._fits(results, np.asarray(query.points, dtype=np.float64), probed)
+        points = np.asarray(query.points, dtype=np.float64)
+        fits = self._centred(results, query) if position_only else self._fits(results, points, probed)
         if not fits:
             return "icp"
+        # a position-only loop turns about its marking as the estimate predicts (ICP's heading when none)
+        turn = xy_yaw(predicted[0])[2] if position_only and predicted is not None else None
+        if position_only and turn is None:
+            turn = se2_params(fits[0].transform)[2]
         if predicted is not None:
-            chi2 = [self._gate_chi2(a, r, from_map, predicted) for r in fits]
+            chi2 = [self._gate_chi2(a, r, from_map, predicted, turn) for r in fits]
             self._reading = _GateReading(distance, math.sqrt(predicted[1][0, 0]), min(chi2))
         if predicted is None or not self.p.gate:
             best = self._select(fits, predicted)
@@ -815,7 +862,7 @@ class IcpLoopClosing(Stage):
             if len(passing) != 1:
                 return "not_unique" if passing else "gate"
             best = passing[0]
-        constraint = self._constraint(a, best, from_map)
+        constraint = self._constraint(a, best, from_map, turn)
         return _Candidate(constraint, map_pose, map_truth, a.group_id, anchored, self._reading)
 
     def _separated(self, i: int, j: int) -> bool:
@@ -849,10 +896,15 @@ class IcpLoopClosing(Stage):
         return _match_closest(a, members)
 
     def _gate_chi2(
-        self, a: GroupAssignment, r: IcpResult, from_map: bool, predicted: tuple[np.ndarray, np.ndarray]
+        self,
+        a: GroupAssignment,
+        r: IcpResult,
+        from_map: bool,
+        predicted: tuple[np.ndarray, np.ndarray],
+        turn: float | None = None,
     ) -> float:
         """A fit's squared Mahalanobis distance to the prediction (pose, drift covariance); the gate's test value."""
-        c = self._constraint(a, r, from_map)
+        c = self._constraint(a, r, from_map, turn)
         cov = c.covariance + predicted[1]
         return mahalanobis2(pose_error(predicted[0], c.relative), cov)
 
@@ -1047,8 +1099,11 @@ class IcpLoopClosing(Stage):
 
     # -- ICP --------------------------------------------------------------------------------
 
-    def _align(self, a: GroupAssignment) -> tuple[list[IcpResult], list[IcpResult]]:
-        """ICP from each yaw seed, then (when one passed) from its probes: the results of each that pass the tests."""
+    def _align(self, a: GroupAssignment, position_only: bool = False) -> tuple[list[IcpResult], list[IcpResult]]:
+        """ICP from each yaw seed, then (when one passed) from its probes: the results of each that pass the tests.
+
+        For a position-only loop the heading ICP cannot fix is no failure, and no probe refines it.
+        """
         assert a.matched is not None
         query, matched = a.descriptor, a.matched
         yaws = [float(a.yaw)]
@@ -1062,27 +1117,44 @@ class IcpLoopClosing(Stage):
 
         def from_seeds(yaws: list[float]) -> tuple[list[IcpResult], list[IcpResult]]:
             tried = [icp.align(source, centroid_seed(query.centroid, matched.centroid, y)) for y in yaws]
-            return [r for r in tried if self._passes(r)], tried
+            return [r for r in tried if self._passes(r, position_only)], tried
 
         good, tried = from_seeds(seeds)
         if not good:
             self._icp_detail = self._failed_fit(tried)
             return [], []
         probe = math.radians(self.p.yaw_probe_deg)
-        if probe == 0.0:
+        if probe == 0.0 or position_only:
             return good, []
         # probes only refine the seeds' fits: without one to refine they are not run
         probed, _ = from_seeds(_distinct_yaws([y + d for y in seeds for d in (-probe, probe)], seeds))
         return good, probed
 
-    def _passes(self, r: IcpResult) -> bool:
-        """Whether an ICP result passes the acceptance tests: converged, RMS, two-way inliers, not degenerate."""
+    def _passes(self, r: IcpResult, position_only: bool = False) -> bool:
+        """Whether an ICP result passes the acceptance tests: converged, RMS, two-way inliers, not degenerate.
+
+        A position-only fit may leave its heading degenerate (that is what a round marking does).
+        """
         return (
             r.converged
             and r.fitness <= self.p.max_fitness
             and r.inlier_ratio >= self.p.min_inlier_ratio
-            and _largest_sigma(r) <= self.p.degenerate_sigma
+            and (position_only or _largest_sigma(r) <= self.p.degenerate_sigma)
         )
+
+    def _centred(self, results: list[IcpResult], query: SgfDescriptor) -> list[IcpResult]:
+        """The best fit of a position-only match, when every fit puts the marking's centre within an inlier distance.
+
+        Fits of a round marking differ in heading, not in where its centre lies; fits that disagree
+        on the centre are two places, and the match gives no loop.
+        """
+        centre = np.asarray(query.centroid, dtype=np.float64)[:2]
+        seen = np.array([r.transform[:2, :2] @ centre + r.transform[:2, 2] for r in results])
+        apart = float(np.max(np.linalg.norm(seen - seen.mean(axis=0), axis=1))) * 2.0
+        if apart > self.p.inlier_distance:
+            self._icp_detail = f"fits put the marking's centre {apart:.2f} m apart ({self.p.inlier_distance:g} at most)"
+            return []
+        return [min(results, key=lambda r: r.fitness)]
 
     def _failure(self, test: str) -> str:
         """A failed test's name, with what ICP's best fit missed when it was ICP."""
@@ -1146,25 +1218,35 @@ class IcpLoopClosing(Stage):
         target, cov = predicted
         return min(results, key=lambda r: mahalanobis2(pose_error(target, _pose4(r)), cov + r.covariance))
 
-    def _constraint(self, a: GroupAssignment, r: IcpResult, from_map: bool) -> LoopConstraint:
+    def _constraint(
+        self, a: GroupAssignment, r: IcpResult, from_map: bool, turn: float | None = None
+    ) -> LoopConstraint:
         """The relative pose of the query's frame in the matched frame, with the floored ICP covariance.
 
         The floor adds the BEV's own error, which ICP cannot see: a constant, plus a term growing
         as the square of each view's range (a pitch error moves ground seen at distance d by about
-        d^2 / h times it).
+        d^2 / h times it). With ``turn``, a position-only loop (:func:`position_only_loop`): the
+        marking's centre where ICP puts it, known to the RMS residual over the inliers plus that floor.
         """
         assert a.matched is not None
         ranges = [float(np.hypot(*np.asarray(d.centroid, dtype=np.float64)[:2])) for d in (a.matched, a.descriptor)]
         xy2 = self.p.covariance_floor_xy**2 + self.p.covariance_range_xy**2 * sum(d**4 for d in ranges)
         floor = np.diag([xy2, xy2, math.radians(self.p.covariance_floor_yaw_deg) ** 2])
-        relative = _pose4(r)
+        relative, covariance, marking = _pose4(r), r.covariance + floor, None
+        if turn is not None:
+            centre = np.asarray(a.descriptor.centroid, dtype=np.float64)[:2]
+            sigma2 = xy2 + r.fitness**2 / max(r.correspondences, 1)
+            free = math.radians(self.p.position_only_yaw_sigma_deg)
+            relative, covariance = position_only_loop(relative, centre, turn, sigma2, free)
+            marking = (float(centre[0]), float(centre[1]))
         return LoopConstraint(
             frame_from=a.matched.sgf.frame_index,
             frame_to=a.descriptor.sgf.frame_index,
             relative=relative,
-            covariance=r.covariance + floor,
+            covariance=covariance,
+            marking=marking,
             group_id=a.group_id,
-            reverse=abs(r.pose[2]) > math.pi / 2.0,
+            reverse=abs(xy_yaw(relative)[2]) > math.pi / 2.0,
             fitness=r.fitness,
             inlier_ratio=r.inlier_ratio,
             instance_ids=(a.matched.sgf.instance_id, a.descriptor.sgf.instance_id),
@@ -1226,7 +1308,10 @@ class IcpLoopClosing(Stage):
         """The accepted constraints the estimate satisfies; kept while the estimate and the accepted list stay."""
         if self._absorbed_for is not estimate or self._absorbed_count != len(self.accepted) or estimate is None:
             self._absorbed_for, self._absorbed_count = estimate, len(self.accepted)
-            self._absorbed_cache = [c for c in self.accepted if self._absorbed(c, estimate)]
+            # a position-only loop fixes no heading: the drift since it is not reset
+            self._absorbed_cache = [
+                c for c in self.accepted if not c.constraint.position_only and self._absorbed(c, estimate)
+            ]
         return self._absorbed_cache
 
     def _absorbed(self, c: _Candidate, estimate: PoseEstimate | None) -> bool:
@@ -1299,7 +1384,11 @@ class IcpLoopClosing(Stage):
         end = self.frames.ground_truth(k.frame_to)
         if start is None or end is None:
             return None
-        x, y, yaw = pose_error(invert(start) @ end, k.relative)
+        truth = invert(start) @ end
+        if k.marking is not None:  # where the loop puts its marking, seen from frame_from; no heading to judge
+            centre = np.array([*k.marking, 0.0, 1.0])
+            return float(np.linalg.norm((truth @ centre - k.relative @ centre)[:2])), 0.0
+        x, y, yaw = pose_error(truth, k.relative)
         return math.hypot(x, y), abs(yaw)
 
     def _true(self, c: _Candidate, error: tuple[float, float] | None) -> bool | None:
@@ -1365,6 +1454,7 @@ class IcpLoopClosing(Stage):
             "aliases_resolved": self.aliases_resolved,
             "distinct": self.distinct,
             "gate_decided": self.gate_decided,
+            "position_only": self.position_only,
             "earlier_members": self.earlier_members,
             "final_pass": {"tried": self.final_tried, "accepted": len(final)},
         }
@@ -1411,9 +1501,10 @@ class IcpLoopClosing(Stage):
     def _consistency(self, threshold: float, truths: list[bool | None]) -> tuple[dict[str, Any], list[int]]:
         """Accepted loops outside the largest mutually consistent set (:mod:`sgf_plugins.loop_consistency`).
 
-        Returns the metrics entry and those loops' places in ``self.accepted`` (map loops are not judged).
+        Returns the metrics entry and those loops' places in ``self.accepted`` (map loops and position-only
+        loops, whose cycles have no turn to close, are not judged).
         """
-        own = [k for k, c in enumerate(self.accepted) if not c.constraint.from_map]
+        own = [k for k, c in enumerate(self.accepted) if not (c.constraint.from_map or c.constraint.position_only)]
         constraints = [self.accepted[k].constraint for k in own]
         entry: dict[str, Any] = {"threshold": threshold, "dropped": self.p.drop_inconsistent}
         if not constraints:
@@ -1546,6 +1637,7 @@ class IcpLoopClosing(Stage):
             "group_id": c.group_id,
             "reverse": k.reverse,
             "from_map": k.from_map,
+            "position_only": k.position_only,
             "fitness": k.fitness,
             "inlier_ratio": k.inlier_ratio,
             "instance_ids": list(k.instance_ids),
@@ -1674,6 +1766,27 @@ def _displacement(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
     """RMS distance (m) between ``points`` moved by the 2-D transforms ``a`` and ``b`` (3x3)."""
     delta = points @ (a[:2, :2] - b[:2, :2]).T + (a[:2, 2] - b[:2, 2])
     return float(np.sqrt(np.mean(np.sum(delta**2, axis=1))))
+
+
+def position_only_loop(
+    relative: np.ndarray, centre: np.ndarray, turn: float, sigma2: float, free_sigma: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """A position-only loop: ``relative`` turned to ``turn`` about the marking at ``centre``, and its covariance.
+
+    ``centre`` is the marking's (x, y) in the later frame; the loop keeps where ``relative`` puts
+    it, with variance ``sigma2`` on that place and sigma ``free_sigma`` on the turn.
+    ``relative = A(seen) Rot(turn) A(centre)^-1`` with ``A`` a translation; a perturbation of the
+    turn about the marking, ``eta``, is the later frame's ``Ad(A(centre)) eta`` (GTSAM's Pose2 adjoint),
+    so the covariance is that adjoint applied to ``diag(sigma2, sigma2, free_sigma^2)``. Where the two
+    poses see the marking at one place, the factor's error is the turn alone, whitened by ``free_sigma``.
+    """
+    c = np.asarray(centre, dtype=np.float64)[:2]
+    seen = relative[:2, :2] @ c + relative[:2, 3]
+    out = np.eye(4)
+    out[:2, :2] = [[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]]
+    out[:2, 3] = seen - out[:2, :2] @ c
+    adjoint = np.array([[1.0, 0.0, c[1]], [0.0, 1.0, -c[0]], [0.0, 0.0, 1.0]])
+    return out, adjoint @ np.diag([sigma2, sigma2, free_sigma**2]) @ adjoint.T
 
 
 def _pose4(r: IcpResult) -> np.ndarray:

@@ -466,7 +466,7 @@ class PoseGraph:
         relative = np.asarray(loop.relative, dtype=np.float64)
         if relative.shape != (4, 4) or not np.all(np.isfinite(relative)):
             raise ValueError("a loop constraint's relative pose must be a finite 4x4 matrix")
-        if self.heading_bias is not None and not loop.from_map:
+        if self.heading_bias is not None and not loop.from_map and not loop.position_only:  # no turn to read
             yaw, variance = xy_yaw(relative)[2], float(loop.covariance[2][2])
             self.heading_bias.observe(loop.frame_from, loop.frame_to, yaw, variance)
             key = (loop.frame_from, loop.frame_to, loop.from_map)
