@@ -392,6 +392,9 @@ def _loop_table(loops: list[dict[str, Any]]) -> list[str]:
         row = _loop_row(loop)
         pose = "-" if row["x"] is None else f"{row['x']:.2f}, {row['y']:.2f}, {row['yaw_deg']:.1f}"
         off = "-" if row["truth_error_m"] is None else f"{row['truth_error_m']:.2f}, {row['truth_error_deg']:.1f}"
+        if row.get("position_only"):  # a round marking's loop: its place, the turn left free
+            pose += " (place only)"
+            off = "-" if row["truth_error_m"] is None else f"{row['truth_error_m']:.2f} at its marking"
         lines.append(
             f"| {row['frame_from']} -> {row['frame_to']} | {'yes' if row['reverse'] else 'no'} "
             f"| {'yes' if row['from_map'] else 'no'} | {pose} | {_fmt(row['fitness'])} "

@@ -73,6 +73,12 @@ def test_the_report_lists_the_loops_up_to_its_row_limit() -> None:
     assert "## Accepted loops (2; all in `loops.csv`)" in report
     assert "| 1 -> 80 | yes | no | 0.50, -0.25, 180.0 | 0.012 | 0.95 | 0.04, 0.5 | True |" in report
     assert "| 2 -> 81 | yes | no | 0.50, -0.25, 180.0 | 0.012 | 0.95 | 1.25, 7.0 | False |" in report
+    round_marking = render_report(metrics, [loop(3, 82, position_only=True, truth_error_m=0.03, truth_error_deg=0.0)])
+    assert "| 3 -> 82 | yes | no | 0.50, -0.25, 180.0 (place only) | 0.012 | 0.95 | 0.03 at its marking | True |" in (
+        round_marking
+    )
+    row = next(csv.DictReader(io.StringIO(render_loops_csv([loop(3, 82, position_only=True)]))))
+    assert row["position_only"] == "True"
     many = render_report(metrics, [loop(i, i + 50) for i in range(REPORT_LOOP_ROWS + 4)])
     assert many.count(" -> ") == REPORT_LOOP_ROWS
     assert "| ... and 4 more |" in many
