@@ -559,14 +559,8 @@ class IcpLoopClosing(Stage):
             return self._close_position_only(a, estimate)
         if a.ambiguous:
             return self._resolve_tie(a, estimate)
-        candidate = self._evaluate(a, estimate)
-        if candidate == "separation":
-            earlier = self._earlier_member(a)
-            if earlier is not None:
-                a, candidate = earlier, self._evaluate(earlier, estimate)
-                self.earlier_members += 1
-        if isinstance(candidate, str):
-            self._refuse(a, candidate, self._reading, self._icp_detail if candidate == "icp" else "")
+        a, candidate = self._evaluate_or_earlier(a, estimate)
+        if candidate is None:
             return []
         need, basis = self.p.min_support, ""
         if (
@@ -584,6 +578,21 @@ class IcpLoopClosing(Stage):
             return self._consensus(((a, candidate),), need, False, "consensus", None, estimate)
         return self._accept(candidate, estimate, basis)
 
+    def _evaluate_or_earlier(
+        self, a: GroupAssignment, estimate: PoseEstimate | None
+    ) -> tuple[GroupAssignment, _Candidate | None]:
+        """:meth:`_evaluate`, redone with an earlier pass's member when the match is of one pass; None: refused."""
+        candidate = self._evaluate(a, estimate)
+        if candidate == "separation":
+            earlier = self._earlier_member(a)
+            if earlier is not None:
+                a, candidate = earlier, self._evaluate(earlier, estimate)
+                self.earlier_members += 1
+        if isinstance(candidate, str):
+            self._refuse(a, candidate, self._reading, self._icp_detail if candidate == "icp" else "")
+            return a, None
+        return a, candidate
+
     def _close_position_only(self, a: GroupAssignment, estimate: PoseEstimate | None) -> list[LoopConstraint]:
         """A match into a symmetric group (``symmetric_loops``): a position-only loop when the gate alone decides.
 
@@ -597,14 +606,8 @@ class IcpLoopClosing(Stage):
         if a.ambiguous:
             self._refuse(a, "ambiguous", detail="a tie of symmetric groups")
             return []
-        candidate = self._evaluate(a, estimate)
-        if candidate == "separation":
-            earlier = self._earlier_member(a)
-            if earlier is not None:
-                a, candidate = earlier, self._evaluate(earlier, estimate)
-                self.earlier_members += 1
-        if isinstance(candidate, str):
-            self._refuse(a, candidate, self._reading, self._icp_detail if candidate == "icp" else "")
+        a, candidate = self._evaluate_or_earlier(a, estimate)
+        if candidate is None:
             return []
         if not self._gate_decides(a, candidate, estimate):
             self._refuse(a, "consensus", candidate.gate, f"position only: {self._gate_refusal}")
