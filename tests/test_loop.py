@@ -39,7 +39,8 @@ def world():  # type: ignore[no-untyped-def]
 
 
 def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> None:  # type: ignore[no-untyped-def]
-    stage = IcpLoopClosing(IcpLoopParams(min_support=0))  # ICP and the gate only (the consensus is tested below)
+    # ICP and the gate only (the consensus is tested below); round markings give no loop (position-only loops below)
+    stage = IcpLoopClosing(IcpLoopParams(min_support=0, symmetric_loops=False))
     run = run_stages(world, loop=stage, association=OracleAssociation(world, by="instance"))
     asymmetric = [r for r in world.truth.revisits if not world.truth.markings[r.instance_id].symmetric]
     assert len(run.loops) == len(asymmetric) == 8
@@ -90,7 +91,9 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
         (True, None, 0.07, (8, 0, 0, 0)),
     ]
     for wait, distinct, bias, expected in cases:
-        params = IcpLoopParams(consensus_wait=wait, distinct_support=distinct, consensus_yaw_bias_deg_per_m=bias)
+        params = IcpLoopParams(
+            consensus_wait=wait, distinct_support=distinct, consensus_yaw_bias_deg_per_m=bias, symmetric_loops=False
+        )
         consensus = run_stages(world, loop=IcpLoopClosing(params), association=OracleAssociation(world, by="instance"))
         metrics = consensus.context.metrics["loops"]
         got = (metrics["closed"], metrics["false_closed"], metrics["rejected"]["consensus"], metrics["distinct"])
@@ -123,7 +126,8 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     # look-alikes take the place of true loops in the arrow group: fewer pairs closed
     assert ungated.context.metrics["loops"]["closed"] < 8
     # the neighbour consensus alone (min_support = 1, asked of every match) also keeps the look-alikes out
-    consensus = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None)))
+    params = IcpLoopParams(gate=False, distinct_support=None, symmetric_loops=False)
+    consensus = run_stages(world, loop=IcpLoopClosing(params))
     assert consensus.context.metrics["loops"]["false_closed"] == 0
     assert consensus.context.metrics["loops"]["rejected"]["consensus"] == 4
     refused = [d for d in consensus.context.artifacts["loop_candidates"] if d["outcome"] == "consensus"]
@@ -154,14 +158,21 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     )
     final = with_backend.trajectories["sgf"].positions
     assert np.abs(settled.poses.array()[:, :3, 3] - final).max() < 0.05  # finalize only polishes it in batch
-    default = run_stages(world, loop=IcpLoopClosing(IcpLoopParams()))
-    assert default.context.metrics["loops"]["false_closed"] == 0 and default.context.metrics["loops"]["closed"] == 5
+    default = run_stages(world, loop=IcpLoopClosing(IcpLoopParams()))  # five, and one manhole's, position only
+    assert default.context.metrics["loops"]["false_closed"] == 0 and default.context.metrics["loops"]["closed"] == 6
+    assert default.context.metrics["loops"]["position_only"] == 1
     # with the heading test and a manhole worth half a marking, the tee's revisit (only the manhole behind it)
     # is refused too
     headed = run_stages(
         world,
         loop=IcpLoopClosing(
-            IcpLoopParams(gate=False, consensus_heading_deg=15.0, distinct_support=None, consensus_wait=False)
+            IcpLoopParams(
+                gate=False,
+                consensus_heading_deg=15.0,
+                distinct_support=None,
+                consensus_wait=False,
+                symmetric_loops=False,
+            )
         ),
     )
     assert headed.context.metrics["loops"]["false_closed"] == 0
@@ -249,11 +260,11 @@ def test_sgfs_with_fewer_points_than_icp_needs_are_counted_and_give_no_factor() 
         Icp2d(b.points, IcpSettings()).align(b.points[:2], np.eye(3))
 
 
-def test_symmetric_groups_never_give_loop_factors() -> None:
+def test_without_symmetric_loops_symmetric_groups_give_no_loop_factors() -> None:
     frames = _straight_run(20, 0.0)
     marking = Marking(1, "arrow", (2.5, 0.0, 0.0))
     a, b = _view(frames[0], marking), _view(frames[-1], marking)
-    stage = IcpLoopClosing(IcpLoopParams())
+    stage = IcpLoopClosing(IcpLoopParams(symmetric_loops=False))
     found = [c for f in frames[:-1] for c in stage.process(frame=f, assignments=None, estimate=None).items]
     symmetric = GroupAssignment(b, 0, False, 0.1, 0, 0.0, a, True)  # type: ignore[arg-type]
     found += stage.process(frame=frames[-1], assignments=GroupAssignments((symmetric,)), estimate=None).items

@@ -114,10 +114,12 @@ def test_a_run_closes_loops_and_writes_trajectory_metrics_and_map(tmp_path: Path
     pipeline = Pipeline.from_config(config({"name": "isam2"}, plots=True), run_dir=tmp_path, plugins=plugins)
     metrics = pipeline.run()
     saved = json.loads((tmp_path / "metrics.json").read_text())
-    assert saved["loops"]["closed"] == metrics["loops"]["closed"] == 5
-    assert saved["loops"]["closed_reverse"] == 3
+    # five loops, and the toy manhole's two revisits as position-only loops
+    assert saved["loops"]["closed"] == metrics["loops"]["closed"] == 7
+    assert saved["loops"]["position_only"] == 2
+    assert saved["loops"]["closed_reverse"] == 4  # one of the manhole's revisits is a reverse one
     assert saved["loops"]["false_closed"] == 0
-    assert saved["backend"]["loop_factors"] == 5
+    assert saved["backend"]["loop_factors"] == 7
     assert saved["ate_rmse_m"]["sgf"] < 0.4 * saved["ate_rmse_m"]["odometry"]
     trajectory = read_tum(tmp_path / "trajectory_sgf.tum")
     assert len(trajectory) == len(next(iter(WORLDS.values())).frames)
@@ -126,7 +128,7 @@ def test_a_run_closes_loops_and_writes_trajectory_metrics_and_map(tmp_path: Path
     # every accepted loop is listed, where the plot and the report can show it
     with open(tmp_path / "loops.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == saved["loops"]["accepted"] == 5
+    assert len(rows) == saved["loops"]["accepted"] == 7
     gt = read_tum(tmp_path / "trajectory_gt.tum")
     for row in rows:
         assert row["true"] == "True" and row["from_map"] == "False"
@@ -134,7 +136,8 @@ def test_a_run_closes_loops_and_writes_trajectory_metrics_and_map(tmp_path: Path
         assert row["instance_from"] == row["instance_to"] != ""
         assert float(row["time_from"]) < float(row["time_to"])
         assert min(abs(gt.timestamps - float(row["time_to"]))) < 1e-6  # the stamps are the frames' own
-    assert sum(row["reverse"] == "True" for row in rows) == 3
+    assert sum(row["reverse"] == "True" for row in rows) == 4
+    assert sum(row["position_only"] == "True" for row in rows) == 2
     # ...and every match the loop stage decided on, with the test that refused it
     with open(tmp_path / "loop_candidates.csv", newline="") as f:
         decided = list(csv.DictReader(f))
@@ -150,8 +153,8 @@ def test_a_run_closes_loops_and_writes_trajectory_metrics_and_map(tmp_path: Path
         if r["outcome"] == "accepted"
     )
     report = (tmp_path / "report.md").read_text()
-    assert "## Accepted loops (5; all in `loops.csv`)" in report
-    assert report.count("| True |") == 5
+    assert "## Accepted loops (7; all in `loops.csv`)" in report
+    assert report.count("| True |") == 7 and report.count("at its marking | True |") == 2
     assert (tmp_path / "trajectory.png").stat().st_size > 10_000
 
 

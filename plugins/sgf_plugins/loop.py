@@ -299,7 +299,7 @@ class IcpLoopParams(StageParams):
         "shaped group",
     )
     symmetric_loops: bool = Field(
-        False,
+        True,
         description="a match into a symmetric group (a round manhole, whose heading cannot be read) gives a "
         "position-only loop: where the marking's centre lies from both poses, the turn left free; closed only when "
         "the gate alone decides (gate_support_sigma); false = no factor",
