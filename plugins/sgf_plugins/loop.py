@@ -850,10 +850,9 @@ class IcpLoopClosing(Stage):
         fits = self._centred(results, query) if position_only else self._fits(results, points, probed)
         if not fits:
             return "icp"
-        # a position-only loop turns about its marking as the estimate predicts (ICP's heading when none)
-        turn = xy_yaw(predicted[0])[2] if position_only and predicted is not None else None
-        if position_only and turn is None:
-            turn = se2_params(fits[0].transform)[2]
+        turn = None  # a position-only loop turns about its marking as the estimate predicts (ICP's heading when none)
+        if position_only:
+            turn = xy_yaw(predicted[0])[2] if predicted is not None else se2_params(fits[0].transform)[2]
         if predicted is not None:
             chi2 = [self._gate_chi2(a, r, from_map, predicted, turn) for r in fits]
             self._reading = _GateReading(distance, math.sqrt(predicted[1][0, 0]), min(chi2))
