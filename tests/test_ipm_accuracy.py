@@ -106,6 +106,14 @@ def test_the_command_writes_table_csv_and_plot(tmp_path: Path) -> None:
     assert (two / "ipm_accuracy.csv").read_text().splitlines()[0] == "frame,ground,plain,mc_hindsight"
     bad = ["--preset", "campus_delivery", "--frames", "2", "--out", str(tmp_path / "bad"), "--variants", "plain,mc_x"]
     assert main(bad) == 1 and not (tmp_path / "bad").exists()  # refused before any work
+    # world parameters
+    rough = tmp_path / "rough"
+    rough_args = ["--preset", "campus_delivery", "--scale", "0.3", "--frames", "2", "--out", str(rough)]
+    assert main([*rough_args, "--variants", "plain", "--world", "rough_paving_per_km=50"]) == 0
+    assert "rough_paving_per_km=50" in (rough / "ipm_accuracy.md").read_text().splitlines()[0]
+    assert main([*bad[:6], "--world", "rough_paving_per_km"]) == 1
+    assert main([*bad[:6], "--world", "roughness=3"]) == 1  # not a world parameter
+    assert not (tmp_path / "bad").exists()
 
 
 def test_mc_plane_does_not_lock_onto_the_joints_of_a_slab_paving() -> None:

@@ -86,3 +86,29 @@ def test_campus_paths_stay_under_ten_percent_slope(delivery):
 def test_campus_bumps_are_five_to_twelve_centimetres(delivery):
     heights = [b.height for b in delivery.layout.bumps]
     assert heights and min(heights) >= 0.05 and max(heights) <= 0.12
+
+
+def _values(items) -> list:
+    return [tuple(np.asarray(v).round(9).tolist() for v in vars(item).values()) for item in items]
+
+
+def test_more_rough_paving_leaves_the_rest_of_the_campus_as_it_is():
+    from sgf_plugins.world.world import build_world
+
+    plain = build_world("campus_reverse_slope", seed=0, scale=0.3)
+    rough = build_world("campus_reverse_slope", seed=0, scale=0.3, rough_paving_per_km=50.0)
+    own = len(plain.layout.rough)
+    assert _values(rough.layout.rough[:own]) == _values(plain.layout.rough)  # the campus's own, then the added
+    added = rough.layout.rough[own:]
+    long_paths = [e for e in rough.layout.edges if e.length > 20.0]
+    assert len(added) == sum(max(1, round(e.length * 50.0 / 1000.0)) for e in long_paths)
+    assert all(0.008 <= p.amplitude <= 0.018 and 5.0 <= p.radius <= 12.0 for p in added)
+    assert [(m.instance_id, m.design.name) for m in rough.layout.markings] == [
+        (m.instance_id, m.design.name) for m in plain.layout.markings
+    ]
+    assert _values(rough.layout.bumps) == _values(plain.layout.bumps)
+    # the robot pitches more from frame to frame on the rougher paving, over the same route
+    pitch = [np.diff([rpy_from_rotation(p[:3, :3])[1] for p in w.drive.poses]) for w in (plain, rough)]
+    assert len(pitch[0]) == len(pitch[1])
+    shaken = [float(np.mean(np.abs(d) > math.radians(0.3))) for d in pitch]  # 0.039 and 0.244 measured
+    assert shaken[0] < 0.06 and shaken[1] > 0.2, shaken

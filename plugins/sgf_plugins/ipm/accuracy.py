@@ -31,6 +31,7 @@ from typing import Any, Literal
 
 import cv2
 import numpy as np
+import yaml
 
 from sgf_pipeline import RunContext, SgfError
 from sgf_pipeline.geometry import rpy_from_rotation
@@ -285,7 +286,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--variants", default=None, help="comma-separated IPM variants to measure (default: all of them)"
     )
+    parser.add_argument(
+        "--world",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a world parameter (dataset.KEY of the campus presets), e.g. rough_paving_per_km=50; repeatable",
+    )
     args = parser.parse_args(argv)
+    overrides: dict[str, Any] = {}
+    for item in args.world:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            print(f"error: --world takes KEY=VALUE, got {item!r}", file=sys.stderr)
+            return 1
+        overrides[key.strip()] = yaml.safe_load(value)
     variants = default_variants()
     if args.variants is not None:
         chosen = [v.strip() for v in args.variants.split(",") if v.strip()]
@@ -301,13 +316,16 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         # occluders and sensor noise change the image, not the geometry: left out, the frames render faster
-        world = build_world(args.preset, seed=args.seed, scale=args.scale, occluders=False, sensor_noise=False)
+        world = build_world(
+            args.preset, seed=args.seed, scale=args.scale, **{"occluders": False, "sensor_noise": False, **overrides}
+        )
         frames = range(len(world) if args.frames is None else min(args.frames, len(world)))
         result = evaluate(world, variants, frames, progress=True)
     except (SgfError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    title = f"{args.preset} seed {args.seed} scale {args.scale}: BEV position error per frame"
+    world_text = "".join(f", {k}={v}" for k, v in overrides.items())
+    title = f"{args.preset} seed {args.seed} scale {args.scale}{world_text}: BEV position error per frame"
     args.out.mkdir(parents=True, exist_ok=True)
     table = result.table()
     atomic_write_text(args.out / "ipm_accuracy.md", f"# {title}\n\n{table}")

@@ -448,6 +448,7 @@ class LayoutOptions:
     pedestrians_per_km: float = 30.0
     vehicles_per_km: float = 4.0
     bump_probability: float = 0.3
+    rough_paving_per_km: float = 0.0  # more rough patches, per km of every path over 20 m
     designs: tuple[MarkingDesign, ...] = ()
 
 
@@ -513,6 +514,8 @@ def build_layout(seed: int, scale: float, options: LayoutOptions) -> CampusLayou
     layout.build_indices()
     layout.trees, layout.lamps = _place_trees_and_lamps(layout, rng_for(seed, 4))
     layout.bumps, layout.rough = _place_bumps_and_rough(layout, rng_for(seed, 5), options)
+    if options.rough_paving_per_km > 0:  # a stream of its own: the rest of the campus stays as it is
+        layout.rough += _more_rough_paving(layout, rng_for(seed, 8), options.rough_paving_per_km)
     layout.markings = _place_markings(layout, rng_for(seed, 6), options)
     layout.agents = _place_agents(layout, rng_for(seed, 7), options)
     layout.build_indices()
@@ -673,20 +676,30 @@ def _place_bumps_and_rough(
             )
         if length > 20.0 and rng.random() < 0.3:
             s = float(rng.uniform(0.2, 0.8) * length)
-            p, _ = e.at(s)
-            k = rng.uniform(2 * math.pi / 0.9, 2 * math.pi / 0.3, 6)
-            a = rng.uniform(0, 2 * math.pi, 6)
-            waves = np.stack([k * np.cos(a), k * np.sin(a)], axis=1)
-            rough.append(
-                RoughPatch(
-                    p,
-                    float(rng.uniform(5.0, 12.0)),
-                    float(rng.uniform(0.008, 0.018)),
-                    waves,
-                    rng.uniform(0, 2 * math.pi, 6),
-                )
-            )
+            rough.append(_rough_patch(e.at(s)[0], rng))
     return bumps, rough
+
+
+def _more_rough_paving(layout: CampusLayout, rng: np.random.Generator, per_km: float) -> list[RoughPatch]:
+    """``per_km`` rough patches per km of every path over 20 m (at least one), one in each equal stretch of it."""
+    rough: list[RoughPatch] = []
+    for e in layout.edges:
+        if e.length <= 20.0:
+            continue
+        n = max(1, round(e.length * per_km / 1000.0))
+        for k in range(n):
+            rough.append(_rough_patch(e.at(float((k + rng.uniform(0.2, 0.8)) / n * e.length))[0], rng))
+    return rough
+
+
+def _rough_patch(centre: np.ndarray, rng: np.random.Generator) -> RoughPatch:
+    """Uneven paving around ``centre``: six short waves (0.3 to 0.9 m) 8 to 18 mm high, 5 to 12 m across."""
+    k = rng.uniform(2 * math.pi / 0.9, 2 * math.pi / 0.3, 6)
+    a = rng.uniform(0, 2 * math.pi, 6)
+    waves = np.stack([k * np.cos(a), k * np.sin(a)], axis=1)
+    radius = float(rng.uniform(5.0, 12.0))
+    amplitude = float(rng.uniform(0.008, 0.018))
+    return RoughPatch(centre, radius, amplitude, waves, rng.uniform(0, 2 * math.pi, 6))
 
 
 def _pick(rng: np.random.Generator, designs: Sequence[MarkingDesign]) -> MarkingDesign | None:

@@ -23,6 +23,12 @@ class WorldParams(StageParams):
     cx: float | None = Field(None, description="principal point x (px); null = image centre (width - 1) / 2")
     cy: float | None = Field(None, description="principal point y (px); null = image centre (height - 1) / 2")
     flat_ground: bool = Field(False, description="no hills, bumps or rough patches: the ground is the plane z = 0")
+    rough_paving_per_km: float = Field(
+        0.0,
+        ge=0.0,
+        description="more patches of uneven paving (8-18 mm waves, 5-12 m across) per km of every path over 20 m, "
+        "on top of the campus's own (one on 30 % of them); the rest of the campus stays the same",
+    )
     camera_height: float = Field(0.6, gt=0.1, le=3.0, description="camera height above the ground (m)")
     camera_tilt_deg: float = Field(25.0, ge=5.0, le=70.0, description="camera tilt below the horizon (deg)")
     speed_min: float = Field(1.0, gt=0.0, description="slowest cruising speed (m/s)")

@@ -36,6 +36,7 @@ class CampusWorld:
             marking_spacing=params.marking_spacing,
             pedestrians_per_km=params.pedestrians_per_km,
             vehicles_per_km=params.vehicles_per_km,
+            rough_paving_per_km=params.rough_paving_per_km,
             designs=tuple(designs),
         )
         self.layout: CampusLayout = build_layout(params.seed, params.scale, options)
