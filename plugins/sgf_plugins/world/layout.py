@@ -439,6 +439,10 @@ def _trim(points: np.ndarray, start: float, end: float) -> np.ndarray:
 # --- building the campus -----------------------------------------------------------------------
 
 
+#: Paths longer than this (m) may have rough paving.
+ROUGH_PATH_LENGTH = 20.0
+
+
 @dataclass(frozen=True)
 class LayoutOptions:
     """Knobs of the layout that the dataset exposes as parameters."""
@@ -674,7 +678,7 @@ def _place_bumps_and_rough(
             bumps.append(
                 SpeedBump(p, t, float(rng.uniform(0.22, 0.5)), e.width / 2 + 0.2, float(rng.uniform(0.05, 0.12)))
             )
-        if length > 20.0 and rng.random() < 0.3:
+        if length > ROUGH_PATH_LENGTH and rng.random() < 0.3:
             s = float(rng.uniform(0.2, 0.8) * length)
             rough.append(_rough_patch(e.at(s)[0], rng))
     return bumps, rough
@@ -684,7 +688,7 @@ def _more_rough_paving(layout: CampusLayout, rng: np.random.Generator, per_km: f
     """``per_km`` rough patches per km of every path over 20 m (at least one), one in each equal stretch of it."""
     rough: list[RoughPatch] = []
     for e in layout.edges:
-        if e.length <= 20.0:
+        if e.length <= ROUGH_PATH_LENGTH:
             continue
         n = max(1, round(e.length * per_km / 1000.0))
         for k in range(n):
