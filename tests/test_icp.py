@@ -89,7 +89,7 @@ def test_a_coarse_round_that_wanders_hands_its_pose_to_the_inlier_round() -> Non
     result = Icp2d(matched, settings).align(query, seed)
     assert result.converged and result.iterations > settings.max_iterations  # the coarse round ran out
     assert result.inlier_ratio == pytest.approx(1.0)
-    assert result.fitness == pytest.approx(0.0103, abs=5e-4)
+    assert 0.0 < result.fitness < 0.02  # the two 2 cm voxel grids agree to within a voxel (measured: 1.03 cm)
     assert math.degrees(yaw_error(result.pose[2], math.pi)) < 1.0
 
 

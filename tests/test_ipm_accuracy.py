@@ -25,6 +25,8 @@ from sgf_plugins.world import CampusWorld, build_world
 # ground into a hill (transition from frame 486, a steady slope from 570); MC-IPM's queue fills on
 # the flat frames before each.
 FRAMES = [*range(0, 170), *range(420, 600)]
+#: metres between the joints of the world's small concrete slabs
+SLAB_PERIOD = 1.0
 
 
 @pytest.fixture(scope="module")
@@ -116,12 +118,22 @@ def test_the_command_writes_table_csv_and_plot(tmp_path: Path) -> None:
     assert not (tmp_path / "bad").exists()
 
 
+def _longest_lock(errors: list[float]) -> int:
+    """The most consecutive frames whose BEV is more than half a slab off: nearer the wrong joint than the right one."""
+    longest = run = 0
+    for error in errors:
+        run = run + 1 if error > SLAB_PERIOD / 2.0 else 0
+        longest = max(longest, run)
+    return longest
+
+
 def test_mc_plane_does_not_lock_onto_the_joints_of_a_slab_paving() -> None:
-    """Seed 1 climbs over concrete slabs (frames 560-640): a repeated pattern whose joints, seen from views
-    a metre apart, also line up under a wrong plane. With a 1 m baseline the fit locks onto it; the
-    default 0.6 m baseline stays below plain IPM. Measured (mean BEV error, metre / default / plain):
-    101 / 11.8 / 17.0 cm, up to 2.8 m, on one machine; 45 / 12.9 / 17.0 cm, up to 1.6 m, on an AMD EPYC,
-    whose floating point takes the lock elsewhere: the test asks for the lock, not its size."""
+    """Seed 1 climbs over concrete slabs (frames 560-640) whose joints repeat every metre: seen from views a
+    metre apart, the joints also line up under a wrong plane. A fit locked onto the wrong joint puts the BEV
+    more than half a slab off for as long as the lock holds. With a 1 m baseline the fit locks; with the
+    default 0.6 m baseline it does not (no five frames in a row that far off, as with plain IPM), and its
+    mean error stays below plain IPM's. When and for how long the lock holds depends on the fits' rounding
+    (12 to 23 frames under three settings of the numerical libraries' code paths); that it happens does not."""
     world = build_world("campus_reverse_slope", seed=1, scale=0.3, occluders=False, sensor_noise=False)
     variants = {
         "plain": InversePerspectiveMapping(IpmParams()),
@@ -131,5 +143,6 @@ def test_mc_plane_does_not_lock_onto_the_joints_of_a_slab_paving() -> None:
         "default": PlaneMotionCompensatedIPM(PlaneMotionCompensatedIpmParams(**AHEAD_MC)),
     }
     result = evaluate(world, variants, range(560, 640))
-    assert result.mean("metre") > 2.0 * result.mean("plain") and max(result.errors["metre"]) > 1.0
+    assert _longest_lock(result.errors["metre"]) >= 5, result.errors["metre"]
+    assert _longest_lock(result.errors["default"]) < 5 and _longest_lock(result.errors["plain"]) == 0
     assert result.mean("default") < result.mean("plain") < 0.25
