@@ -218,6 +218,7 @@ class OdometryModel:
     yaw_noise_deg: float = 0.05
     imu_noise_deg: float = 0.15
     imu_bias_deg: float = 0.1
+    seeded_sign: bool = True  # the seed picks the heading bias's sign; False: the sign of yaw_bias_deg_per_m
 
 
 @dataclass
@@ -232,9 +233,10 @@ def simulate_sensors(log: DriveLog, model: OdometryModel, seed: int) -> SensorLo
     """Dead-reckon wheel odometry with the IMU's roll and pitch, starting at the true start pose.
 
     Per frame the wheels measure the distance driven with a scale error and noise; the heading
-    change is measured with a bias and a random-walk drift proportional to the distance, and
-    white noise; the IMU gives roll and pitch with a constant bias and white noise. The 3-D
-    position integrates the measured distance along the measured attitude.
+    change is measured with a bias (of either sign, by the seed, unless ``seeded_sign`` is off) and
+    a random-walk drift proportional to the distance, and white noise; the IMU gives roll and pitch
+    with a constant bias and white noise. The 3-D position integrates the measured distance along
+    the measured attitude.
     """
     rng = rng_for(seed, 21)
     n = len(log)
@@ -247,7 +249,8 @@ def simulate_sensors(log: DriveLog, model: OdometryModel, seed: int) -> SensorLo
     moving = (ds_true > 1e-6) | (np.abs(dyaw_true) > 1e-6)
     ds = ds_true * (1.0 + model.scale_error) + rng.normal(0.0, model.distance_noise, n) * np.sqrt(ds_true)
     walk = np.cumsum(rng.normal(0.0, np.radians(model.yaw_random_walk_deg_per_m), n) * np.sqrt(ds_true))
-    sign = 1.0 if rng.random() < 0.5 else -1.0
+    flip = rng.random() < 0.5  # drawn either way: the rest of the noise stays that of the seed
+    sign = (1.0 if flip else -1.0) if model.seeded_sign else 1.0
     drift = (sign * np.radians(model.yaw_bias_deg_per_m) + walk) * ds_true
     dyaw = dyaw_true + drift + rng.normal(0.0, np.radians(model.yaw_noise_deg), n) * moving
     odo = np.empty((n, 4, 4))

@@ -39,7 +39,14 @@ class WorldParams(StageParams):
         "same world, route and camera images with other sensor noise: a second session",
     )
     odometry_scale_error: float = Field(0.012, description="relative error of the wheel distance")
-    odometry_yaw_bias_deg_per_m: float = Field(0.07, ge=0.0, description="heading drift per metre driven (deg/m)")
+    odometry_yaw_bias_deg_per_m: float = Field(
+        0.07, ge=-5.0, le=5.0, description="heading drift per metre driven (deg/m; its sign: see the next key)"
+    )
+    odometry_yaw_bias_seeded_sign: bool = Field(
+        True,
+        description="the seed turns the heading drift either way (either sign equally likely); false: it turns "
+        "the way the sign of odometry_yaw_bias_deg_per_m says (positive: to the left)",
+    )
     odometry_yaw_random_walk_deg_per_m: float = Field(
         0.0001, ge=0.0, description="random walk of the heading drift rate (deg/m per sqrt(m))"
     )
@@ -47,6 +54,13 @@ class WorldParams(StageParams):
     odometry_yaw_noise_deg: float = Field(0.01, ge=0.0, description="per-frame heading noise (deg)")
     imu_noise_deg: float = Field(0.15, ge=0.0, description="IMU roll/pitch white noise (deg)")
     imu_bias_deg: float = Field(0.1, ge=0.0, description="IMU roll/pitch constant bias bound (deg)")
+    clutter: float = Field(
+        1.0,
+        ge=0.0,
+        le=10.0,
+        description="ground clutter that is not a marking, relative to the campus's own (1): cracks, stains and "
+        "asphalt patches scale with it; above 1 it also strews fallen leaves and casts the thin shadows of posts",
+    )
     occluders: bool = Field(True, description="people and vehicles moving on the paths")
     pedestrians_per_km: float = Field(30.0, ge=0.0, description="people per km of path")
     vehicles_per_km: float = Field(4.0, ge=0.0, description="service vehicles per km of wide path")

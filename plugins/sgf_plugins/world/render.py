@@ -184,13 +184,21 @@ class Mosaic:
 class Renderer:
     """Renders camera images and marking-id images of the campus for any base pose."""
 
-    def __init__(self, layout: CampusLayout, terrain: Terrain, calibration: Calibration, sun: Sun, seed: int) -> None:
+    def __init__(
+        self,
+        layout: CampusLayout,
+        terrain: Terrain,
+        calibration: Calibration,
+        sun: Sun,
+        seed: int,
+        clutter: float = 1.0,
+    ) -> None:
         self.layout = layout
         self.terrain = terrain
         self.calibration = calibration
         self.sun = sun
         self.seed = seed
-        self.generator = TileGenerator(layout, sun, seed)
+        self.generator = TileGenerator(layout, sun, seed, clutter)
         self.cache = TileCache(self.generator)
         self.mosaics = [Mosaic(level) for level in LEVELS]
         self.scenery = Scenery(layout, seed, terrain.height)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -80,22 +80,33 @@ def _periodic_cover(u: np.ndarray, period: float | np.ndarray, width: float, tex
     return ((integral(u + half) - integral(u - half)) / texel).astype(np.float32)
 
 
+#: Colours of fallen leaves (RGB): brown, orange, yellow, dark red.
+_LEAF_COLOURS = np.array([(118, 80, 42), (188, 108, 40), (204, 172, 64), (128, 52, 32)], np.float32)
+
+
 @dataclass
 class CellFeatures:
-    """Wear anchored to one world cell: cracks (polyline, width), stains (centre, axes, angle, darkness), repairs."""
+    """Clutter anchored to one world cell: cracks, stains, repairs, fallen leaves and posts.
+
+    Cracks: (polyline, width); stains: (centre, axes, angle, darkness); leaves: (centre, axes, angle,
+    colour index); posts: (position, height, width), whose shadows fall on the ground.
+    """
 
     cracks: list[tuple[np.ndarray, float]]
     stains: list[tuple[np.ndarray, np.ndarray, float, float]]
     repairs: list[np.ndarray]
+    leaves: list[tuple[np.ndarray, np.ndarray, float, int]] = field(default_factory=list)
+    posts: list[tuple[np.ndarray, float, float]] = field(default_factory=list)
 
 
 class TileGenerator:
     """Makes the texture and instance-id tiles of the campus ground at any level of detail."""
 
-    def __init__(self, layout: CampusLayout, sun: Sun, seed: int) -> None:
+    def __init__(self, layout: CampusLayout, sun: Sun, seed: int, clutter: float = 1.0) -> None:
         self.layout = layout
         self.sun = sun
         self.seed = seed
+        self.clutter = clutter  # cracks, stains, patches per cell against the campus's own; leaves, posts above 1
         self._rasters: OrderedDict[tuple[int, int], Raster] = OrderedDict()
         self._features: OrderedDict[tuple[int, int], CellFeatures] = OrderedDict()
         self._tree_shadows: np.ndarray | None = None
@@ -210,6 +221,8 @@ class TileGenerator:
             # 3. cracks and repairs on the paving
             self._cracks(factor, x0, y_top, nx, ny, res, paved, mat)
         rgb *= factor[..., None]
+        if self.clutter > 1.0:
+            self._leaves(rgb, x0, y_top, nx, ny, res)
         self._buildings(rgb, x0, y_top, nx, ny, res)
         # 4. markings
         ids = np.zeros((ny, nx), np.uint16)
@@ -352,21 +365,22 @@ class TileGenerator:
         return [(i, j) for i in range(i0, i1 + 1) for j in range(j0, j1 + 1)]
 
     def _cell_features(self, ci: int, cj: int) -> CellFeatures:
-        """The cracks, stains and asphalt repairs anchored to one 8 m world cell (cached)."""
+        """The cracks, stains, asphalt repairs, leaves and posts anchored to one 8 m world cell (cached)."""
         found = self._features.get((ci, cj))
         if found is not None:
             return found
         origin = np.array([ci * FEATURE_CELL, cj * FEATURE_CELL])
+        clutter = self.clutter
         rng = rng_for(self.seed, 101, ci, cj)
         cracks = []
-        for _ in range(int(rng.poisson(2.0))):
+        for _ in range(int(rng.poisson(2.0 * clutter))):
             p = origin + rng.uniform(0, FEATURE_CELL, 2)
             steps = int(rng.integers(6, 30))
             headings = rng.uniform(0, 2 * math.pi) + np.cumsum(rng.normal(0, 0.45, steps))
             walk = np.cumsum(0.12 * np.stack([np.cos(headings), np.sin(headings)], 1), 0)
             cracks.append((p + np.concatenate([[[0.0, 0.0]], walk]), float(rng.uniform(0.004, 0.014))))
         repairs = []
-        if rng.random() < 0.25:
+        if rng.random() < min(1.0, 0.25 * clutter):
             p = origin + rng.uniform(0, FEATURE_CELL, 2)
             w, h = rng.uniform(0.6, 2.5, 2)
             a = rng.uniform(0, math.pi)
@@ -375,11 +389,24 @@ class TileGenerator:
             repairs.append(p + corners @ rot.T)
         rng = rng_for(self.seed, 102, ci, cj)
         stains = []
-        for _ in range(int(rng.poisson(0.8))):
+        for _ in range(int(rng.poisson(0.8 * clutter))):
             p = origin + rng.uniform(0, FEATURE_CELL, 2)
             axes = rng.uniform(0.15, 0.7, 2)
             stains.append((p, axes, float(rng.uniform(0, 180)), float(rng.uniform(0.3, 1.0))))
-        features = CellFeatures(cracks, stains, repairs)
+        leaves: list[tuple[np.ndarray, np.ndarray, float, int]] = []
+        posts: list[tuple[np.ndarray, float, float]] = []
+        if clutter > 1.0:  # a stream of its own: the campus's own clutter stays as it is
+            rng = rng_for(self.seed, 103, ci, cj)
+            for _ in range(int(rng.poisson(1.0 * (clutter - 1.0)))):  # a drift of leaves
+                centre = origin + rng.uniform(0, FEATURE_CELL, 2)
+                spread = rng.uniform(0.15, 0.6)
+                for _ in range(int(rng.integers(8, 26))):
+                    p = centre + rng.normal(0.0, spread, 2)
+                    axes = np.array([rng.uniform(0.03, 0.06), rng.uniform(0.015, 0.03)])
+                    leaves.append((p, axes, float(rng.uniform(0, 180)), int(rng.integers(len(_LEAF_COLOURS)))))
+            for _ in range(int(rng.poisson(0.5 * (clutter - 1.0)))):  # lamp and sign posts off the paving
+                posts.append((origin + rng.uniform(0, FEATURE_CELL, 2), float(rng.uniform(2.0, 4.5)), 0.1))
+        features = CellFeatures(cracks, stains, repairs, leaves, posts)
         self._features[(ci, cj)] = features
         while len(self._features) > 4096:
             self._features.popitem(last=False)
@@ -428,6 +455,15 @@ class TileGenerator:
             factor -= 0.5 * dark * paved
         if repair.any():
             factor *= 1.0 - 0.18 * repair * (paved & (mat == _ASPHALT))
+
+    def _leaves(self, rgb: np.ndarray, x0: float, y_top: float, nx: int, ny: int, res: float) -> None:
+        """Fallen leaves: small ellipses of autumn colours, in drifts anchored to 8 m world cells."""
+        for ci, cj in self._cells(x0, y_top, nx, ny, res):
+            for p, axes, angle, colour in self._cell_features(ci, cj).leaves:
+                centre = (round(((p[0] - x0) / res - 0.5) * 16), round(((y_top - p[1]) / res - 0.5) * 16))
+                size = (max(1, int(axes[0] / res * 16)), max(1, int(axes[1] / res * 16)))
+                rgb_colour = tuple(float(c) for c in _LEAF_COLOURS[colour])
+                cv2.ellipse(rgb, centre, size, angle, 0, 360, rgb_colour, -1, cv2.LINE_AA, 4)
 
     def _buildings(self, rgb: np.ndarray, x0: float, y_top: float, nx: int, ny: int, res: float) -> None:
         """Concrete bases under the buildings (hidden by their walls in the camera, seen on maps)."""
@@ -536,6 +572,11 @@ class TileGenerator:
             cv2.ellipse(canopy, (int(c[0]), int(c[1])), axes, angle, 0, 360, 1.0, -1, cv2.LINE_AA, 4)
             trunk = np.stack([tr.position, tr.position + off * tr.trunk_height])
             cv2.polylines(canopy, [to_px(trunk)], False, 1.0, max(1, round(0.25 / res)), cv2.LINE_AA, 4)
+        if self.clutter > 1.0:
+            for ci, cj in self._cells(x0, y_top, nx, ny, res):
+                for position, height, width in self._cell_features(ci, cj).posts:
+                    bar = np.stack([position, position + off * height])
+                    cv2.polylines(shade, [to_px(bar)], False, 1.0, max(1, round(width / res)), cv2.LINE_AA, 4)
         if canopy.any():
             holes = lattice_noise(self.seed + 51, x0, y_top, nx, ny, res, 0.32)
             canopy *= np.clip(0.85 + 0.6 * holes, 0.35, 1.0)

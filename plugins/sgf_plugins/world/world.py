@@ -54,7 +54,7 @@ class CampusWorld:
         self.calibration = Calibration.from_mounting(intr, params.camera_height, math.radians(params.camera_tilt_deg))
         rng = rng_for(params.seed, 501)
         self.sun = Sun(float(rng.uniform(-math.pi, math.pi)), math.radians(float(rng.uniform(38.0, 58.0))))
-        self.renderer = Renderer(self.layout, self.terrain, self.calibration, self.sun, params.seed)
+        self.renderer = Renderer(self.layout, self.terrain, self.calibration, self.sun, params.seed, params.clutter)
         self.grid = BevGrid(
             params.bev_resolution, params.bev_x_min, params.bev_x_max, params.bev_y_min, params.bev_y_max
         )
@@ -90,6 +90,7 @@ class CampusWorld:
             yaw_noise_deg=p.odometry_yaw_noise_deg,
             imu_noise_deg=p.imu_noise_deg,
             imu_bias_deg=p.imu_bias_deg,
+            seeded_sign=p.odometry_yaw_bias_seeded_sign,
         )
         return simulate_sensors(self.drive, model, p.seed if p.odometry_seed is None else p.odometry_seed)
 
