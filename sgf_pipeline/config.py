@@ -52,6 +52,11 @@ class RunOptions(BaseModel):
         None, ge=1, description="torch intra-op threads (1 inside parallel sweeps); null = torch's default"
     )
     ate_max_time_diff: float = Field(0.01, gt=0.0, description="timestamp association tolerance for ATE (s)")
+    tag: str | None = Field(
+        None,
+        description="a label of the run for reports; `<variant>/<severity>` for a perturbation of the robot or "
+        "world (conf/perturbation), which sgf-report's robustness table reads",
+    )
     read_ahead_seconds: float = Field(
         30.0,
         gt=0.0,

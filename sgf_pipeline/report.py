@@ -15,6 +15,7 @@ from typing import Any
 
 from sgf_pipeline.errors import DataError
 from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text, read_text, read_yaml
+from sgf_pipeline.robustness import plot_robustness, render_robustness, robustness_table
 
 #: The paper's Table 2 (ATE in m) per sequence: (odometry, ORB-SLAM3, odometry + SGF).
 PAPER_TABLE2 = {
@@ -284,6 +285,8 @@ def render_markdown(runs: list[RunRecord], tables: dict[str, Any], figures: dict
     rows = tables["rows"]
     variants = sorted({r["variant"] for r in rows})
     out = [f"# sgf-report: {len(runs)} run(s)", ""]
+    if tables.get("robustness"):
+        out += render_robustness(tables["robustness"], tables.get("robustness_figure"))
     if tables["swept"]:
         out += ["Swept: " + ", ".join(f"`{k}`" for k in tables["swept"]), ""]
     out += ["Values are mean ± standard deviation over seeds; counts are summed over seeds.", ""]
@@ -464,11 +467,16 @@ def write_report(root: str | Path, out_dir: str | Path | None = None) -> dict[st
     out = Path(out_dir) if out_dir is not None else Path(root)
     out.mkdir(parents=True, exist_ok=True)
     tables = build_tables(runs)
+    robustness = robustness_table(runs)
+    if robustness["rows"]:
+        tables["robustness"] = robustness
+        if plot_robustness(out / "robustness.png", robustness):
+            tables["robustness_figure"] = "robustness.png"
     figures: dict[str, str] = {}
     plot_timing(out / "timing.png", runs)
     if (out / "timing.png").exists():
         figures["Per-stage timing"] = "timing.png"
-    for run in runs:
+    for run in runs if not robustness["rows"] else ():  # a suite's hundreds of runs: their figures stay in their runs
         for name, title in (
             ("trajectory.png", "Trajectories"),
             ("sgf_frames.png", "Selected SGFs and groups"),
