@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import os
 import shutil
+import subprocess
 import tempfile
 from pathlib import Path
 
 import pytest
+import yaml
 from sgf_testing import run_cli
 
 pytestmark = pytest.mark.slow
@@ -65,3 +68,79 @@ def test_sweep_over_a_stage_parameter(launcher: str, toy_plugin_site: Path, tmp_
         if launcher != "basic":
             assert "torch_threads: 1" in config
     assert clip_limits == [1.0, 3.0]
+
+
+def _suite_slice(sweep: Path, *launcher: str, env: dict[str, str] | None = None):  # type: ignore[no-untyped-def]
+    """Two jobs of the robustness suite (the preset robot and one perturbation), 40 frames each.
+
+    The classical saliency keeps the jobs short: what is tested is the suite's sweep, not the network.
+    """
+    return run_cli(
+        "sgf-run",
+        "-m",
+        "+experiment=robustness",
+        "dataset=campus_reverse_slope",
+        "+perturbation=none,clutter_strong",
+        "dataset.seed=201",
+        "run.max_frames=40",
+        "run.plots=false",
+        "saliency=classical",
+        f"hydra.sweep.dir={sweep}",
+        *launcher,
+        env=env,
+    )
+
+
+def _check_suite(sweep: Path) -> None:
+    jobs = sorted(p for p in sweep.iterdir() if (p / "metrics.json").exists())
+    assert len(jobs) == 2
+    tags = sorted(yaml.safe_load((j / "config.yaml").read_text())["run"]["tag"] for j in jobs)
+    assert tags == ["clutter/strong", "none/none"]
+    report = run_cli("sgf-report", str(sweep))
+    assert report.returncode == 0, report.stderr[-2000:]
+    table = json.loads((sweep / "tables.json").read_text())["robustness"]
+    assert [(r["variant"], r["severity"], r["seeds"]) for r in table["rows"]] == [
+        ("none", "none", ["201"]),
+        ("clutter", "strong", ["201"]),
+    ]
+    assert (sweep / "robustness.png").exists()
+
+
+def test_the_robustness_suite_runs_with_joblib(tmp_path: Path) -> None:
+    sweep = tmp_path / "suite"
+    result = _suite_slice(sweep)  # the experiment's own launcher: joblib, two jobs at once
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    _check_suite(sweep)
+
+
+def test_the_robustness_suite_runs_on_a_ray_cluster(tmp_path: Path) -> None:
+    if importlib.util.find_spec("hydra_plugins.hydra_ray_launcher") is None:
+        pytest.skip("the ray launcher is not installed (pip install -e '.[sweeps]')")
+    import socket
+    import sys
+
+    ray = str(Path(sys.executable).parent / "ray")
+    ray_tmp = tempfile.mkdtemp(prefix="sgfray", dir="/tmp")  # socket paths must stay under 107 bytes
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {"RAY_TMPDIR": ray_tmp, "HOME": str(tmp_path)}
+    head = [ray, "start", "--head", f"--port={port}", "--num-cpus=2", "--include-dashboard=false"]
+    started = subprocess.run(
+        [*head, f"--temp-dir={ray_tmp}"], capture_output=True, text=True, env={**os.environ, **env}
+    )
+    try:
+        assert started.returncode == 0, started.stdout[-2000:] + started.stderr[-2000:]
+        sweep = tmp_path / "suite"
+        # the launcher asks for an object store size, which ray refuses when it joins a running cluster: none
+        launcher = (
+            "hydra/launcher=ray",
+            f"+hydra.launcher.ray.init.address=127.0.0.1:{port}",
+            "+hydra.launcher.ray.init.object_store_memory=null",
+        )
+        result = _suite_slice(sweep, *launcher, env=env)
+        assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+        _check_suite(sweep)
+    finally:
+        subprocess.run([ray, "stop", "--force"], capture_output=True, env={**os.environ, **env})
+        shutil.rmtree(ray_tmp, ignore_errors=True)
