@@ -7,6 +7,7 @@ z up, with its origin on the ground under the robot; the camera frame is the opt
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING, Literal
@@ -320,11 +321,15 @@ class OdometryScale:
 
     ``sigma`` is the factor's standard deviation (inf while too few measurements); ``pairs`` the
     measurements behind it. The back-end multiplies each new odometry step's translation by ``factor``.
+    ``yaw_bias`` (rad/m) is the odometry's heading bias (it turns that much more to the left per metre
+    than the ground does) and ``yaw_bias_sigma`` its standard deviation (inf while unmeasured).
     """
 
     factor: float
     sigma: float
     pairs: int
+    yaw_bias: float = 0.0
+    yaw_bias_sigma: float = math.inf
 
 
 @dataclass(frozen=True)

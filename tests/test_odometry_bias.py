@@ -208,3 +208,57 @@ def test_loops_of_one_lap_are_read_by_the_expected_bias_between_a_bias_and_its_a
     assert any(b == pytest.approx(0.17, abs=0.005) for b in loose)  # the alias is there to be read
     assert all(b == pytest.approx(-0.07, abs=0.005) or b == pytest.approx(0.17, abs=0.005) for b in loose)
     assert all(lap_loops(default, seed) == pytest.approx(-0.07, abs=0.005) for seed in range(12))
+
+
+def test_the_cameras_estimate_is_taken_off_before_any_loop() -> None:
+    gt, odo = circuit(1, BIAS, np.random.default_rng(2))
+    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
+    feed(estimator, odo[:100])
+    assert estimator.value == 0.0 and estimator.since is None  # no loop, no camera: the odometry as it is
+    estimator.camera(BIAS, BIAS / 4.0)  # the camera sees the bias at four sigmas
+    assert estimator.value == pytest.approx(BIAS) and estimator.since == 99 and estimator.loops == 0
+    assert estimator.residual_sigma == pytest.approx(BIAS / 4.0)
+    corrected = np.stack([estimator.correct(k, odo[k]) for k in range(100, len(odo))])
+
+    # from then on the drive turns like the truth: the heading error stops growing
+    def heading_error(poses: np.ndarray, k: int) -> float:
+        return xy_yaw(invert(gt[k]) @ poses[k - 100])[2]
+
+    drift = heading_error(corrected, len(odo) - 1) - heading_error(corrected, 100)
+    raw = xy_yaw(invert(gt[-1]) @ odo[-1])[2] - xy_yaw(invert(gt[100]) @ odo[100])[2]
+    assert raw == pytest.approx(BIAS * (len(odo) - 101), rel=0.1)
+    assert abs(drift) < 0.1 * abs(raw)
+
+
+def test_an_uncertain_camera_informs_without_correcting_and_a_vague_one_is_ignored() -> None:
+    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
+    feed(estimator, np.stack([pose_from_xy_yaw(float(k), 0.0, 0.0) for k in range(20)]))
+    estimator.camera(math.radians(1.0), math.radians(0.6))  # less certain than the prior: ignored
+    estimator.camera(math.radians(0.01), math.inf)
+    assert estimator.since is None and estimator.sigma == math.inf
+    estimator.camera(math.radians(0.01), math.radians(0.02))  # within its own uncertainty of zero
+    assert estimator.value == 0.0 and estimator.since == 19  # nothing taken off, but the bias is known small
+    assert estimator.residual_sigma == pytest.approx(math.hypot(math.radians(0.02), math.radians(0.01)))
+
+
+def test_the_camera_reads_loops_of_one_lap_where_the_expected_bias_cannot() -> None:
+    """Loops one lap long read a robot's bias (-0.14 deg/m) as its alias (+0.10) when zero is expected; not the camera."""
+    loops = []
+    rng = np.random.default_rng(3)
+    for i in range(27):
+        a, length = 10 + 40 * i, 1481 + int(rng.integers(0, 20))
+        loops.append((a, length, -math.radians(0.14) * length + math.radians(rng.normal(0.0, 6.0))))
+
+    def read(camera: tuple[float, float] | None) -> float:
+        estimator = HeadingBias(math.radians(0.5), math.radians(0.5), reading_sigma=math.radians(0.02))
+        for k in range(2600):
+            estimator.correct(k, pose_from_xy_yaw(float(k), 0.0, 0.0))
+        if camera is not None:
+            estimator.camera(*camera)
+        for a, length, turn in loops:
+            estimator.observe(a, a + length, -turn, math.radians(1.5) ** 2)
+        return math.degrees(estimator.estimate)
+
+    alias = -0.14 + 360.0 / 1490.0  # one lap of 1481-1500 m
+    assert read(None) == pytest.approx(alias, abs=0.01)  # an expectation of zero reads the alias
+    assert read((math.radians(-0.13), math.radians(0.03))) == pytest.approx(-0.14, abs=0.005)

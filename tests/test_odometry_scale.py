@@ -39,18 +39,24 @@ def _planar(x: float, y: float, yaw: float) -> np.ndarray:
     return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
 
 
-@pytest.mark.parametrize(("error", "turn_deg", "attitude"), [(0.02, 0.0, 0.0), (-0.015, 4.0, 0.0), (0.01, 2.0, 0.002)])
+@pytest.mark.parametrize(
+    ("error", "turn_deg", "attitude", "heading_deg"),
+    [(0.02, 0.0, 0.0, 0.3), (-0.015, 4.0, 0.0, -0.2), (0.01, 2.0, 0.002, 0.0)],
+)
 def test_the_odometrys_relative_error_is_measured_from_two_views(
-    error: float, turn_deg: float, attitude: float
+    error: float, turn_deg: float, attitude: float, heading_deg: float
 ) -> None:
     stage = BevMotionScale(BevMotionParams())
     start, end = _planar(3.0, -1.0, 0.3), _planar(3.0, -1.0, 0.3) @ _planar(1.0, 0.05, math.radians(turn_deg))
     true = np.linalg.inv(start) @ end
-    odometry = true.copy()
+    odometry = true @ _planar(0.0, 0.0, math.radians(heading_deg))  # the odometry turned this much too far
     odometry[:2, 2] *= 1.0 + error  # the wheels counted this much too far
     measured = stage.measure(_view(stage, end, attitude), _view(stage, start), odometry)
     assert measured is not None
-    assert measured == pytest.approx(error, abs=0.002)
+    assert measured.scale == pytest.approx(error, abs=0.002)
+    # the view's edge 1.25 m to the side moves 0.8 mm (0.04 pixels) per 0.04 degrees of turn
+    length = float(np.hypot(*odometry[:2, 2]))
+    assert math.degrees(measured.yaw_rate) == pytest.approx(heading_deg / length, abs=0.04)
 
 
 def test_a_blank_ground_gives_no_measurement() -> None:
@@ -98,6 +104,25 @@ def test_the_world_robots_scale_error_is_recovered_from_its_camera(preset: str) 
     assert true_factor < 0.995  # the world's odometry does over-count here
     assert estimate.factor == pytest.approx(true_factor, abs=0.004)
     assert NoOdometryScale(NoOdometryScale.Params()).process(frame) == OdometryScale(1.0, 0.0, 0)
+
+
+@pytest.mark.parametrize("bias", [0.3, -0.3])
+def test_a_robots_heading_bias_is_measured_by_its_camera_before_any_loop(bias: float) -> None:
+    """A robot whose odometry turns 0.3 deg/m either way: the ground's turn between views shows it within 40 m."""
+    world = build_world(
+        "campus_delivery", seed=5, scale=0.3, odometry_yaw_bias_deg_per_m=bias, odometry_yaw_bias_seeded_sign=False
+    )
+    stage, off = BevMotionScale(BevMotionParams()), BevMotionScale(BevMotionParams(heading=False))
+    stage.begin(RunContext(run_dir=None))
+    off.begin(RunContext(run_dir=None))
+    for k in range(0, 300, 2):
+        frame = world.frame(k)
+        estimate = stage.process(frame, CameraImage(frame.image, k))
+        scale_only = off.process(frame, CameraImage(frame.image, k))
+    sigma = math.degrees(estimate.yaw_bias_sigma)
+    assert 0.0 < sigma < 0.1  # about 40 independent metres of views
+    assert abs(math.degrees(estimate.yaw_bias) - bias) < 4.0 * sigma
+    assert scale_only.factor == estimate.factor and scale_only.yaw_bias_sigma == math.inf  # heading=false
 
 
 def test_scaled_odometry_scales_each_step_by_the_factor_of_its_time() -> None:

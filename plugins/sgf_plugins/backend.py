@@ -285,7 +285,11 @@ class _GraphBackend(_Backend):
         if self.prior is not None and not self._map_checked:
             self.prior.check_calibration(frame.calibration)
             self._map_checked = True
-        self.graph.add_frame(frame, 1.0 if odometry_scale is None else odometry_scale.factor)
+        if odometry_scale is None:
+            self.graph.add_frame(frame)
+        else:
+            camera = (odometry_scale.yaw_bias, odometry_scale.yaw_bias_sigma)
+            self.graph.add_frame(frame, odometry_scale.factor, camera)
         return self._add_loops(loops)
 
     def _add_loops(self, loops: LoopConstraints | None) -> tuple[int, bool]:
@@ -353,7 +357,7 @@ class _GraphBackend(_Backend):
         bias = self.graph.heading_bias
         if bias is None or bias.since is None:
             return None
-        return YawBiasCorrection(bias.since, bias.sigma)
+        return YawBiasCorrection(bias.since, bias.residual_sigma)
 
     def poses(self) -> tuple[list[float], np.ndarray, PoseEstimate | None]:
         """Timestamps, poses and the latest estimate of the processed frames."""

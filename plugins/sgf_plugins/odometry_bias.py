@@ -24,6 +24,11 @@ by more than half a turn (0.07 deg/m over 2.6 km) is still read the nearest way.
 all one length (each one lap of a loop route) cannot tell b from b + 360 degrees / lap at all:
 the valley is therefore chosen with the bias wheel odometry is expected to have (``reading_sigma``,
 0.1 deg/m in the back-end), and refined with the looser prior, which barely pulls it to zero.
+
+The camera measures the same bias from the ground's turn between views a metre apart
+(``odometry_scale=bev_motion``, :meth:`HeadingBias.camera`). Its estimate, once more certain than
+the prior, replaces the prior's mean and sigma: the bias is taken off from then on, before any
+loop, when it stands out of its uncertainty, and the loops' turns are read the way it says.
 """
 
 from __future__ import annotations
@@ -83,6 +88,7 @@ class HeadingBias:
         self._corrected: np.ndarray | None = None  # the corrected planar path at the last frame
         self._distance = 0.0
         self._turn = 0.0
+        self._camera: tuple[float, float] | None = None  # the camera's estimate and its sigma (rad/m)
         self._turns: list[float] = []  # per loop: the raw odometry's turn less the loop's (rad, modulo a full turn)
         self._lengths: list[float] = []  # ...the path between its frames (m)
         self._variances: list[float] = []  # ...and the variance of that difference (rad^2)
@@ -103,6 +109,19 @@ class HeadingBias:
     def loops(self) -> int:
         """Loops observed so far."""
         return len(self._turns)
+
+    @property
+    def residual_sigma(self) -> float:
+        """The uncertainty (rad/m) of the bias left in the odometry once ``value`` is taken off."""
+        return math.hypot(self.sigma, self.estimate - self.value)
+
+    def camera(self, bias: float, sigma: float) -> None:
+        """Take the camera's estimate of the bias as the prior (ignored while no more certain than the prior)."""
+        if not (math.isfinite(bias) and math.isfinite(sigma) and 0.0 < sigma < self.prior_sigma):
+            return
+        if self._camera != (bias, sigma):
+            self._camera = (bias, sigma)
+            self._estimate()
 
     def correct(self, frame_index: int, odometry: np.ndarray) -> np.ndarray:
         """The frame's odometry pose with every step since the first frame turned by the bias then known.
@@ -155,13 +174,14 @@ class HeadingBias:
     def _estimate(self) -> None:
         """The valley of least bounded cost, refined there by least squares with the prior and a Cauchy kernel."""
         raw, lengths, variances = np.array(self._turns), np.array(self._lengths), np.array(self._variances)
+        mean, prior = self._camera or (0.0, self.prior_sigma)
         bias = self._valley(raw, lengths, variances)
         turns = bias * lengths + _wrap(raw - bias * lengths)  # each turn read the way that valley reads it
         for _ in range(20):
             whitened = (turns - bias * lengths) / np.sqrt(variances)
             weights = 1.0 / (1.0 + (whitened / self.kernel_width) ** 2)
-            information = 1.0 / self.prior_sigma**2 + float(np.sum(weights * lengths**2 / variances))
-            updated = float(np.sum(weights * turns * lengths / variances)) / information
+            information = 1.0 / prior**2 + float(np.sum(weights * lengths**2 / variances))
+            updated = (mean / prior**2 + float(np.sum(weights * turns * lengths / variances))) / information
             done = abs(updated - bias) < 1e-12
             bias = updated
             if done:
@@ -171,20 +191,26 @@ class HeadingBias:
         agree = np.abs(whitened) <= self.kernel_width
         self.agreeing = int(np.sum(agree))
         best = float(np.max(lengths[agree] ** 2 / variances[agree])) if self.agreeing else 0.0
-        self.sigma = 1.0 / math.sqrt(1.0 / self.prior_sigma**2 + best)
+        self.sigma = 1.0 / math.sqrt(1.0 / prior**2 + best)
         significant = abs(self.estimate) >= self.significance * self.sigma
-        self.value = self.estimate if self.agreeing >= self.min_loops and significant else 0.0
-        if self.value == 0.0:
+        trusted = self.agreeing >= self.min_loops or self._camera is not None  # a lone loop may be false; the camera
+        self.value = self.estimate if trusted and significant else 0.0
+        if self.value == 0.0 and self._camera is None:
             self.since = None
-        elif self.since is None:
+        elif self.since is None and self._size:
             self.since = int(self._frames[self._size - 1])
 
     def _valley(self, raw: np.ndarray, lengths: np.ndarray, variances: np.ndarray) -> float:
-        """The bias of least bounded cost on a grid over +-``max_bias``, each turn wrapped (prior: reading_sigma)."""
+        """The bias of least bounded cost on a grid over +-``max_bias``, each turn wrapped.
+
+        The reading's prior is the camera's estimate when there is one, else zero with ``reading_sigma``.
+        """
+        mean, reading = self._camera or (0.0, self.reading_sigma)
         grid = np.linspace(-self.max_bias, self.max_bias, GRID)
-        residual = _wrap(raw[None, :] - grid[:, None] * lengths[None, :]) / np.sqrt(variances)[None, :]
-        bounded = np.minimum(residual**2, self.kernel_width**2)
-        cost = 0.5 * bounded.sum(axis=1) + 0.5 * (grid / self.reading_sigma) ** 2
+        cost = 0.5 * ((grid - mean) / reading) ** 2
+        if raw.size:
+            residual = _wrap(raw[None, :] - grid[:, None] * lengths[None, :]) / np.sqrt(variances)[None, :]
+            cost = cost + 0.5 * np.minimum(residual**2, self.kernel_width**2).sum(axis=1)
         return float(grid[int(np.argmin(cost))])
 
 

@@ -16,12 +16,19 @@ ground point moves by ``(x, y) (a x + b y)`` under them), which would otherwise 
 of scale. The shift along the motion, over the distance, is one measurement of the odometry's
 relative error; their running median is the estimate, and the back-end multiplies every
 odometry step that follows by ``1 / (1 + median)`` (:class:`sgf_pipeline.types.OdometryScale`).
+
+The fit's turn, over the distance, is one measurement of the odometry's heading bias per metre
+(``heading``): the ground in the two views turned by the robot's true turn, the odometry by that
+plus its bias. Their running median is the estimate, with a standard error counted over the
+independent stretches of ``baseline`` metres the measurements span (views overlap along the
+drive); the back-end takes it as the heading bias's prior before any loop has measured it.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -36,6 +43,13 @@ from sgf_plugins.ipm.geometry import bev_to_image_homography, visible_mask
 
 #: Parameters of the fit: shift (x, y) in metres, turn (rad), pitch-like a and roll-like b (1/m).
 _PARAMS = 5
+
+
+class MotionError(NamedTuple):
+    """The odometry's errors over one pair of views: relative distance error, and heading error per metre (rad/m)."""
+
+    scale: float
+    yaw_rate: float
 
 
 class BevMotionParams(StageParams):
@@ -58,6 +72,9 @@ class BevMotionParams(StageParams):
     min_pixels: int = Field(2000, ge=10, description="ground pixels both views must share")
     max_error: float = Field(0.1, gt=0.0, description="a measured relative error beyond this is refused (a bad fit)")
     min_pairs: int = Field(20, ge=1, description="measurements before the estimate is applied")
+    heading: bool = Field(
+        True, description="measure the odometry's heading bias per metre too (the back-end's prior for it)"
+    )
 
 
 class BevMotionScale(Stage):
@@ -95,6 +112,8 @@ class BevMotionScale(Stage):
         self._travelled = 0.0
         self._last: np.ndarray | None = None
         self.errors: list[float] = []
+        self.yaw_rates: list[float] = []
+        self._measured_from: float | None = None  # travel at the first measurement
         self.refused = 0
         self._flat = None
 
@@ -118,22 +137,31 @@ class BevMotionScale(Stage):
             if error is None:
                 self.refused += 1
             else:
-                self.errors.append(error)
+                self.errors.append(error.scale)
+                self.yaw_rates.append(error.yaw_rate)
+                if self._measured_from is None:
+                    self._measured_from = self._travelled - self.p.baseline
         return self.estimate()
 
     def estimate(self) -> OdometryScale:
-        """The running median of the measured errors as a factor on the odometry (1 before ``min_pairs``)."""
+        """The running medians of the measured errors: a factor on the odometry, and its heading bias per metre.
+
+        Both are neutral (factor 1, no bias, infinite sigma) before ``min_pairs`` measurements.
+        """
         n = len(self.errors)
         if n < self.p.min_pairs:
             return OdometryScale(1.0, math.inf, n)
-        errors = np.asarray(self.errors)
-        median = float(np.median(errors))
-        # the median's standard error: 1.2533 sigma / sqrt(n), sigma from the median absolute deviation
-        sigma = 1.2533 * 1.4826 * float(np.median(np.abs(errors - median))) / math.sqrt(n)
-        return OdometryScale(1.0 / (1.0 + median), sigma / (1.0 + median) ** 2, n)
+        median, sigma = _median(np.asarray(self.errors), n)
+        scale = OdometryScale(1.0 / (1.0 + median), sigma / (1.0 + median) ** 2, n)
+        if not self.p.heading or self._measured_from is None:
+            return scale
+        # pairs of views overlap along the drive: count the independent stretches one baseline long
+        independent = min(n, max(1.0, (self._travelled - self._measured_from) / self.p.baseline))
+        bias, bias_sigma = _median(np.asarray(self.yaw_rates), independent)
+        return OdometryScale(scale.factor, scale.sigma, n, bias, bias_sigma)
 
-    def measure(self, view: np.ndarray, earlier: np.ndarray, motion: np.ndarray) -> float | None:
-        """The odometry's relative error over ``motion`` (this view's pose in the earlier one's); None if unfit."""
+    def measure(self, view: np.ndarray, earlier: np.ndarray, motion: np.ndarray) -> MotionError | None:
+        """The odometry's errors over ``motion`` (this view's pose in the earlier one's); None if unfit."""
         length = float(np.hypot(motion[0, 2], motion[1, 2]))
         if length <= 0.0 or abs(math.atan2(motion[1, 0], motion[0, 0])) > math.radians(self.p.max_turn_deg):
             return None
@@ -155,9 +183,10 @@ class BevMotionScale(Stage):
             if np.linalg.cond(hessian) > 1e10:
                 return None
             xi += np.linalg.solve(hessian, jac.T @ (weight * residual))
-        # The earlier view sampled at motion (p + shift) matches: the true motion is the odometry's less R shift.
+        # The earlier view sampled at motion (p + shift) matches: the true motion is the odometry's less R shift,
+        # and the true turn the odometry's plus the fit's.
         error = -float(xi[:2] @ (motion[:2, :2].T @ motion[:2, 2])) / length**2
-        return error if abs(error) <= self.p.max_error else None
+        return MotionError(error, -float(xi[2]) / length) if abs(error) <= self.p.max_error else None
 
     def _view(self, calibration: Calibration, pixels: np.ndarray) -> np.ndarray:
         """The near ground by plain IPM, its fine texture only (log grey, band-passed), NaN outside the view."""
@@ -211,12 +240,24 @@ class BevMotionScale(Stage):
     def finalize(self, context: RunContext) -> None:
         """Write the estimate into ``metrics.json`` (``odometry_scale``)."""
         final = self.estimate()
+        known = math.isfinite(final.yaw_bias_sigma)
         context.metrics["odometry_scale"] = {
             "factor": final.factor,
             "sigma": final.sigma if math.isfinite(final.sigma) else None,
             "pairs": final.pairs,
             "refused": self.refused,
+            "yaw_bias_deg_per_m": math.degrees(final.yaw_bias) if known else None,
+            "yaw_bias_sigma_deg_per_m": math.degrees(final.yaw_bias_sigma) if known else None,
         }
+
+
+def _median(values: np.ndarray, independent: float) -> tuple[float, float]:
+    """The median of ``values`` and its standard error over ``independent`` measurements.
+
+    The standard error is 1.2533 sigma / sqrt(n), sigma from the median absolute deviation.
+    """
+    median = float(np.median(values))
+    return median, 1.2533 * 1.4826 * float(np.median(np.abs(values - median))) / math.sqrt(independent)
 
 
 class NoOdometryScale(Stage):

@@ -243,6 +243,7 @@ class PoseGraph:
         # For a replay of the heading bias without loops taken back: per processed frame its odometry
         # before the bias correction, and per loop the bias saw (newest frame then, ends, yaw, variance).
         self._scaled = np.zeros((64, 4, 4))
+        self._camera_bias = np.full((64, 2), np.inf)  # per processed frame: the camera's heading bias and sigma
         self._bias_loops: list[tuple[int, tuple[int, int, bool], float, float]] = []
         self._pending_distance = 0.0
         self._pending_steps = 0
@@ -318,11 +319,12 @@ class PoseGraph:
         rp = math.sqrt(steps * n.odometry_floor_yaw**2 + n.odometry_sigma_roll_pitch**2 * d)
         return self._diagonal(xy, yaw, z, rp)
 
-    def add_frame(self, frame: Frame, scale: float = 1.0) -> None:
+    def add_frame(self, frame: Frame, scale: float = 1.0, camera_bias: tuple[float, float] | None = None) -> None:
         """Add a processed frame: a node (odometry factor of eq. 11, IMU attitude), or a pose riding on the last one.
 
         A frame gets a node once ``node_distance`` of travel has passed since the last node.
-        ``scale`` multiplies the odometry's step to this frame (the odometry's scale factor known now).
+        ``scale`` multiplies the odometry's step to this frame (the odometry's scale factor known now);
+        ``camera_bias`` is the camera's estimate of the heading bias and its sigma (rad/m) known now.
         """
         index = frame.index
         if index in self.store.rows:
@@ -333,6 +335,8 @@ class PoseGraph:
         odometry = self.scaled_odometry.correct(odometry, scale)
         scaled = odometry
         if self.heading_bias is not None:
+            if camera_bias is not None:
+                self.heading_bias.camera(*camera_bias)
             odometry = self.heading_bias.correct(index, odometry)
         lift = None
         if not self.pose3:
@@ -349,7 +353,9 @@ class PoseGraph:
             self._node_of_row = _grown(self._node_of_row, row)
             self._offset = _grown(self._offset, row)
             self._scaled = _grown(self._scaled, row)
+            self._camera_bias = _grown(self._camera_bias, row)
         self._scaled[row] = scaled
+        self._camera_bias[row] = camera_bias if camera_bias is not None else (np.inf, np.inf)
         self.timestamps.append(float(frame.timestamp))
         if not self.nodes or self._pending_distance >= self.node_distance:
             self.store.append(index, np.eye(4), lift)
@@ -538,6 +544,7 @@ class PoseGraph:
         corrected = np.empty((size, 4, 4))
         k = 0
         for row, frame in enumerate(self.store.frames):
+            bias.camera(*self._camera_bias[row])
             corrected[row] = bias.correct(frame, self._scaled[row])
             while k < len(self._bias_loops) and self._bias_loops[k][0] == frame:
                 _, (frame_from, frame_to, _), yaw, variance = self._bias_loops[k]
