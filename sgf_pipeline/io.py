@@ -118,3 +118,25 @@ def read_yaml(path: str | os.PathLike[str], what: str = "YAML file") -> Any:
         raise DataError(f"{p}: not valid YAML: {' '.join(str(exc).split())}") from None
     except RecursionError:
         raise DataError(f"{p}: not valid YAML: nested too deeply") from None
+
+
+def describe_dir(path: Path, limit: int = 15) -> str:
+    """``it holds: a, b/, c`` for error messages about a missing file in ``path``."""
+    if not path.is_dir():
+        parent = path.parent
+        while not parent.is_dir() and parent != parent.parent:
+            parent = parent.parent
+        return f"{path} does not exist ({parent} holds: {_listing(parent, limit)})"
+    return f"{path} holds: {_listing(path, limit)}"
+
+
+def _listing(path: Path, limit: int) -> str:
+    try:
+        entries = sorted(path.iterdir())
+    except OSError:
+        return "(unreadable)"
+    if not entries:
+        return "nothing (empty folder)"
+    names = [e.name + ("/" if e.is_dir() else "") for e in entries[:limit]]
+    more = f" and {len(entries) - limit} more" if len(entries) > limit else ""
+    return ", ".join(names) + more

@@ -183,12 +183,28 @@ def write_bag(
 
     ``corrupt`` replaces the serialized bytes of (topic, n-th message on it); ``extra`` adds messages.
     """
+    store = typestore(version)
+    msgs = messages(store.types, frames, calib, version == "ros1", image_kind, gt_kind) + list(extra or [])
+    return write_messages(path, msgs, version, corrupt)
+
+
+def typestore(version: str = "ros2_sqlite3"):  # type: ignore[no-untyped-def]
+    """The rosbags typestore of a bag version (ROS 1 Noetic or ROS 2 Humble)."""
     from rosbags.typesys import Stores, get_typestore
 
+    return get_typestore(Stores.ROS1_NOETIC if version == "ros1" else Stores.ROS2_HUMBLE)
+
+
+def write_messages(
+    path: Path,
+    msgs: list[tuple[str, str, int, object]],
+    version: str = "ros2_sqlite3",
+    corrupt: dict[tuple[str, int], bytes] | None = None,
+) -> Path:
+    """Write ``(topic, msgtype, receive ns, message)`` in receive-time order as a bag of ``version``."""
     ros1 = version == "ros1"
-    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-    msgs = messages(store.types, frames, calib, ros1, image_kind, gt_kind) + list(extra or [])
-    msgs.sort(key=lambda m: m[2])
+    store = typestore(version)
+    msgs = sorted(msgs, key=lambda m: m[2])
     if ros1:
         from rosbags.rosbag1 import Writer as Writer1
 
@@ -218,6 +234,46 @@ def write_bag(
     finally:
         writer.close()  # type: ignore[attr-defined]
     return path
+
+
+def pose_stamped(types, ns: int, frame_id: str, pose: np.ndarray, ros1: bool = False):  # type: ignore[no-untyped-def]
+    """A geometry_msgs/PoseStamped of a 4x4 pose."""
+    point, quat = _pose_fields(types, pose)
+    return types["geometry_msgs/msg/PoseStamped"](
+        header=_header(types, ns, frame_id, ros1),
+        pose=types["geometry_msgs/msg/Pose"](position=point, orientation=quat),
+    )
+
+
+def odometry_message(types, ns: int, frame_id: str, child: str, pose: np.ndarray, ros1: bool = False):  # type: ignore[no-untyped-def]
+    """A nav_msgs/Odometry of a 4x4 pose (zero twist and covariances)."""
+    point, quat = _pose_fields(types, pose)
+    vec = types["geometry_msgs/msg/Vector3"]
+    twist = types["geometry_msgs/msg/Twist"](linear=vec(x=0.0, y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=0.0))
+    return types["nav_msgs/msg/Odometry"](
+        header=_header(types, ns, frame_id, ros1),
+        child_frame_id=child,
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=types["geometry_msgs/msg/Pose"](position=point, orientation=quat), covariance=np.zeros(36)
+        ),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+    )
+
+
+def transform_stamped(types, ns: int, parent: str, child: str, pose: np.ndarray, ros1: bool = False):  # type: ignore[no-untyped-def]
+    """A geometry_msgs/TransformStamped: ``child``'s pose in ``parent``."""
+    point, quat = _pose_fields(types, pose)
+    vec = types["geometry_msgs/msg/Vector3"]
+    return types["geometry_msgs/msg/TransformStamped"](
+        header=_header(types, ns, parent, ros1),
+        child_frame_id=child,
+        transform=types["geometry_msgs/msg/Transform"](translation=vec(x=point.x, y=point.y, z=point.z), rotation=quat),
+    )
+
+
+def tf_message(types, transforms: list[object]):  # type: ignore[no-untyped-def]
+    """A tf2_msgs/TFMessage of TransformStamped messages."""
+    return types["tf2_msgs/msg/TFMessage"](transforms=transforms)
 
 
 def rosbag_overrides(path: Path, image_topic: str = "/camera/image_raw") -> list[str]:
