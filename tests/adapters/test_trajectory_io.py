@@ -103,7 +103,11 @@ def test_euroc_csv_with_velocity_and_bias_columns(tmp_path: Path):
             "# c\n0 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n",
             r"c.tum:4: timestamp 1.0 is out of order",
         ),
-        ("d.tum", "0 0 0 0 0 0 0 1\n0 0 0 0 0 0 0 1\n", r"d.tum:2: timestamp 0.0 is duplicated .*duplicates=drop .*duplicates=keep"),
+        (
+            "d.tum",
+            "0 0 0 0 0 0 0 1\n0 0 0 0 0 0 0 1\n",
+            r"d.tum:2: timestamp 0.0 is duplicated .*duplicates=drop .*duplicates=keep",
+        ),
         ("e.txt", "1 0 0 0 0 1 0 0 0 0 1\n", r"e.txt: cannot tell the format from a line of 11 fields"),
         ("f.tum", "", r"f.tum: no poses"),
         ("g.csv", "#t,x\n1,2,3\n", r"g.csv:2: an EuRoC state line has at least 8 comma-separated fields"),
