@@ -148,12 +148,12 @@ class _Edge:
             self.poses.append(pose)
 
     def series(self, name: str) -> PoseSeries:
-        """The edge's poses in time order, one per stamp (the last of equal stamps)."""
+        """The edge's poses in time order, one per stamp in seconds (the last of equal stamps)."""
         order = np.argsort(np.asarray(self.stamps, dtype=np.int64), kind="stable")
-        ns = np.asarray(self.stamps, dtype=np.int64)[order]
+        seconds = seconds_from_ns(np.asarray(self.stamps, dtype=np.int64)[order])
         poses = np.asarray(self.poses)[order]
-        last = np.append(ns[1:] != ns[:-1], True)
-        return PoseSeries(seconds_from_ns(ns[last]), poses[last], name)
+        last = np.append(seconds[1:] != seconds[:-1], True)
+        return PoseSeries(seconds[last], poses[last], name)
 
     def fixed_pose(self) -> np.ndarray | None:
         """The edge's pose when it does not change over the bag (within a few mm and a fraction of a degree)."""

@@ -116,9 +116,12 @@ def _opencv_loader() -> Any:
     class OpenCvLoader(yaml.SafeLoader):
         """Safe loading of an OpenCV FileStorage YAML file."""
 
-    OpenCvLoader.add_constructor(
-        "tag:yaml.org,2002:opencv-matrix", lambda loader, node: loader.construct_mapping(node, deep=True)
-    )
+    def matrix(loader: yaml.SafeLoader, node: yaml.Node) -> Any:
+        if not isinstance(node, yaml.MappingNode):
+            raise yaml.constructor.ConstructorError(None, None, "an opencv-matrix must be a mapping", node.start_mark)
+        return loader.construct_mapping(node, deep=True)
+
+    OpenCvLoader.add_constructor("tag:yaml.org,2002:opencv-matrix", matrix)
     return OpenCvLoader
 
 

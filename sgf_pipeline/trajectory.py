@@ -69,9 +69,9 @@ class Trajectory:
             bad = np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)) | ~np.isfinite(ts))
             raise TrajectoryError(f"non-finite pose or timestamp at row(s) {bad[:5].tolist()}")
         steps = np.diff(ts)
-        bad = steps < 0 if self.repeated_stamps else steps <= 0
-        if ts.size > 1 and np.any(bad):
-            row = int(np.flatnonzero(bad)[0]) + 1
+        backwards = steps < 0 if self.repeated_stamps else steps <= 0
+        if ts.size > 1 and np.any(backwards):
+            row = int(np.flatnonzero(backwards)[0]) + 1
             order = "increase" if self.repeated_stamps else "increase strictly"
             raise TrajectoryError(f"timestamps must {order}; row {row} has {ts[row]!r} after {ts[row - 1]!r}")
         object.__setattr__(self, "timestamps", ts)
