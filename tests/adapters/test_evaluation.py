@@ -293,3 +293,16 @@ def test_trajectories_from_a_bag_give_evo_s_figure(shared_data: Path, tmp_path: 
         proc = _eval_cli(tmp_path / "bad", f"reference={spec}", f"estimate={evo / 'V102.txt'}")
         assert proc.returncode == 2 and "Traceback" not in proc.stderr
         assert re.search(message, proc.stderr), proc.stderr
+
+
+def test_a_transform_stamped_topic_is_a_trajectory(tmp_path: Path):
+    """A ground truth published as TransformStamped (a motion-capture bridge) reads as the poses it carries."""
+    from sgf_pipeline.bags import read_bag_trajectory
+
+    from .recordings import calibration, make_frames, write_bag
+
+    frames = make_frames(6, seed=4)
+    bag = write_bag(tmp_path / "drive.bag", frames, calibration(), "ros1", gt_kind="transform")
+    truth = read_bag_trajectory(bag, "/ground_truth")
+    np.testing.assert_allclose(truth.poses, [f.ground_truth for f in frames], atol=1e-12)
+    np.testing.assert_allclose(truth.timestamps, [f.t for f in frames], atol=1e-6)

@@ -126,6 +126,12 @@ def test_transform_tree_paths_chains_and_moving_frames():
     tree.add_message(tf_message(types, [transform_stamped(types, T0_NS, "odom", "base", b)]), "/tf_static", True)
     np.testing.assert_allclose(tree.fixed_pose("map", "base"), a @ b, atol=1e-12)  # leading '/' of ROS 1 dropped
     np.testing.assert_allclose(tree.fixed_pose("base", "map"), np.linalg.inv(a @ b), atol=1e-12)
+    for k in range(3):  # a mounting published over and over on /tf, as a ROS 1 static publisher does: still fixed
+        fixed = transform_stamped(types, T0_NS + k * 10**8, "base", "lidar", pose_from_xyz_rpy(0.2, 0, 1.1, 0, 0, 0))
+        tree.add_message(tf_message(types, [fixed]), "/tf", False)
+    np.testing.assert_allclose(
+        tree.fixed_pose("odom", "lidar"), b @ pose_from_xyz_rpy(0.2, 0, 1.1, 0, 0, 0), atol=1e-12
+    )
     for k, x in enumerate((0.0, 0.1)):  # a camera on a slide: it moves on the base
         moving = transform_stamped(types, T0_NS + k * 10**7, "base", "camera", pose_from_xyz_rpy(x, 0, 1, 0, 0, 0))
         tree.add_message(tf_message(types, [moving]), "/tf", False)
