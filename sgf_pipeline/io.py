@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import math
 import os
+import re
 import secrets
 from collections.abc import Iterator
 from pathlib import Path
@@ -102,13 +104,46 @@ def read_text(path: str | os.PathLike[str], what: str = "file") -> str:
         raise DataError(f"{p}: cannot be read: {exc.strerror or exc}") from None
 
 
+#: OpenCV's FileStorage header (``%YAML:1.0``, which YAML parsers refuse as a directive).
+_OPENCV_HEADER = re.compile(r"\ufeff?%YAML:\d+\.\d+[ \t]*\r?")
+
+
+@functools.cache
+def _opencv_loader() -> Any:
+    """``yaml.safe_load``'s loader, plus OpenCV's ``!!opencv-matrix`` tag read as a plain mapping."""
+    import yaml
+
+    class OpenCvLoader(yaml.SafeLoader):
+        """Safe loading of an OpenCV FileStorage YAML file."""
+
+    def matrix(loader: yaml.SafeLoader, node: yaml.Node) -> Any:
+        if not isinstance(node, yaml.MappingNode):
+            raise yaml.constructor.ConstructorError(None, None, "an opencv-matrix must be a mapping", node.start_mark)
+        return loader.construct_mapping(node, deep=True)
+
+    OpenCvLoader.add_constructor("tag:yaml.org,2002:opencv-matrix", matrix)
+    return OpenCvLoader
+
+
 def read_yaml(path: str | os.PathLike[str], what: str = "YAML file") -> Any:
-    """A YAML file parsed with ``yaml.safe_load`` (no Python tags); any problem gives a :class:`DataError`."""
+    """A YAML file parsed with ``yaml.safe_load`` (no Python tags); any problem gives a :class:`DataError`.
+
+    A file written by OpenCV (EuRoC's ``sensor.yaml``) is read too: its ``%YAML:1.0`` first line
+    and its ``!!opencv-matrix`` tags (mappings of ``rows``, ``cols``, ``dt``, ``data``).
+    """
     import yaml
 
     p = Path(path)
     text = read_text(p, what)
+    first, _, rest = text.partition("\n")
+    opencv = _OPENCV_HEADER.fullmatch(first) is not None
     try:
+        if opencv:
+            loader = _opencv_loader()("#" + first.lstrip("\ufeff") + "\n" + rest)  # the header as a comment
+            try:
+                return loader.get_single_data()
+            finally:
+                loader.dispose()
         return yaml.safe_load(text)
     except yaml.MarkedYAMLError as exc:
         where = f":{exc.problem_mark.line + 1}" if exc.problem_mark is not None else ""
@@ -118,3 +153,25 @@ def read_yaml(path: str | os.PathLike[str], what: str = "YAML file") -> Any:
         raise DataError(f"{p}: not valid YAML: {' '.join(str(exc).split())}") from None
     except RecursionError:
         raise DataError(f"{p}: not valid YAML: nested too deeply") from None
+
+
+def describe_dir(path: Path, limit: int = 15) -> str:
+    """``it holds: a, b/, c`` for error messages about a missing file in ``path``."""
+    if not path.is_dir():
+        parent = path.parent
+        while not parent.is_dir() and parent != parent.parent:
+            parent = parent.parent
+        return f"{path} does not exist ({parent} holds: {_listing(parent, limit)})"
+    return f"{path} holds: {_listing(path, limit)}"
+
+
+def _listing(path: Path, limit: int) -> str:
+    try:
+        entries = sorted(path.iterdir())
+    except OSError:
+        return "(unreadable)"
+    if not entries:
+        return "nothing (empty folder)"
+    names = [e.name + ("/" if e.is_dir() else "") for e in entries[:limit]]
+    more = f" and {len(entries) - limit} more" if len(entries) > limit else ""
+    return ", ".join(names) + more

@@ -301,6 +301,7 @@ class Pipeline:
         elif (run_dir / "failure.json").exists():
             log.warning("%s holds the record of a failed run (failure.json); a new run replaces it", run_dir)
             stale = [run_dir / "failure.json", *sorted(run_dir.glob("trajectory_*.partial.tum"))]
+            stale += sorted(run_dir.glob("*.partial.safetensors"))
         else:
             stale = []
         for path in stale:  # metrics.json first: the directory stops claiming a finished run at once
@@ -543,6 +544,14 @@ class Pipeline:
             log.error("the run in %s finished writing before it failed: %s: %s", self.run_dir, type(exc).__name__, exc)
             return
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        for node in self.order:  # what each stage has so far (the pose estimate, the SGF map)
+            if isinstance(node.stage, Stage):
+                try:
+                    node.stage.partial(self.context)
+                except KeyboardInterrupt:  # a second Ctrl-C: record the run with what is kept so far
+                    break
+                except Exception as error:  # a stage broken by the stop itself: the others still keep theirs
+                    log.warning("%s could not keep its results so far: %s: %s", node.label, type(error).__name__, error)
         outputs.write_failure(self, status, exc)
 
 

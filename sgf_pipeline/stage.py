@@ -81,6 +81,16 @@ class Stage(ABC):
     def finalize(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
         """Finish the sequence: final optimisation, metrics, files."""
 
+    def partial(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
+        """Keep what the run has so far when it stops early (SIGINT, SIGTERM, a failure).
+
+        Instead of ``settle`` and ``finalize``, the runner calls ``partial`` on every stage in DAG
+        order before it records the stopped run: a stage publishes its results so far into
+        ``context`` (the back-end its trajectory, written as ``trajectory_<name>.partial.tum``) or
+        writes them as ``*.partial.*`` files (the SGF map). Best effort: the stop may have come in
+        the middle of the stage's own ``process``.
+        """
+
 
 class Dataset(ABC):
     """The source of a pipeline: a sequence of frames in time order (config group ``dataset``)."""

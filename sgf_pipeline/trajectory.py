@@ -34,7 +34,8 @@ TrajectoryFormat = Literal["tum", "kitti", "euroc"]
 ROTATION_TOLERANCE = 1e-3
 #: Quaternions shorter than this (or of non-finite length) carry no rotation.
 _MIN_QUATERNION_NORM = 1e-9
-Duplicates = Literal["error", "drop"]
+#: Poses at a repeated timestamp: refused (``error``), the first kept (``drop``), or all kept (``keep``, as evo does).
+Duplicates = Literal["error", "drop", "keep"]
 #: The formats ``read_trajectory`` and ``write_trajectory`` know.
 FORMATS: tuple[TrajectoryFormat, ...] = ("tum", "kitti", "euroc")
 log = logging.getLogger("sgf_pipeline")
@@ -47,10 +48,15 @@ class TrajectoryError(ValueError):
 
 @dataclass(frozen=True)
 class Trajectory:
-    """Poses (N, 4, 4) at strictly increasing timestamps (N,) in seconds."""
+    """Poses (N, 4, 4) at strictly increasing timestamps (N,) in seconds.
+
+    ``repeated_stamps`` admits equal consecutive timestamps (a file read with ``duplicates="keep"``,
+    for evaluation only: evo pairs such poses as they are).
+    """
 
     timestamps: np.ndarray
     poses: np.ndarray
+    repeated_stamps: bool = False
 
     def __post_init__(self) -> None:
         ts = np.asarray(self.timestamps, dtype=np.float64)
@@ -62,9 +68,12 @@ class Trajectory:
         if not np.all(np.isfinite(ts)) or not np.all(np.isfinite(poses)):
             bad = np.flatnonzero(~np.isfinite(poses).all(axis=(1, 2)) | ~np.isfinite(ts))
             raise TrajectoryError(f"non-finite pose or timestamp at row(s) {bad[:5].tolist()}")
-        if ts.size > 1 and np.any(np.diff(ts) <= 0):
-            row = int(np.flatnonzero(np.diff(ts) <= 0)[0]) + 1
-            raise TrajectoryError(f"timestamps must increase strictly; row {row} has {ts[row]!r} after {ts[row - 1]!r}")
+        steps = np.diff(ts)
+        backwards = steps < 0 if self.repeated_stamps else steps <= 0
+        if ts.size > 1 and np.any(backwards):
+            row = int(np.flatnonzero(backwards)[0]) + 1
+            order = "increase" if self.repeated_stamps else "increase strictly"
+            raise TrajectoryError(f"timestamps must {order}; row {row} has {ts[row]!r} after {ts[row - 1]!r}")
         object.__setattr__(self, "timestamps", ts)
         object.__setattr__(self, "poses", poses)
 
@@ -139,40 +148,67 @@ def _rotation(quaternion: np.ndarray) -> np.ndarray:
 
 
 def _checked(
-    path: Path, timestamps: np.ndarray, poses: np.ndarray, lines: list[int], duplicates: Duplicates = "error"
+    path: Path | str,
+    timestamps: np.ndarray,
+    poses: np.ndarray,
+    lines: list[int],
+    duplicates: Duplicates = "error",
+    unit: str = "line",
 ) -> Trajectory:
-    """A Trajectory, with errors that name the file's line instead of the row."""
-    if duplicates == "drop" and timestamps.size > 1:
-        repeated = np.flatnonzero(np.diff(timestamps) == 0) + 1
-        if repeated.size:
-            log.warning(
-                "%s: dropped %d pose(s) whose timestamp repeats the previous line's (line(s) %s)",
-                path,
-                repeated.size,
-                [lines[i] for i in repeated[:5]],
-            )
-            keep = np.ones(timestamps.size, dtype=bool)
-            keep[repeated] = False
-            timestamps, poses = timestamps[keep], poses[keep]
-            lines = [n for n, k in zip(lines, keep, strict=True) if k]
-    elif duplicates != "error" and duplicates != "drop":
-        raise TrajectoryError(f"duplicates must be 'error' or 'drop', got {duplicates!r}")
+    """A Trajectory, with errors that name the file's line (or the topic's message: ``unit``) instead of the row."""
+    if duplicates not in ("error", "drop", "keep"):
+        raise TrajectoryError(f"duplicates must be 'error', 'drop' or 'keep', got {duplicates!r}")
+    repeated = np.flatnonzero(np.diff(timestamps) == 0) + 1 if timestamps.size > 1 else np.zeros(0, dtype=int)
+    if duplicates == "drop" and repeated.size:
+        log.warning(
+            "%s: dropped %d pose(s) whose timestamp repeats the previous %s's (%s(s) %s)",
+            path,
+            repeated.size,
+            unit,
+            unit,
+            [lines[i] for i in repeated[:5]],
+        )
+        keep = np.ones(timestamps.size, dtype=bool)
+        keep[repeated] = False
+        timestamps, poses = timestamps[keep], poses[keep]
+        lines = [n for n, k in zip(lines, keep, strict=True) if k]
+    elif duplicates == "keep" and repeated.size:
+        log.info("%s: kept %d pose(s) whose timestamp repeats the previous %s's", path, repeated.size, unit)
     finite = np.isfinite(poses).all(axis=(1, 2)) & np.isfinite(timestamps)
     if not finite.all():
         bad = [lines[i] for i in np.flatnonzero(~finite)[:5]]
         raise TrajectoryError(
-            f"{path}:{bad[0]}: non-finite pose (NaN or inf) or zero-length quaternion on line(s) {bad}"
+            f"{path}:{bad[0]}: non-finite pose (NaN or inf) or zero-length quaternion on {unit}(s) {bad}"
         )
     steps = np.diff(timestamps)
-    if np.any(steps <= 0):
-        row = int(np.flatnonzero(steps <= 0)[0]) + 1
+    wrong = steps < 0 if duplicates == "keep" else steps <= 0
+    if np.any(wrong):
+        row = int(np.flatnonzero(wrong)[0]) + 1
         kind = "duplicated" if steps[row - 1] == 0 else "out of order"
         raise TrajectoryError(
             f"{path}:{lines[row]}: timestamp {float(timestamps[row])!r} is {kind} (previous "
-            f"{float(timestamps[row - 1])!r} on line {lines[row - 1]}); timestamps must increase strictly"
-            + ("; pass duplicates='drop' to keep the first of equal timestamps" if kind == "duplicated" else "")
+            f"{float(timestamps[row - 1])!r} on {unit} {lines[row - 1]}); timestamps must increase strictly"
+            + (
+                "; duplicates=drop keeps the first of equal timestamps, duplicates=keep all of them (as evo does)"
+                if kind == "duplicated"
+                else ""
+            )
         )
-    return Trajectory(timestamps, poses)
+    return Trajectory(timestamps, poses, repeated_stamps=duplicates == "keep" and bool(repeated.size))
+
+
+def checked_trajectory(
+    source: str, timestamps: np.ndarray, poses: np.ndarray, numbers: list[int], duplicates: Duplicates = "error"
+) -> Trajectory:
+    """A Trajectory of poses read from messages (``numbers``: each pose's message number, for errors)."""
+    return _checked(
+        source,
+        np.asarray(timestamps, dtype=np.float64),
+        np.asarray(poses, dtype=np.float64),
+        numbers,
+        duplicates,
+        "message",
+    )
 
 
 def parse_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, list[int]]:
@@ -397,7 +433,7 @@ def read_trajectory(
     """Read a trajectory in any known format (``times``: the KITTI times file, if any).
 
     ``duplicates="drop"`` keeps the first of poses with equal timestamps (real motion-capture files
-    have them; evo accepts them) instead of refusing the file.
+    have them) instead of refusing the file; ``"keep"`` keeps them all, as evo does (for evaluation).
     """
     fmt = detect_format(path) if format == "auto" else format
     if fmt == "tum":

@@ -247,8 +247,9 @@ def test_clear_errors_for_bad_input(view) -> None:
     kitti = Intrinsics(fx=718.856, fy=718.856, cx=607.1928, cy=185.2157, width=1241, height=376)
     far = Calibration.from_mounting(kitti, 1.65, 0.0)
     frame = Frame(0, 0.0, np.zeros((376, 1241), np.uint8), np.eye(4), far, (0.0, 0.0))
-    with pytest.raises(ConfigError, match=r"no pixel of the BEV region .* about 6\.2\d m ahead"):
-        stage.process(frame, CameraImage(np.zeros((376, 1241, 3), np.uint8), 0))
+    fixed = MotionCompensatedIPM(MotionCompensatedIpmParams(region="fixed"))  # auto moves it (test_ipm_region.py)
+    with pytest.raises(ConfigError, match=r"no pixel of the ipm region .* about 6\.2\d m from the base origin"):
+        fixed.process(frame, CameraImage(np.zeros((376, 1241, 3), np.uint8), 0))
 
 
 class _SceneDataset(Dataset):

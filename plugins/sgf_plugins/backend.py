@@ -199,21 +199,47 @@ class _Backend(Stage):
         metrics.update(self.extra_metrics())
         params = self.params
         assert isinstance(params, BackendParams)
-        assignments = context.artifacts.get("group_assignments")
-        if params.save_map and context.run_dir is not None and assignments:
-            sgf_map = build_map(
-                assignments,
-                estimate.poses,
-                calibration=context.calibration or self.calibration,
-                sequence=context.sequence,
-                ground_truth=self.ground_truth,
-                group_of=context.artifacts.get("sgf_group_of"),
-            )
-            path = Path(context.run_dir) / params.map_file
-            map_id = save_map(path, sgf_map)
-            metrics["map"] = {"file": params.map_file, "groups": len(sgf_map.groups), "views": len(sgf_map.views)}
-            context.artifacts["sgf_map"] = {"path": str(path), "map_id": map_id}
+        saved = self._save_map(context, estimate, params.map_file)
+        if saved is not None:
+            metrics["map"] = {"file": params.map_file, "groups": len(saved.groups), "views": len(saved.views)}
         context.metrics.setdefault("backend", {}).update(metrics)
+
+    def partial(self, context: RunContext) -> None:
+        """The estimate so far (``trajectory_sgf.partial.tum``) and the SGF map so far (``<map_file>.partial``)."""
+        timestamps, poses, estimate = self.poses()
+        if len(timestamps) == 0 or estimate is None:
+            return
+        context.trajectories["sgf"] = Trajectory(np.asarray(timestamps), poses)
+        params = self.params
+        assert isinstance(params, BackendParams)
+        name = Path(params.map_file)
+        self._save_map(context, estimate, f"{name.stem}.partial{name.suffix}")
+
+    def _save_map(self, context: RunContext, estimate: PoseEstimate, file_name: str) -> SgfMap | None:
+        """Write the SGF map of the loop stage's group assignments (``save_map``); the map, or None if none."""
+        params = self.params
+        assert isinstance(params, BackendParams)
+        assignments = context.artifacts.get("group_assignments")
+        if not (params.save_map and context.run_dir is not None and assignments):
+            return None
+        # a run stopped between the loop stage and this one has assignments of a frame without a pose yet
+        assignments = [
+            a
+            for a in assignments
+            if getattr(a.descriptor, "sgf", None) is None or a.descriptor.sgf.frame_index in estimate.poses
+        ]
+        sgf_map = build_map(
+            assignments,
+            estimate.poses,
+            calibration=context.calibration or self.calibration,
+            sequence=context.sequence,
+            ground_truth=self.ground_truth,
+            group_of=context.artifacts.get("sgf_group_of"),
+        )
+        path = Path(context.run_dir) / file_name
+        map_id = save_map(path, sgf_map)
+        context.artifacts["sgf_map"] = {"path": str(path), "map_id": map_id}
+        return sgf_map
 
     def extra_metrics(self) -> dict[str, Any]:
         """Variant-specific metrics."""

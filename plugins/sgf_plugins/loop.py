@@ -1476,6 +1476,10 @@ class IcpLoopClosing(Stage):
         context.artifacts["group_assignments"] = list(self.assignments)
         context.artifacts["loop_candidates"] = list(self.decisions)
 
+    def partial(self, context: RunContext) -> None:
+        """The group assignments so far, for the SGF map of a run that stopped early."""
+        context.artifacts["group_assignments"] = list(self.assignments)
+
     def _take_back_inconsistent(self, context: RunContext) -> None:
         """The consistency test over the accepted loops; with ``drop_inconsistent``, those outside are taken back.
 

@@ -40,6 +40,7 @@ from sgf_pipeline.geometry import xy_yaw
 from sgf_pipeline.types import BevGrid, CameraImage, Frame, OdometryScale
 from sgf_plugins.icp import se2
 from sgf_plugins.ipm.geometry import bev_to_image_homography, visible_mask
+from sgf_plugins.ipm.region import Region, choose_region
 
 #: Parameters of the fit: shift (x, y) in metres, turn (rad), pitch-like a and roll-like b (1/m).
 _PARAMS = 5
@@ -59,6 +60,11 @@ class BevMotionParams(StageParams):
     x_min: float = Field(0.5, ge=0.0, description="m ahead: nearest ground resampled")
     x_max: float = Field(3.0, gt=0.0, description="m ahead: farthest (a view's attitude error grows with the square)")
     y_half_width: float = Field(1.25, gt=0.0, description="m to each side")
+    region: Region = Field(
+        "auto",
+        description="auto: that near ground when the camera sees at least half of it, else ground of its size "
+        "nearest in view (logged); fixed: that ground, an error when the camera sees none of it",
+    )
     baseline: float = Field(1.0, gt=0.0, description="m driven between the two views of a measurement")
     max_baseline: float = Field(1.6, gt=0.0, description="no measurement when the nearest view far enough is older")
     max_turn_deg: float = Field(15.0, gt=0.0, description="no measurement across a sharper turn")
@@ -92,13 +98,10 @@ class BevMotionScale(Stage):
             raise ValueError(f"odometry_scale.x_max ({params.x_max}) must be larger than x_min ({params.x_min})")
         if params.max_baseline <= params.baseline:
             raise ValueError("odometry_scale.max_baseline must be larger than baseline")
-        self.grid = BevGrid(params.resolution, params.x_min, params.x_max, -params.y_half_width, params.y_half_width)
-        v, u = np.mgrid[0 : self.grid.height, 0 : self.grid.width].astype(np.float64)
-        self._x, self._y = self.grid.pixel_to_ground(u, v)
-        one, zero = np.ones_like(self._x), np.zeros_like(self._x)
-        # d(shift)/d(params) per pixel: shift, turn about the robot, then the attitude terms (x, y)(a x + b y)
-        self._bx = np.stack([one, zero, -self._y, self._x * self._x, self._x * self._y])
-        self._by = np.stack([zero, one, self._x, self._y * self._x, self._y * self._y])
+        self.configured = BevGrid(
+            params.resolution, params.x_min, params.x_max, -params.y_half_width, params.y_half_width
+        )
+        self._set_grid(self.configured)
         self._calibration: Calibration | None = None
         self._homography = np.eye(3)
         self._valid = np.zeros(0, dtype=bool)
@@ -106,8 +109,19 @@ class BevMotionScale(Stage):
         self._weights: dict[float, np.ndarray] = {}
         self._inside = np.zeros(0, dtype=np.float32)
 
+    def _set_grid(self, grid: BevGrid) -> None:
+        """View the ground of ``grid``: its points and the fit's derivatives there."""
+        self.grid = grid
+        v, u = np.mgrid[0 : grid.height, 0 : grid.width].astype(np.float64)
+        self._x, self._y = grid.pixel_to_ground(u, v)
+        one, zero = np.ones_like(self._x), np.zeros_like(self._x)
+        # d(shift)/d(params) per pixel: shift, turn about the robot, then the attitude terms (x, y)(a x + b y)
+        self._bx = np.stack([one, zero, -self._y, self._x * self._x, self._x * self._y])
+        self._by = np.stack([zero, one, self._x, self._y * self._x, self._y * self._y])
+
     def begin(self, context: RunContext) -> None:
         """Forget the previous sequence."""
+        self._calibration = None
         self._views: deque[tuple[float, np.ndarray, np.ndarray]] = deque()  # travelled, planar odometry, view
         self._travelled = 0.0
         self._last: np.ndarray | None = None
@@ -191,6 +205,10 @@ class BevMotionScale(Stage):
     def _view(self, calibration: Calibration, pixels: np.ndarray) -> np.ndarray:
         """The near ground by plain IPM, its fine texture only (log grey, band-passed), NaN outside the view."""
         if calibration is not self._calibration:
+            grid = choose_region(calibration, self.configured, self.p.region, "odometry_scale")
+            if grid != self.grid:
+                self._set_grid(grid)
+                self._views.clear()  # views of another region
             self._homography = bev_to_image_homography(calibration, self.grid)
             intr = calibration.intrinsics
             self._valid = visible_mask(self._homography, self.grid, intr.width, intr.height)
@@ -249,6 +267,14 @@ class BevMotionScale(Stage):
             "yaw_bias_deg_per_m": math.degrees(final.yaw_bias) if known else None,
             "yaw_bias_sigma_deg_per_m": math.degrees(final.yaw_bias_sigma) if known else None,
         }
+        if self.grid != self.configured:
+            g = self.grid
+            context.metrics["odometry_scale"]["region"] = {
+                "x_min": g.x_min,
+                "x_max": g.x_max,
+                "y_min": g.y_min,
+                "y_max": g.y_max,
+            }
 
 
 def _median(values: np.ndarray, independent: float) -> tuple[float, float]:

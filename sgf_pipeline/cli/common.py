@@ -150,8 +150,8 @@ def console(app: Callable[[], Any]) -> Callable[[], None]:
         except KeyboardInterrupt as exc:
             name, status = ("SIGTERM", EXIT_TERMINATED) if isinstance(exc, Terminated) else ("SIGINT", EXIT_INTERRUPTED)
             print(
-                f"interrupted ({name}): a run directory being written keeps failure.json and its "
-                "trajectory_*.partial.tum files; no file is left half-written",
+                f"interrupted ({name}): a run directory being written keeps failure.json, its "
+                "trajectory_*.partial.tum files and the SGF map so far; no file is left half-written",
                 file=sys.stderr,
             )
             sys.exit(status)

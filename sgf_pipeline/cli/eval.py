@@ -1,7 +1,8 @@
-"""``sgf-eval``: ATE and RPE of two trajectory files (TUM, KITTI, EuRoC CSV), printed and written as JSON."""
+"""``sgf-eval``: ATE and RPE of two trajectories (TUM, KITTI, EuRoC CSV files, or bag topics), printed and as JSON."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import Any, Literal
 
@@ -10,12 +11,17 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 from pydantic import BaseModel, ConfigDict, Field
 
+from sgf_pipeline.bags import read_bag_trajectory, split_bag_source
 from sgf_pipeline.cli.common import console, friendly_errors
 from sgf_pipeline.config import config_dir, validate_options
 from sgf_pipeline.errors import DataError
 from sgf_pipeline.evaluation import Alignment, DeltaUnit, ErrorStatistics, ate, rpe
 from sgf_pipeline.io import atomic_write_json
-from sgf_pipeline.trajectory import Trajectory, TrajectoryError, read_trajectory
+from sgf_pipeline.trajectory import Duplicates, Trajectory, TrajectoryError, read_trajectory
+
+log = logging.getLogger("sgf_pipeline")
+#: Below this share of the reference's time span covered by the estimate, a warning says so.
+MIN_COVERAGE = 0.9
 
 
 class RpeOptions(BaseModel):
@@ -41,16 +47,35 @@ class EvalOptions(BaseModel):
     estimate_times: str | None = None
     align: Alignment = "se3"
     max_time_diff: float = Field(0.01, gt=0.0)
-    duplicates: Literal["drop", "error"] = "drop"
+    duplicates: Duplicates = "drop"
     rpe: RpeOptions = Field(default_factory=RpeOptions)
     output: str = "eval.json"
 
 
-def _read(path: str, fmt: str, times: str | None, duplicates: str, role: str) -> Trajectory:
+def _read(path: str, fmt: str, times: str | None, duplicates: Duplicates, role: str) -> Trajectory:
+    """A trajectory file, or a bag's topic (``drive.bag:/topic``)."""
     try:
+        bag = split_bag_source(path)
+        if bag is not None:
+            return read_bag_trajectory(bag[0], bag[1], duplicates)
         return read_trajectory(path, fmt, times, duplicates)  # type: ignore[arg-type]
-    except TrajectoryError as exc:
+    except (TrajectoryError, DataError) as exc:
         raise DataError(f"{role}: {exc}") from None
+
+
+def _resolved(source: str) -> str:
+    """The absolute path of a file, or of a bag with its topic."""
+    bag = split_bag_source(source)
+    return f"{bag[0].resolve()}:{bag[1]}" if bag is not None else str(Path(source).resolve())
+
+
+def coverage(reference: Trajectory, estimate: Trajectory) -> float | None:
+    """The share of the reference's time span the estimate's span overlaps (None for a single instant)."""
+    start, end = float(reference.timestamps[0]), float(reference.timestamps[-1])
+    if end <= start:
+        return None
+    overlap = min(end, float(estimate.timestamps[-1])) - max(start, float(estimate.timestamps[0]))
+    return max(0.0, overlap) / (end - start)
 
 
 def evaluate(options: EvalOptions) -> dict[str, Any]:
@@ -66,11 +91,25 @@ def evaluate(options: EvalOptions) -> dict[str, Any]:
         "rpe_translation": rpe(reference, estimate, relation="translation", **rpe_args, **common),  # type: ignore[arg-type]
         "rpe_rotation": rpe(reference, estimate, relation="rotation", **rpe_args, **common),  # type: ignore[arg-type]
     }
+    covered = coverage(reference, estimate)
+    if covered is not None and covered < MIN_COVERAGE:
+        log.warning(
+            "the estimate covers %.0f %% of the reference's time span (estimate t=%.3f..%.3f s, reference "
+            "t=%.3f..%.3f s): a truncated estimate is scored on the part it has",
+            100.0 * covered,
+            estimate.timestamps[0],
+            estimate.timestamps[-1],
+            reference.timestamps[0],
+            reference.timestamps[-1],
+        )
     return {
-        "reference": str(Path(options.reference).resolve()),
-        "estimate": str(Path(options.estimate).resolve()),
+        "reference": _resolved(options.reference),
+        "estimate": _resolved(options.estimate),
         "reference_poses": len(reference),
         "estimate_poses": len(estimate),
+        "matched_pairs": results["ate"].pairs,
+        "coverage": covered,
+        "duplicates": options.duplicates,
         "align": options.align,
         "max_time_diff": options.max_time_diff,
         "rpe_delta": options.rpe.delta,
@@ -94,6 +133,12 @@ def table(report: dict[str, Any]) -> str:
         s = report[key]
         values = "".join(f"{s[k]:>11.6f}" for k in ("rmse", "mean", "median", "std", "min", "max"))
         lines.append(f"  {label:<21}{values}{s['pairs']:>8d}")
+    covered = report.get("coverage")
+    span = "" if covered is None else f"; the estimate spans {100 * covered:.0f} % of the reference's time"
+    lines.append(
+        f"  {report['matched_pairs']} pose pairs matched within {report['max_time_diff']:g} s (estimate "
+        f"{report['estimate_poses']} poses, reference {report['reference_poses']}{span})"
+    )
     return "\n".join(lines)
 
 

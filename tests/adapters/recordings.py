@@ -11,7 +11,7 @@ import numpy as np
 
 from sgf_pipeline.calibration import Calibration, Distortion, Intrinsics
 from sgf_pipeline.folder_format import FolderDatasetWriter
-from sgf_pipeline.geometry import pose_from_xyz_rpy, quaternion_from_rotation
+from sgf_pipeline.geometry import invert, pose_from_xyz_rpy, quaternion_from_rotation
 
 T0_NS = 1_700_000_000_000_000_000
 STEP_NS = 100_000_000  # 10 Hz camera
@@ -183,12 +183,28 @@ def write_bag(
 
     ``corrupt`` replaces the serialized bytes of (topic, n-th message on it); ``extra`` adds messages.
     """
+    store = typestore(version)
+    msgs = messages(store.types, frames, calib, version == "ros1", image_kind, gt_kind) + list(extra or [])
+    return write_messages(path, msgs, version, corrupt)
+
+
+def typestore(version: str = "ros2_sqlite3"):  # type: ignore[no-untyped-def]
+    """The rosbags typestore of a bag version (ROS 1 Noetic or ROS 2 Humble)."""
     from rosbags.typesys import Stores, get_typestore
 
+    return get_typestore(Stores.ROS1_NOETIC if version == "ros1" else Stores.ROS2_HUMBLE)
+
+
+def write_messages(
+    path: Path,
+    msgs: list[tuple[str, str, int, object]],
+    version: str = "ros2_sqlite3",
+    corrupt: dict[tuple[str, int], bytes] | None = None,
+) -> Path:
+    """Write ``(topic, msgtype, receive ns, message)`` in receive-time order as a bag of ``version``."""
     ros1 = version == "ros1"
-    store = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
-    msgs = messages(store.types, frames, calib, ros1, image_kind, gt_kind) + list(extra or [])
-    msgs.sort(key=lambda m: m[2])
+    store = typestore(version)
+    msgs = sorted(msgs, key=lambda m: m[2])
     if ros1:
         from rosbags.rosbag1 import Writer as Writer1
 
@@ -220,6 +236,46 @@ def write_bag(
     return path
 
 
+def pose_stamped(types, ns: int, frame_id: str, pose: np.ndarray, ros1: bool = False):  # type: ignore[no-untyped-def]
+    """A geometry_msgs/PoseStamped of a 4x4 pose."""
+    point, quat = _pose_fields(types, pose)
+    return types["geometry_msgs/msg/PoseStamped"](
+        header=_header(types, ns, frame_id, ros1),
+        pose=types["geometry_msgs/msg/Pose"](position=point, orientation=quat),
+    )
+
+
+def odometry_message(types, ns: int, frame_id: str, child: str, pose: np.ndarray, ros1: bool = False):  # type: ignore[no-untyped-def]
+    """A nav_msgs/Odometry of a 4x4 pose (zero twist and covariances)."""
+    point, quat = _pose_fields(types, pose)
+    vec = types["geometry_msgs/msg/Vector3"]
+    twist = types["geometry_msgs/msg/Twist"](linear=vec(x=0.0, y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=0.0))
+    return types["nav_msgs/msg/Odometry"](
+        header=_header(types, ns, frame_id, ros1),
+        child_frame_id=child,
+        pose=types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=types["geometry_msgs/msg/Pose"](position=point, orientation=quat), covariance=np.zeros(36)
+        ),
+        twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=np.zeros(36)),
+    )
+
+
+def transform_stamped(types, ns: int, parent: str, child: str, pose: np.ndarray, ros1: bool = False):  # type: ignore[no-untyped-def]
+    """A geometry_msgs/TransformStamped: ``child``'s pose in ``parent``."""
+    point, quat = _pose_fields(types, pose)
+    vec = types["geometry_msgs/msg/Vector3"]
+    return types["geometry_msgs/msg/TransformStamped"](
+        header=_header(types, ns, parent, ros1),
+        child_frame_id=child,
+        transform=types["geometry_msgs/msg/Transform"](translation=vec(x=point.x, y=point.y, z=point.z), rotation=quat),
+    )
+
+
+def tf_message(types, transforms: list[object]):  # type: ignore[no-untyped-def]
+    """A tf2_msgs/TFMessage of TransformStamped messages."""
+    return types["tf2_msgs/msg/TFMessage"](transforms=transforms)
+
+
 def rosbag_overrides(path: Path, image_topic: str = "/camera/image_raw") -> list[str]:
     """Hydra overrides that read a bag written by :func:`write_bag`."""
     return [
@@ -233,3 +289,92 @@ def rosbag_overrides(path: Path, image_topic: str = "/camera/image_raw") -> list
         f"dataset.camera_height={HEIGHT_M}",
         f"dataset.camera_tilt={TILT}",
     ]
+
+
+# -- six real KITTI frames as a ROS 2 bag, the camera placed by /tf_static --------------------------------
+
+KITTI_K = (718.856, 718.856, 607.1928, 185.2157)
+#: The KITTI camera on the car: 1.65 m above the road, 0.27 m ahead of base_link's origin, 1 degree down.
+KITTI_TILT = math.radians(1.0)
+
+
+def kitti_mounting() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(footprint -> base_link, base_link -> camera_link, camera_link -> camera_optical_frame)`` poses.
+
+    base_link sits 0.3 m above base_footprint (REP 120's frame on the road); camera_link has REP 103
+    body axes (x forward, y left, z up), pitched 1 degree down; the optical frame turns them to z
+    forward, x right, y down, as a URDF's camera joint does.
+    """
+    footprint_link = pose_from_xyz_rpy(0.0, 0.0, 0.3, 0.0, 0.0, 0.0)
+    link_camera = pose_from_xyz_rpy(0.27, 0.0, 1.35, 0.0, KITTI_TILT, 0.0)
+    camera_optical = pose_from_xyz_rpy(0.0, 0.0, 0.0, -math.pi / 2, 0.0, -math.pi / 2)
+    return footprint_link, link_camera, camera_optical
+
+
+def write_kitti_bag(path: Path, kitti: Path, image_frame: str = "camera_optical_frame", stamp_offset: int = 0) -> Path:
+    """KITTI 00's first six frames as a ROS 2 bag: /camera/image_raw (mono8), /camera/camera_info, /odom,
+    /imu, /ground_truth and the camera's mounting on /tf_static; nothing tells the mounting otherwise.
+
+    The odometry and ground truth are the base_footprint poses of KITTI's ground truth (the camera
+    poses moved through the mounting); ``image_frame`` is the images' ``header.frame_id``
+    (``camera_optical_frame`` or the body-axes ``camera_link``).
+    """
+    types = typestore().types
+    footprint_link, link_camera, camera_optical = kitti_mounting()
+    camera_to_base = footprint_link @ link_camera @ camera_optical
+    camera_poses = np.loadtxt(kitti / "poses_00_first6.txt").reshape(-1, 3, 4)
+    seconds = np.loadtxt(kitti / "times_00_first6.txt")
+    t0 = T0_NS + stamp_offset
+    msgs: list[tuple[str, str, int, object]] = []
+    statics = [
+        transform_stamped(types, t0, "base_footprint", "base_link", footprint_link),
+        transform_stamped(types, t0, "base_link", "camera_link", link_camera),
+        transform_stamped(types, t0, "camera_link", "camera_optical_frame", camera_optical),
+    ]
+    msgs.append(("/tf_static", "tf2_msgs/msg/TFMessage", t0, tf_message(types, statics)))
+    fx, fy, cx, cy = KITTI_K
+    info = types["sensor_msgs/msg/CameraInfo"](
+        header=_header(types, t0, image_frame, False),
+        height=376,
+        width=1241,
+        distortion_model="plumb_bob",
+        d=np.zeros(5),
+        k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=np.float64),
+        r=np.eye(3).reshape(-1),
+        p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], dtype=np.float64),
+        binning_x=0,
+        binning_y=0,
+        roi=types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False),
+    )
+    vec = types["geometry_msgs/msg/Vector3"]
+    for i, (pose34, s) in enumerate(zip(camera_poses, seconds, strict=True)):
+        ns = t0 + round(float(s) * 1e9)
+        camera = np.vstack([pose34, [0.0, 0.0, 0.0, 1.0]])
+        base = camera_to_base @ camera @ invert(camera_to_base)
+        grey = cv2.imread(str(kitti / "image_0" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        image = types["sensor_msgs/msg/Image"](
+            header=_header(types, ns, image_frame, False),
+            height=376,
+            width=1241,
+            encoding="mono8",
+            is_bigendian=0,
+            step=1241,
+            data=grey.reshape(-1),
+        )
+        msgs.append(("/camera/image_raw", "sensor_msgs/msg/Image", ns, image))
+        if i == 0:
+            msgs.append(("/camera/camera_info", "sensor_msgs/msg/CameraInfo", ns, info))
+        msgs.append(("/odom", "nav_msgs/msg/Odometry", ns, odometry_message(types, ns, "odom", "base_footprint", base)))
+        msgs.append(("/ground_truth", "geometry_msgs/msg/PoseStamped", ns, pose_stamped(types, ns, "map", base)))
+        q = quaternion_from_rotation(base[:3, :3])
+        imu = types["sensor_msgs/msg/Imu"](
+            header=_header(types, ns, "base_footprint", False),
+            orientation=types["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]),
+            orientation_covariance=np.zeros(9),
+            angular_velocity=vec(x=0.0, y=0.0, z=0.0),
+            angular_velocity_covariance=np.zeros(9),
+            linear_acceleration=vec(x=0.0, y=0.0, z=9.81),
+            linear_acceleration_covariance=np.zeros(9),
+        )
+        msgs.append(("/imu", "sensor_msgs/msg/Imu", ns, imu))
+    return write_messages(path, msgs, "ros2_mcap")

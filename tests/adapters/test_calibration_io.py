@@ -31,7 +31,9 @@ P1: 7.188560000000e+02 0.000000000000e+00 6.071928000000e+02 -3.861448000000e+02
 Tr: 0 -1 0 0 0 0 -1 -0.08 1 0 0 -0.27
 """
 
-EUROC_SENSOR = """# General sensor definitions.
+# An EuRoC camera sensor.yaml as the sequences ship it: OpenCV's YAML header first.
+EUROC_SENSOR = """%YAML:1.0
+# General sensor definitions.
 sensor_type: camera
 comment: test camera
 T_BS:

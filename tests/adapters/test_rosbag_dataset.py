@@ -85,6 +85,7 @@ def test_bag_gives_the_folder_frames(
         "skipped": 0,
         "skipped_by_reason": {},
         "trimmed": 0,
+        "mounting": "config",
     }
     assert bag_metrics["ate_rmse_m"]["odometry"] == pytest.approx(folder_metrics["ate_rmse_m"]["odometry"], abs=1e-7)
     assert bag_metrics["ate_rmse_m"]["odometry"] > 0.01  # the synthetic odometry drifts from the ground truth

@@ -103,7 +103,11 @@ def test_euroc_csv_with_velocity_and_bias_columns(tmp_path: Path):
             "# c\n0 0 0 0 0 0 0 1\n2 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 1\n",
             r"c.tum:4: timestamp 1.0 is out of order",
         ),
-        ("d.tum", "0 0 0 0 0 0 0 1\n0 0 0 0 0 0 0 1\n", r"d.tum:2: timestamp 0.0 is duplicated .*duplicates='drop'"),
+        (
+            "d.tum",
+            "0 0 0 0 0 0 0 1\n0 0 0 0 0 0 0 1\n",
+            r"d.tum:2: timestamp 0.0 is duplicated .*duplicates=drop .*duplicates=keep",
+        ),
         ("e.txt", "1 0 0 0 0 1 0 0 0 0 1\n", r"e.txt: cannot tell the format from a line of 11 fields"),
         ("f.tum", "", r"f.tum: no poses"),
         ("g.csv", "#t,x\n1,2,3\n", r"g.csv:2: an EuRoC state line has at least 8 comma-separated fields"),
@@ -129,3 +133,9 @@ def test_kitti_times_must_match_and_duplicates_can_be_dropped(tmp_path: Path):
     kept = read_tum(dup, duplicates="drop")
     assert kept.timestamps.tolist() == [0.0, 1.0, 2.0]
     assert kept.positions[:, 0].tolist() == [0.0, 1.0, 3.0]  # the first of the equal stamps is kept
+    every = read_trajectory(dup, duplicates="keep")  # evo's way: all of them, in file order
+    assert every.timestamps.tolist() == [0.0, 1.0, 1.0, 2.0] and every.positions[:, 0].tolist() == [0, 1, 2, 3]
+    assert every.repeated_stamps and not kept.repeated_stamps
+    (tmp_path / "back.tum").write_text("0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n0.5 2 0 0 0 0 0 1\n")
+    with pytest.raises(TrajectoryError, match=r"back.tum:3: timestamp 0.5 is out of order"):
+        read_trajectory(tmp_path / "back.tum", duplicates="keep")  # keep admits equal stamps, never disorder

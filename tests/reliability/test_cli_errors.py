@@ -7,9 +7,24 @@ import re
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import numpy as np
 import pytest
-from adapters.recordings import calibration, make_frames, write_folder
+from adapters.recordings import (
+    KITTI_K,
+    T0_NS,
+    calibration,
+    make_frames,
+    tf_message,
+    transform_stamped,
+    typestore,
+    write_bag,
+    write_folder,
+)
+from adapters.test_euroc_dataset import make_euroc
 from sgf_testing import run_cli
+
+from sgf_pipeline.calibration import Calibration, Intrinsics
+from sgf_pipeline.geometry import pose_from_xyz_rpy
 
 
 @pytest.fixture(scope="module")
@@ -28,6 +43,21 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     bag.write_bytes(b"#ROSBAG V2.0\n" + bytes(range(256)) * 4)
     empty = base / "empty"
     empty.mkdir()
+    types = typestore().types
+    tf = tf_message(types, [transform_stamped(types, T0_NS, "map", "base_link", pose_from_xyz_rpy(1, 2, 0, 0, 0, 0))])
+    tf_bag = write_bag(
+        base / "tf_bag",
+        make_frames(3, seed=2),
+        calibration(),
+        extra=[("/tf_static", "tf2_msgs/msg/TFMessage", T0_NS, tf)],
+    )
+    fx, fy, cx, cy = KITTI_K
+    car = Calibration.from_mounting(Intrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=1241, height=376), 1.65, 0.0)
+    frames = make_frames(2, seed=1)
+    for f in frames:
+        f.image = np.zeros((376, 1241, 3), np.uint8)
+    level = write_folder(base / "level", frames, car)
+    euroc = make_euroc(base / "euroc", frames=4)
     corrupt_run = base / "runs_corrupt" / "r1"
     corrupt_run.mkdir(parents=True)
     (corrupt_run / "metrics.json").write_text('{"status": "finished", "ate_rmse_m": {')
@@ -45,6 +75,9 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         "empty": empty,
         "corrupt_runs": corrupt_run.parent,
         "tagged_runs": tagged_run.parent,
+        "tf_bag": tf_bag,
+        "level": level,
+        "euroc": euroc,
         "base": base,
     }
 
@@ -95,6 +128,44 @@ CASES: list[tuple[str, str, list[str], str]] = [
         r"r1/config.yaml:1: not valid YAML: could not determine",
     ),
     ("unknown kind", "sgf-plugins", ["kind=teleport"], r"kind=teleport: no plugin registers stages of that kind"),
+    (
+        "a tf tree that does not place the camera",
+        "sgf-run",
+        [
+            "dataset=rosbag",
+            "dataset.path={tf_bag}",
+            "dataset.image_topic=/camera/image_raw",
+            "dataset.camera_info_topic=/camera/camera_info",
+            "dataset.odometry_topic=/odom",
+            "pipeline=[dataset]",
+            "run.progress=false",
+        ],
+        r"the tf tree \(/tf_static\) does not join base_link and camera; the frames it has: base_link, map",
+    ),
+    (
+        "a region the camera does not see",
+        "sgf-run",
+        [
+            "dataset=folder",
+            "dataset.path={level}",
+            "pipeline=[dataset,enhance,ipm]",
+            "ipm.region=fixed",
+            "run.progress=false",
+        ],
+        r"no pixel of the ipm region x in \[0.5, 5.62\] m.* is visible from the camera \(1.65 m high.*ipm.region=auto",
+    ),
+    (
+        "a ground truth that is not there",
+        "sgf-run",
+        ["dataset=euroc", "dataset.path={euroc}", "dataset.groundtruth=leica0", "dataset.camera_height=0.5"],
+        r"dataset.groundtruth=leica0: no such folder under .*mav0",
+    ),
+    (
+        "a bag topic with no pose",
+        "sgf-eval",
+        ["reference={tf_bag}:/camera/image_raw", "estimate={fine}"],
+        r"reference: .*tf_bag:/camera/image_raw carries sensor_msgs/msg/Image, which holds no pose",
+    ),
 ]
 
 

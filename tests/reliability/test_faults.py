@@ -378,6 +378,59 @@ def test_sigint_and_sigterm_leave_a_record_and_exit_130_and_143(toy_plugin_site:
         assert not (run_dir / "metrics.json").exists() and leftovers(run_dir) == []
 
 
+class SigtermAfter:
+    """Sends this process SIGTERM once the run has processed ``frames`` keyframes."""
+
+    def __init__(self, frames: int) -> None:
+        self.frames = frames
+
+    @hookimpl
+    def sgf_frame_end(self, run: Any, frame: Frame, seconds: float) -> None:
+        if run.frames_processed == self.frames:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+
+@pytest.mark.slow
+def test_sigterm_keeps_the_pose_estimate_and_the_sgf_map_so_far(tmp_path: Path):
+    """The main job stopped by SIGTERM after 100 keyframes: the back-end's estimate and the SGF map so far are
+    kept beside the partial odometry and ground truth, as sgf-run's handler turns the signal into an interrupt."""
+    from hydra import compose, initialize_config_dir
+
+    from sgf_pipeline.cli.common import Terminated, raise_terminated
+    from sgf_pipeline.config import config_dir
+    from sgf_pipeline.sgf_map import load_map
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=["run.progress=false"])
+    plugins = load_plugins(extra=[("stop", SigtermAfter(100))])
+    previous = signal.signal(signal.SIGTERM, raise_terminated)
+    try:
+        with pytest.raises(Terminated):
+            Pipeline.from_config(cfg, run_dir=tmp_path, plugins=plugins).run()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    failure = json.loads((tmp_path / "failure.json").read_text())
+    assert failure["status"] == "interrupted" and failure["frames_processed"] == 100
+    sgf = read_tum(tmp_path / "trajectory_sgf.partial.tum")
+    odometry = read_tum(tmp_path / "trajectory_odometry.partial.tum")
+    truth = read_tum(tmp_path / "trajectory_gt.partial.tum")
+    assert len(sgf) == len(odometry) == len(truth) == 100
+    np.testing.assert_array_equal(sgf.timestamps, odometry.timestamps)
+    # the back-end's estimate, not the odometry: its scale factor (measured over the first metres) is applied
+    assert float(np.abs(sgf.positions - odometry.positions).max()) > 0.01
+    sgf_map = load_map(tmp_path / "sgf_map.partial.safetensors")
+    assert len(sgf_map.groups) >= 1 and len(sgf_map.views) >= 1
+    for view in sgf_map.views:  # each view seen from the pose the estimate had for its frame (TUM: 9 decimals)
+        row = int(np.argmin(np.abs(sgf.timestamps - view.timestamp)))
+        assert abs(sgf.timestamps[row] - view.timestamp) < 1e-6
+        np.testing.assert_allclose(view.pose, sgf.poses[row], atol=1e-6)
+    assert not (tmp_path / "metrics.json").exists() and leftovers(tmp_path) == []
+    # a new run into the directory replaces the record and everything partial
+    rerun = Pipeline.from_config(config(frames=5), run_dir=tmp_path, plugins=load_plugins(extra=[("toy", ToyPlugin())]))
+    rerun.run()
+    assert not list(tmp_path.glob("*.partial.*")) and not (tmp_path / "failure.json").exists()
+
+
 def test_two_runs_started_together_get_two_directories(tmp_path: Path):
     folder = write_folder(tmp_path / "seq", make_frames(2, seed=2), calibration())
     args = ["dataset=folder", f"dataset.path={folder}", "pipeline=[dataset]", "run.progress=false", "run.plots=false"]

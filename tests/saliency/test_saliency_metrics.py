@@ -180,11 +180,12 @@ def test_s_measure_skips_an_empty_quadrant() -> None:
 
 def test_table_layout() -> None:
     table = metrics.format_table(
-        {"selfreformer": {"maxF": 0.953, "mae": 0.032, "meanF": 0.908, "sm": 0.92, "fps": 25.0}}
+        {"selfreformer": {"maxF": 0.953, "mae": 0.032, "meanF": 0.908, "sm": 0.92, "fps": 25.0, "images": 120}}
     )
+    assert table.splitlines()[0].split()[-2:] == ["fps", "images"]
     row = table.splitlines()[2].split()
     assert row[:5] == ["selfreformer", ".953", ".032", ".908", ".920"]
-    assert row[-1] == "25.0"
+    assert row[-2:] == ["25.0", "120"]
 
 
 def test_prediction_folder_errors(shared_data: Path, tmp_path: Path) -> None:

@@ -16,6 +16,7 @@ from sgf_plugins.saliency import procedural
 from sgf_plugins.saliency.classical import marking_saliency
 from sgf_plugins.saliency.cli_sod_eval import bev_of
 from sgf_plugins.saliency.cli_sod_eval import run as sod_eval_run
+from sgf_plugins.saliency.data import write_sod_folder
 from sgf_plugins.saliency.metrics import SodMetrics
 from sgf_plugins.saliency.stages import LEARNED_VARIANTS, VARIANTS, default_architecture
 from sgf_plugins.saliency.weights import default_weights_path, save_weights
@@ -274,6 +275,37 @@ def test_sod_eval_runs_models_on_a_folder(
         sod_eval_run({**cfg, "data": {"root": str(toy_folder), "splt": "val"}}, tmp_path)
     with pytest.raises(ConfigError, match=r"sgf-sod-eval\.warmup: .*greater than or equal to 0"):
         sod_eval_run({**cfg, "warmup": -1}, tmp_path)
+
+
+def test_sod_eval_scores_every_image_of_a_folder_without_splits(tmp_path: Path) -> None:
+    """A plain images/ + masks/ folder: every image is scored, and the printed table says how many."""
+    from sgf_plugins.saliency.data import SodFolder
+
+    root = tmp_path / "plain"
+    write_sod_folder(procedural.samples(17, seed=3, size=64), root, split=None)
+    assert not (root / "splits.json").exists() and SodFolder(root).splits() is None
+    cfg = {"models": ["classical"], "data": {"root": str(root), "resolution": 0.08}, "warmup": 0, "examples": 0}
+    results = sod_eval_run(cfg, tmp_path / "all")
+    assert results["classical"]["images"] == 17 and results["classical"]["split"] == "all"
+    # a split named explicitly is still made by seed, as sgf-train makes it: a part of the folder
+    some = sod_eval_run({**cfg, "data": {**cfg["data"], "split": "test"}}, tmp_path / "test")["classical"]
+    assert 0 < some["images"] < 17 and some["split"] == "test"
+    proc = subprocess.run(
+        [
+            str(Path(sys.executable).with_name("sgf-sod-eval")),
+            "models=[classical]",
+            f"data.root={root}",
+            "data.resolution=0.08",
+            "examples=0",
+            f"hydra.run.dir={tmp_path / 'cli'}",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr
+    header, _, row = proc.stdout.splitlines()[:3]
+    assert header.split()[-1] == "images" and row.split()[0] == "classical" and row.split()[-1] == "17"
 
 
 # -- in a pipeline ------------------------------------------------------------------------------

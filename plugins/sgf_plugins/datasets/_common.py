@@ -15,6 +15,7 @@ from pydantic import Field
 
 from sgf_pipeline import DataError, Dataset, RunContext, StageParams
 from sgf_pipeline.calibration import Calibration, camera_to_base_from_mounting
+from sgf_pipeline.io import describe_dir
 from sgf_pipeline.types import Frame
 from sgf_pipeline.undistortion import Undistorter
 
@@ -58,40 +59,6 @@ def mounting_matrix(params: MountingParams, dataset: str) -> np.ndarray | None:
     if params.camera_height is not None:
         return camera_to_base_from_mounting(params.camera_height, params.camera_tilt)
     return None
-
-
-def require_mounting(params: MountingParams, dataset: str) -> np.ndarray:
-    """The camera-to-base pose; a clear error when the config gives none."""
-    matrix = mounting_matrix(params, dataset)
-    if matrix is None:
-        raise DataError(
-            f"dataset={dataset}: the camera's mounting is unknown. Give dataset.camera_height=<m above the "
-            "ground> (and dataset.camera_tilt=<rad down>), or dataset.camera_to_base=<4x4 pose of the optical "
-            "frame in the base frame>"
-        )
-    return matrix
-
-
-def describe_dir(path: Path, limit: int = 15) -> str:
-    """``it holds: a, b/, c`` for error messages about a missing file in ``path``."""
-    if not path.is_dir():
-        parent = path.parent
-        while not parent.is_dir() and parent != parent.parent:
-            parent = parent.parent
-        return f"{path} does not exist ({parent} holds: {_listing(parent, limit)})"
-    return f"{path} holds: {_listing(path, limit)}"
-
-
-def _listing(path: Path, limit: int) -> str:
-    try:
-        entries = sorted(path.iterdir())
-    except OSError:
-        return "(unreadable)"
-    if not entries:
-        return "nothing (empty folder)"
-    names = [e.name + ("/" if e.is_dir() else "") for e in entries[:limit]]
-    more = f" and {len(entries) - limit} more" if len(entries) > limit else ""
-    return ", ".join(names) + more
 
 
 class SkipLog:

@@ -5,21 +5,25 @@ Frames (the ASL layout's "body" frame ``B`` is the one ``sensor.yaml``'s ``T_BS`
 * camera_to_base comes from the config: ``camera_to_base``, or ``camera_height`` + ``camera_tilt``,
   or ``body_to_base`` (then camera_to_base = body_to_base ``T_BS``). The body's pose on the base
   follows from it: body_to_base = camera_to_base ``T_BS^-1``.
-* Ground truth (``state_groundtruth_estimate0``, body poses in a z-up world ``R``) becomes base
-  poses ``T_RS body_to_base^-1``, interpolated at the image times.
+* Ground truth (``state_groundtruth_estimate0/data.csv``, or another folder's ``data.csv``, or a
+  TUM or EuRoC CSV file: body poses in a z-up world ``R``) becomes base poses
+  ``T_RS body_to_base^-1``, interpolated at the image times. A ground-truth folder without a
+  ``data.csv`` is named in a warning and the run goes on without ground truth.
 * Odometry: the file named by ``odometry`` (TUM, KITTI or EuRoC CSV; body or base poses per
   ``odometry_frame``), or else the ground truth itself (a perfect odometry; the ASL layout has no
   wheel odometry).
 * Roll and pitch: ``imu0`` holds raw gyro and accelerometer samples; a complementary filter
   (:func:`sgf_pipeline.imu.roll_pitch_from_inertial`) turns them into the base's attitude.
 
-Images are undistorted with ``sensor.yaml``'s model (radial-tangential or equidistant).
+Images are undistorted with ``sensor.yaml``'s model (radial-tangential or equidistant); the
+``sensor.yaml`` files may carry OpenCV's ``%YAML:1.0`` first line, as the published sequences do.
 Camera frames before the first or after the last odometry sample are left out (EuRoC's camera
 starts before its ground truth); they are counted as ``trimmed`` in metrics.json.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from functools import partial
 from pathlib import Path
@@ -35,7 +39,7 @@ from sgf_pipeline.geometry import invert
 from sgf_pipeline.imu import roll_pitch_from_inertial
 from sgf_pipeline.io import read_text, read_yaml
 from sgf_pipeline.timesync import PoseSeries, ValueSeries
-from sgf_pipeline.trajectory import TrajectoryError, read_euroc_csv, read_trajectory, seconds_from_ns
+from sgf_pipeline.trajectory import TrajectoryError, read_trajectory, seconds_from_ns
 from sgf_pipeline.types import Frame
 from sgf_plugins.datasets._common import (
     MountingParams,
@@ -45,13 +49,20 @@ from sgf_plugins.datasets._common import (
     read_image_file,
 )
 
+log = logging.getLogger("sgf_pipeline.datasets")
+#: The ground-truth folder of the published sequences.
+GROUND_TRUTH_FOLDER = "state_groundtruth_estimate0"
+
 
 class EurocParams(MountingParams):
     """Options of the EuRoC/ASL reader."""
 
     camera: str = Field("cam0", description="camera folder under mav0")
     imu: str = Field("imu0", description="IMU folder under mav0 (empty: no roll/pitch)")
-    groundtruth: str = Field("state_groundtruth_estimate0", description="ground-truth folder under mav0 (empty: none)")
+    groundtruth: str = Field(
+        GROUND_TRUTH_FOLDER,
+        description="ground truth: a folder under mav0 holding data.csv, or a TUM or EuRoC CSV file (empty: none)",
+    )
     body_to_base: list[list[float]] | None = Field(
         None, description="4x4 pose of the body frame (T_BS's reference) in the base frame"
     )
@@ -158,17 +169,43 @@ class EurocDataset(RecordedDataset):
         return ns[keep], paths
 
     def _ground_truth(self) -> PoseSeries | None:
-        if not self.params.groundtruth:
-            return None
-        path = self.mav / self.params.groundtruth / "data.csv"
-        if not path.is_file():
+        path = self._ground_truth_file()
+        if path is None:
             return None
         try:
-            trajectory = read_euroc_csv(path)
+            trajectory = read_trajectory(path, duplicates="drop")
         except TrajectoryError as exc:
             raise DataError(str(exc)) from None
         base_to_body = invert(self.body_to_base)
         return PoseSeries(trajectory.timestamps, trajectory.poses @ base_to_body, "ground truth")
+
+    def _ground_truth_file(self) -> Path | None:
+        """The ground-truth file ``groundtruth`` names: a folder's ``data.csv`` or a trajectory file."""
+        name = self.params.groundtruth
+        if not name:
+            return None
+        given = Path(name).expanduser()
+        candidates = [given] if given.is_absolute() else [self.mav / given, self.root / given, given]
+        for candidate in candidates:
+            if candidate.is_file():
+                return candidate
+            if candidate.is_dir():
+                if (candidate / "data.csv").is_file():
+                    return candidate / "data.csv"
+                log.warning(
+                    "dataset=euroc: the ground-truth folder %s has no data.csv, so the run has no ground truth "
+                    "(%s); name a TUM or CSV file with dataset.groundtruth=<file>",
+                    candidate,
+                    describe_dir(candidate),
+                )
+                return None
+        if name != GROUND_TRUTH_FOLDER:
+            raise DataError(
+                f"dataset.groundtruth={name}: no such folder under {self.mav} and no such file; give a folder under "
+                f"mav0 holding data.csv, or a TUM or EuRoC CSV file ({describe_dir(self.mav)})"
+            )
+        log.info("dataset=euroc: %s has no %s; the run has no ground truth", self.mav, GROUND_TRUTH_FOLDER)
+        return None
 
     def _odometry(self) -> PoseSeries:
         if self.params.odometry:
@@ -185,8 +222,8 @@ class EurocDataset(RecordedDataset):
             return PoseSeries(trajectory.timestamps, poses, "odometry")
         if self.ground_truth is None:
             raise DataError(
-                f"{self.mav} has no {self.params.groundtruth or 'ground truth'}/data.csv to use as odometry; "
-                f"give an odometry file with dataset.odometry=<file>; {describe_dir(self.mav)}"
+                f"{self.mav} has no ground truth ({self.params.groundtruth or 'dataset.groundtruth is empty'}) to use "
+                f"as odometry; give an odometry file with dataset.odometry=<file>; {describe_dir(self.mav)}"
             )
         return self.ground_truth
 

@@ -8,7 +8,10 @@ pitch (``sensor_msgs/Imu``: from its orientation, or from gyro and accelerometer
 complementary filter when the driver publishes no orientation), and ground truth (any of the
 pose types). Camera frames before the first or after the last odometry message are left out and
 counted as ``trimmed``. Intrinsics and distortion come from a ``CameraInfo`` topic or from a
-folder-format ``calibration.yaml``; the camera's mounting on the base from the config.
+folder-format ``calibration.yaml``. The camera's mounting on the base comes from the config
+(``camera_to_base`` or ``camera_height``) or else from the bag's tf (``/tf_static``, ``/tf``): the
+pose of the images' ``header.frame_id`` in the base frame (``base_frame``, or ``base_footprint``,
+else ``base_link``), see :func:`camera_mounting`.
 
 Timestamps are the messages' ``header.stamp`` (the sensor's time) unless ``stamps: bag``
 chooses the time the recorder received them.
@@ -28,10 +31,20 @@ import numpy as np
 from pydantic import Field
 
 from sgf_pipeline import DataError, RunContext, StageRegistry, hookimpl
-from sgf_pipeline.calibration import Calibration
+from sgf_pipeline.bags import (
+    POSE_TYPES,
+    TF_TYPES,
+    TransformTree,
+    describe_topics,
+    frame_name,
+    open_bag,
+    pose_of_message,
+    stamp_ns,
+    topic_rows,
+)
+from sgf_pipeline.calibration import OPTICAL_TO_BASE, Calibration
 from sgf_pipeline.calibration_io import calibration_from_camera_info
 from sgf_pipeline.folder_format import read_calibration_yaml
-from sgf_pipeline.geometry import rotation_from_quaternion
 from sgf_pipeline.imu import roll_pitch_from_inertial, roll_pitch_of_base
 from sgf_pipeline.timesync import PoseSeries, ValueSeries
 from sgf_pipeline.trajectory import seconds_from_ns
@@ -40,23 +53,17 @@ from sgf_plugins.datasets._common import (
     MountingParams,
     RecordedDataset,
     decode_image_bytes,
-    describe_dir,
     finite_pose,
     mounting_matrix,
-    require_mounting,
 )
 
 log = logging.getLogger("sgf_pipeline.datasets")
 
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
-POSE_TYPES = (
-    "nav_msgs/msg/Odometry",
-    "geometry_msgs/msg/PoseStamped",
-    "geometry_msgs/msg/PoseWithCovarianceStamped",
-    "geometry_msgs/msg/TransformStamped",
-)
 IMU_TYPES = ("sensor_msgs/msg/Imu",)
 CAMERA_INFO_TYPES = ("sensor_msgs/msg/CameraInfo",)
+#: Base frames looked for in the tf tree when ``base_frame`` is not set: REP 120's frame on the ground first.
+BASE_FRAMES = ("base_footprint", "base_link")
 
 #: Raw image encodings: channels, bytes per channel, and the OpenCV conversion to RGB (None: keep).
 _ENCODINGS: dict[str, tuple[int, int, int | None]] = {
@@ -94,6 +101,9 @@ class RosbagParams(MountingParams):
     calibration_file: str = Field(
         "", description="folder-format calibration.yaml used instead of camera_info_topic and the mounting"
     )
+    base_frame: str = Field(
+        "", description="tf frame of the robot's base for the camera's mounting (empty: base_footprint, base_link)"
+    )
     imu_to_base: list[list[float]] | None = Field(
         None, description="3x3 or 4x4 pose of the IMU frame in the base frame"
     )
@@ -108,98 +118,7 @@ class RosbagParams(MountingParams):
     sequence: str = Field("", description="sequence name in reports (default: the bag's name)")
 
 
-# -- opening and listing ----------------------------------------------------------------------
-
-
-def open_bag(path: str | Path, typestore: str = "ros2_humble") -> Any:
-    """An opened ``rosbags`` AnyReader (close it), with clear errors for missing and broken bags."""
-    from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
-
-    bag = Path(path).expanduser()
-    if not bag.exists():
-        raise DataError(f"bag not found: {describe_dir(bag)}")
-    if bag.is_dir() and not (bag / "metadata.yaml").is_file():
-        files = sorted(p.name for p in bag.iterdir())
-        inner = [f for f in files if f.endswith((".mcap", ".db3", ".bag"))]
-        hint = f"; pass the bag file itself ({', '.join(inner)})" if inner else ""
-        raise DataError(f"{bag} is a folder without metadata.yaml, so not a ROS 2 bag (it holds: {files[:10]}){hint}")
-    if bag.is_file() and bag.suffix != ".bag":
-        with bag.open("rb") as fh:
-            if fh.read(13) == b"#ROSBAG V2.0\n":
-                raise DataError(f"{bag} is a ROS 1 bag; its name must end in .bag to be read as one: rename it")
-    try:
-        store = get_typestore(Stores(typestore))
-    except ValueError:
-        raise DataError(
-            f"unknown typestore {typestore!r}; choose one of {', '.join(s.value for s in Stores if s.value != 'empty')}"
-        ) from None
-    try:
-        reader = AnyReader([bag], default_typestore=store)
-        reader.open()
-    except Exception as exc:
-        raise DataError(
-            f"cannot open bag {bag}: {type(exc).__name__}: {exc}. The file may be truncated or corrupt (an "
-            "interrupted recording?); `rosbag reindex` (ROS 1) or `ros2 bag reindex` (ROS 2) may repair it"
-        ) from None
-    return reader
-
-
-@dataclass(frozen=True)
-class TopicRow:
-    """One topic of a bag: name, message type, count and mean rate."""
-
-    topic: str
-    msgtype: str
-    count: int
-    rate_hz: float | None
-
-
-def topic_rows(reader: Any) -> list[TopicRow]:
-    """The topics of an opened bag, sorted by name."""
-    duration = reader.duration / 1e9 if reader.message_count > 1 else 0.0
-    rows = []
-    for name, info in sorted(reader.topics.items()):
-        count = int(info.msgcount)
-        rate = (count - 1) / duration if duration > 0 and count > 1 else None
-        rows.append(TopicRow(name, info.msgtype or "?", count, rate))
-    return rows
-
-
-def describe_topics(reader: Any, types: tuple[str, ...] = ()) -> str:
-    """``/a (type, n msgs), ...``: the bag's topics, those of ``types`` first."""
-    rows = topic_rows(reader)
-    if types:
-        rows.sort(key=lambda r: (r.msgtype not in types, r.topic))
-    return ", ".join(f"{r.topic} ({r.msgtype}, {r.count} msgs)" for r in rows) or "no topics"
-
-
 # -- message fields ---------------------------------------------------------------------------
-
-
-def _stamp_ns(msg: Any) -> int:
-    stamp = msg.header.stamp
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
-def _pose_matrix(position: Any, orientation: Any) -> np.ndarray:
-    q = np.array([orientation.x, orientation.y, orientation.z, orientation.w], dtype=np.float64)
-    pose = np.eye(4)
-    norm = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else 0.0
-    pose[:3, :3] = rotation_from_quaternion(q) if norm > 1e-6 else np.nan
-    pose[:3, 3] = (position.x, position.y, position.z)
-    return pose
-
-
-def pose_of_message(msg: Any, msgtype: str) -> np.ndarray:
-    """The 4x4 pose carried by an Odometry, PoseStamped, PoseWithCovarianceStamped or TransformStamped."""
-    if msgtype == "nav_msgs/msg/Odometry" or msgtype == "geometry_msgs/msg/PoseWithCovarianceStamped":
-        return _pose_matrix(msg.pose.pose.position, msg.pose.pose.orientation)
-    if msgtype == "geometry_msgs/msg/PoseStamped":
-        return _pose_matrix(msg.pose.position, msg.pose.orientation)
-    if msgtype == "geometry_msgs/msg/TransformStamped":
-        return _pose_matrix(msg.transform.translation, msg.transform.rotation)
-    raise DataError(f"{msgtype} carries no pose; use one of {', '.join(POSE_TYPES)}")
 
 
 def decode_raw_image(msg: Any, what: str) -> np.ndarray:
@@ -306,6 +225,7 @@ class RosbagDataset(RecordedDataset):
             raise DataError("dataset=rosbag needs the bag: dataset.path=<file.bag | ROS 2 bag folder | file.mcap>")
         self.path = Path(params.path).expanduser()
         self.trimmed = 0
+        self.mounting_source = "config"
         reader = open_bag(self.path, params.typestore)
         try:
             self.image_type = self._topic(reader, "image_topic", IMAGE_TYPES, required=True)
@@ -320,7 +240,13 @@ class RosbagDataset(RecordedDataset):
             imu = _ImuSamples() if imu_type else None
             info: Any = None
             topics = {params.odometry_topic, params.ground_truth_topic, params.imu_topic, params.camera_info_topic}
-            for topic, _, ns, msg, msgtype in self._messages(reader, topics - {""}):
+            # The mounting the config gives wins; else the tf tree's (read in the same pass).
+            tree = TransformTree()
+            tf_topics = set() if self._configured_mounting() else set(tf_topic_names(reader))
+            for topic, _, ns, msg, msgtype in self._messages(reader, (topics | tf_topics) - {""}):
+                if topic in tf_topics:
+                    tree.add_message(msg, topic, static=topic.endswith("tf_static"))
+                    continue
                 if topic == params.odometry_topic:
                     odometry.add(self, ns, msg, msgtype)
                 if ground_truth is not None and topic == params.ground_truth_topic:
@@ -334,10 +260,15 @@ class RosbagDataset(RecordedDataset):
                 raise DataError(f"{self.path}: topic {params.odometry_topic} has no usable odometry message")
             self.ground_truth = ground_truth.series() if ground_truth is not None else None
             self.attitude = self._attitude(imu) if imu is not None else None
-            calibration = self._calibration(reader, info_type is not None, info)
+            calibration = self._calibration(reader, info_type is not None, info, tree)
         finally:
             reader.close()
         self.calibration = self.prepare_calibration(calibration)
+
+    def _configured_mounting(self) -> bool:
+        """Whether the config (or the calibration file) says how the camera sits on the base."""
+        p = self.params
+        return bool(p.calibration_file) or p.camera_to_base is not None or p.camera_height is not None
 
     # -- setup ------------------------------------------------------------------------------
 
@@ -390,7 +321,8 @@ class RosbagDataset(RecordedDataset):
             positions[topic] += 1
             try:
                 msg = reader.deserialize(raw, connection.msgtype)
-                ns = bag_ns if self.params.stamps == "bag" else _stamp_ns(msg)
+                stamped = self.params.stamps == "header" and connection.msgtype not in TF_TYPES
+                ns = stamp_ns(msg) if stamped else bag_ns
             except Exception as exc:
                 self.skips.problem(
                     "corrupt message",
@@ -398,7 +330,7 @@ class RosbagDataset(RecordedDataset):
                     f"({type(exc).__name__}: {exc}); the bag is corrupt or truncated there",
                 )
                 continue
-            if ns == 0 and self.params.stamps == "header":
+            if ns == 0 and stamped:
                 raise DataError(
                     f"{topic}: message {positions[topic]} has header.stamp 0 (its publisher leaves the stamp unset); "
                     "use the recorder's receive times with dataset.stamps=bag"
@@ -441,11 +373,12 @@ class RosbagDataset(RecordedDataset):
             values = roll_pitch_from_inertial(ts, gyro, accel, p.imu_gain, imu_to_base)
         return ValueSeries(ts, values, "imu roll/pitch")
 
-    def _calibration(self, reader: Any, has_info: bool, info: Any) -> Calibration:
+    def _calibration(self, reader: Any, has_info: bool, info: Any, tree: TransformTree) -> Calibration:
         p = self.params
         if p.calibration_file:
             calibration = read_calibration_yaml(Path(p.calibration_file).expanduser())
             mounting = mounting_matrix(p, self.name)
+            self.mounting_source = "config" if mounting is not None else f"calibration file {p.calibration_file}"
             return calibration if mounting is None else calibration.model_copy(update={"camera_to_base": mounting})
         if not has_info:
             infos = [r.topic for r in topic_rows(reader) if r.msgtype in CAMERA_INFO_TYPES]
@@ -453,9 +386,14 @@ class RosbagDataset(RecordedDataset):
                 "dataset=rosbag: no camera calibration. Give dataset.camera_info_topic=<topic> (CameraInfo topics "
                 f"in the bag: {', '.join(infos) or 'none'}) or dataset.calibration_file=<calibration.yaml>"
             )
-        camera_to_base = require_mounting(p, self.name)
         if info is None:
             raise DataError(f"{p.camera_info_topic}: no readable CameraInfo message in {self.path}")
+        camera_to_base = mounting_matrix(p, self.name)
+        self.mounting_source = "config"
+        if camera_to_base is None:
+            camera_frame = image_frame_id(reader, p.image_topic)
+            camera_to_base, self.mounting_source = camera_mounting(tree, camera_frame, p.base_frame, self.path)
+            log.info("dataset=rosbag: camera mounting from %s", self.mounting_source)
         k = getattr(info, "k", None)
         k = getattr(info, "K", None) if k is None else k
         d = getattr(info, "d", None)
@@ -532,9 +470,77 @@ class RosbagDataset(RecordedDataset):
             reader.close()
 
     def finalize(self, context: RunContext) -> None:
-        """Skips and frames outside the odometry's span into metrics.json."""
+        """Skips, frames outside the odometry's span and where the camera's mounting came from into metrics.json."""
         super().finalize(context)
         context.metrics["dataset"]["trimmed"] = self.trimmed
+        context.metrics["dataset"]["mounting"] = self.mounting_source
+
+
+def tf_topic_names(reader: Any) -> list[str]:
+    """The bag's tf topics (``tf2_msgs/TFMessage``: ``/tf_static``, ``/tf``)."""
+    return [r.topic for r in topic_rows(reader) if r.msgtype in TF_TYPES and r.count > 0]
+
+
+def image_frame_id(reader: Any, topic: str) -> str:
+    """The ``header.frame_id`` of a topic's first message ('' when it has none)."""
+    connections = [c for c in reader.connections if c.topic == topic]
+    for connection, _, raw in reader.messages(connections=connections):
+        try:
+            return frame_name(reader.deserialize(raw, connection.msgtype).header.frame_id)
+        except Exception:  # a corrupt first message: the frames' own reading reports it
+            return ""
+    return ""
+
+
+def camera_mounting(
+    tree: TransformTree, camera_frame: str, base_frame: str = "", bag: Path | str = "the bag"
+) -> tuple[np.ndarray, str]:
+    """The camera's optical frame in the base frame from the tf tree, and a sentence saying where it came from.
+
+    ``base_frame`` empty: ``base_footprint`` (REP 120: on the ground under the robot), else
+    ``base_link`` (its origin taken to be on the ground). A camera frame named ``*optical*`` is the
+    optical frame (REP 103: z forward, x right, y down); another whose z axis points more up than
+    its y axis points down is a body frame (x forward, y left, z up), turned to the optical axes.
+    """
+    hint = (
+        "or give the mounting: dataset.camera_height=<m above the ground> (and dataset.camera_tilt=<rad down>) "
+        "or dataset.camera_to_base=<4x4 pose of the optical frame in the base frame>"
+    )
+    if not tree:
+        raise DataError(
+            f"dataset=rosbag: the camera's mounting is unknown: {bag} has no tf (/tf_static, /tf) to place the "
+            f"camera on the robot; {hint.removeprefix('or ')}"
+        )
+    frames = tree.frames()
+    base = base_frame or next((f for f in BASE_FRAMES if f in frames), "")
+    if not base:
+        raise DataError(
+            f"dataset=rosbag: the tf tree of {bag} has neither {' nor '.join(BASE_FRAMES)}; name the robot's base "
+            f"frame with dataset.base_frame=<frame> (the frames it has: {', '.join(frames)}), {hint}"
+        )
+    if not camera_frame:
+        raise DataError(
+            f"dataset=rosbag: the images carry no header.frame_id, so tf cannot place the camera on {base}; {hint}"
+        )
+    try:
+        pose = tree.fixed_pose(base, camera_frame)
+    except DataError as exc:
+        raise DataError(f"dataset=rosbag: no camera mounting: {exc}; {hint}") from None
+    axes = "optical frame"
+    if "optical" not in camera_frame and pose[2, 2] > -pose[2, 1]:
+        turn = np.eye(4)
+        turn[:3, :3] = OPTICAL_TO_BASE
+        pose = pose @ turn
+        axes = "body axes (REP 103) turned to the optical frame"
+    if not base_frame and base != "base_footprint":
+        log.info("dataset=rosbag: the tf tree has no base_footprint; %s's origin is taken to be on the ground", base)
+    calibration_height = float(pose[2, 3])
+    down = math.degrees(math.asin(max(-1.0, min(1.0, -float(pose[2, 2])))))
+    source = (
+        f"tf ({', '.join(sorted(tree.topics))}): {camera_frame} in {base}, {axes}: {calibration_height:.3f} m above "
+        f"the ground, optical axis {down:.2f} deg below the horizon"
+    )
+    return pose, source
 
 
 def quaternion_is_unit(q: np.ndarray) -> bool:

@@ -191,7 +191,10 @@ class IpmFigureObserver:
         self._images.pop(id(run), None)
         if best is None or run.run_dir is None:
             return
-        plain = InversePerspectiveMapping(plain_params(best.params)).process(best.frame, best.image)
+        g = best.bev.grid  # the region the run's IPM resampled (moved where the camera sees the ground)
+        region = {"x_min": g.x_min, "x_max": g.x_max, "y_min": g.y_min, "y_max": g.y_max, "region": "fixed"}
+        params = plain_params(best.params).model_copy(update=region)
+        plain = InversePerspectiveMapping(params).process(best.frame, best.image)
         save_png(run.run_dir / RUN_FIGURE, comparison_figure(best.frame.image, plain, best.bev))
 
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 from pydantic import Field, model_validator
 
-from sgf_pipeline import ConfigError, DataError, RunContext, Stage, StageParams
+from sgf_pipeline import DataError, RunContext, Stage, StageParams
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.geometry import rpy_from_rotation
 from sgf_pipeline.imu import shrink_noise, steadied
@@ -19,6 +19,7 @@ from sgf_plugins.ipm.geometry import RollAxis, bev_to_image_homography, visible_
 from sgf_plugins.ipm.ground_plane import GradeFilter, GroundPlaneTracker
 from sgf_plugins.ipm.hindsight import AttitudeWindow, GroundAhead, ground_ahead, path_profile
 from sgf_plugins.ipm.reference import PoseQueue, ReferenceAttitude, ReferenceCenter, ReferenceFit
+from sgf_plugins.ipm.region import Region, choose_region
 
 _INTERPOLATION = {"linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST, "cubic": cv2.INTER_CUBIC}
 _LOGGED_DROPOUTS = 5
@@ -40,6 +41,11 @@ class IpmParams(StageParams):
         "cv2", description="cv2: one warpPerspective per frame; kornia: torch warp (batched, differentiable, GPU)"
     )
     device: str = Field("auto", description="kornia backend device: auto (cuda when available), cpu, cuda, cuda:1, ...")
+    region: Region = Field(
+        "auto",
+        description="auto: the region above when the camera sees at least half of it, else one of its size on the "
+        "nearest ground in view (logged); fixed: the region above, an error when the camera sees none of it",
+    )
 
     @model_validator(mode="after")
     def _check_grid(self) -> IpmParams:
@@ -84,8 +90,25 @@ class InversePerspectiveMapping(Stage):
         self._device: str | None = None
 
     def begin(self, context: RunContext) -> None:
-        """Forget the calibration checked on the previous sequence."""
+        """Forget the calibration checked, and the region chosen, on the previous sequence."""
         self._checked = None
+        self.set_grid(self.params.grid)
+
+    def set_grid(self, grid: BevGrid) -> None:
+        """Resample into ``grid`` (the configured region, or the one :func:`choose_region` moved)."""
+        self.grid = grid
+
+    def finalize(self, context: RunContext) -> None:
+        """The region resampled into ``metrics.json`` (``ipm.region``) when it is not the configured one."""
+        if self.grid != self.params.grid:
+            g = self.grid
+            context.metrics.setdefault("ipm", {})["region"] = {
+                "x_min": g.x_min,
+                "x_max": g.x_max,
+                "y_min": g.y_min,
+                "y_max": g.y_max,
+                "configured": [self.params.x_min, self.params.x_max, self.params.y_min, self.params.y_max],
+            }
 
     def compensation(self, frame: Frame, image: np.ndarray | None = None) -> tuple[float, float]:
         """``(psi, theta)`` of eq. 1-2 for this frame (``image``: the pixels the IPM warps): none for plain IPM."""
@@ -157,15 +180,7 @@ class InversePerspectiveMapping(Stage):
             return
         if calibration.height <= 0.0:
             raise DataError(f"the camera is {calibration.height:.3f} m above the ground; IPM needs it above (> 0)")
-        valid = visible_mask(self.homography(calibration), self.grid, intr.width, intr.height)
-        if not valid.any():
-            g = self.grid
-            raise ConfigError(
-                f"no pixel of the BEV region x in [{g.x_min:g}, {g.x_max:g}] m, y in [{g.y_min:g}, {g.y_max:g}] m "
-                f"is visible from the camera ({calibration.height:.2f} m high, tilted {calibration.tilt:.3f} rad "
-                f"down, nearest visible ground about {_nearest_visible(calibration):.2f} m ahead); "
-                "set ipm.x_min/x_max/y_min/y_max to a region the camera sees"
-            )
+        self.set_grid(choose_region(calibration, self.params.grid, self.params.region, "ipm"))
         self._checked = calibration
 
 
@@ -176,15 +191,6 @@ def _odometry_attitude(frame: Frame) -> tuple[float, float]:
         return math.nan, math.nan
     roll, pitch, _ = rpy_from_rotation(odometry[:3, :3])
     return roll, pitch
-
-
-def _nearest_visible(calibration: Calibration) -> float:
-    """Distance ahead of the camera of the ground seen by the bottom image row (inf when none)."""
-    intr = calibration.intrinsics
-    depression = calibration.tilt + math.atan((intr.height - 1 - intr.cy) / intr.fy)
-    if depression <= 0.0:
-        return math.inf
-    return calibration.height / math.tan(min(depression, math.pi / 2 - 1e-9)) + calibration.camera_to_base_matrix[0, 3]
 
 
 class MotionCompensatedIpmParams(IpmParams):
@@ -307,6 +313,7 @@ class MotionCompensatedIPM(InversePerspectiveMapping):
 
     def finalize(self, context: RunContext) -> None:
         """Write the frame counts and the largest pitch compensation to metrics.json under ``ipm``."""
+        super().finalize(context)
         entry: dict[str, Any] = dict(self.counts)
         entry["max_abs_pitch_compensation"] = round(self._max_theta, 6)
         context.metrics.setdefault("ipm", {}).update(entry)
@@ -467,6 +474,11 @@ class PlaneMotionCompensatedIPM(MotionCompensatedIPM):
         self._recent_motion: list[tuple[float, float]] = []
         self._start: tuple[float, float] | None = None
         self.plane_counts = {"plane_fits": 0, "plane_skipped_bumps": 0, "plane_no_fit": 0}
+
+    def set_grid(self, grid: BevGrid) -> None:
+        """Resample, and fit the plane, in ``grid``."""
+        super().set_grid(grid)
+        self.tracker.grid = grid
 
     def begin(self, context: RunContext) -> None:
         """Forget the views, the filters and the counts of the previous sequence."""

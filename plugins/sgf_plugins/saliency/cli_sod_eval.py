@@ -34,7 +34,9 @@ class SodEvalData(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     root: str | None = Field(None, description="SOD folder with images/ and masks/")
-    split: str = Field("test", description="train | val | test | test_heldout | all")
+    split: str | None = Field(
+        None, description="train | val | test | test_heldout | all; null: test with splits.json, else all"
+    )
     resolution: float = Field(0.02, gt=0.0, description="metres per BEV pixel (the classical detector's scale)")
     max_images: int | None = Field(None, ge=1, description="at most this many images, spread over the split")
     min_salient_pixels: int = Field(0, ge=0, description="leave out images whose mask has fewer salient pixels")
@@ -160,7 +162,8 @@ def run(cfg: Mapping[str, Any], out_dir: Path) -> dict[str, dict[str, Any]]:
         if not data.root:
             raise ConfigError("models need a SOD folder: data.root=<folder with images/ and masks/>")
         sod = SodFolder(data.root)
-        names = sod.split(data.split)
+        split = data.split or ("test" if sod.splits() is not None else "all")
+        names = sod.split(split)
         salient: dict[str, int] = {}
 
         def salient_pixels(name: str) -> int:  # each mask read once for the filter and the figure
@@ -175,7 +178,7 @@ def run(cfg: Mapping[str, Any], out_dir: Path) -> dict[str, dict[str, Any]]:
         if data.max_images is not None and len(names) > data.max_images:
             names = names[:: max(1, len(names) // data.max_images)][: data.max_images]  # spread over the split
         if not names:
-            raise DataError(f"{sod.root}: split {data.split!r} is empty")
+            raise DataError(f"{sod.root}: split {split!r} is empty")
         save_dir = out_dir / "preds" if opts.save_predictions else None
         examples = {
             n: Example(n, sod.image(n), sod.mask(n)) for n in example_names(names, salient_pixels, opts.examples)
@@ -192,7 +195,7 @@ def run(cfg: Mapping[str, Any], out_dir: Path) -> dict[str, dict[str, Any]]:
             examples,
         )
         for model, values in found.items():
-            results[model] = {**values, "split": data.split}
+            results[model] = {**values, "split": split}
         if examples:
             write_examples(out_dir / EXAMPLES, list(examples.values()), opts.models)
     atomic_write_json(out_dir / OUTPUT, results)

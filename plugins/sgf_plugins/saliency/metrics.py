@@ -244,9 +244,9 @@ def evaluate_pairs(pairs: Iterable[tuple[np.ndarray, np.ndarray]]) -> dict[str, 
 
 
 def format_table(rows: Mapping[str, Mapping[str, float | None]]) -> str:
-    """Table 1 of the paper (F_m, M, F_A, S_m) plus adaptive F, mean E-measure and frames/s."""
+    """Table 1 of the paper (F_m, M, F_A, S_m) plus adaptive F, mean E-measure, frames/s and the images scored."""
     columns = [("maxF", "F_m ^"), ("mae", "M v"), ("meanF", "F_A ^"), ("sm", "S_m ^"), ("adpF", "adpF ^")]
-    columns += [("em", "E_m ^"), ("fps", "fps")]
+    columns += [("em", "E_m ^"), ("fps", "fps"), ("images", "images")]
     width = max([len("Method"), *(len(k) for k in rows)])
     header = f"{'Method':<{width}}  " + "  ".join(f"{title:>7}" for _, title in columns)
     lines = [header, "-" * len(header)]
@@ -258,6 +258,8 @@ def format_table(rows: Mapping[str, Mapping[str, float | None]]) -> str:
                 cells.append(f"{'-':>7}")
             elif key == "fps":
                 cells.append(f"{v:>7.1f}")
+            elif key == "images":
+                cells.append(f"{int(v):>7d}")
             else:
                 cells.append(f"{v:>7.3f}".replace("0.", " ."))
         lines.append(f"{name:<{width}}  " + "  ".join(cells))
