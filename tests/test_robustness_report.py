@@ -8,7 +8,9 @@ from pathlib import Path
 import pytest
 import yaml
 from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
 
+from sgf_pipeline import load_plugins
 from sgf_pipeline.config import config_dir
 from sgf_pipeline.report import find_runs, write_report
 from sgf_pipeline.robustness import perturbed_runs, robustness_table, split_tag
@@ -128,8 +130,13 @@ def test_the_suite_config_names_its_seeds_and_perturbations() -> None:
         names = params["+perturbation"].split(",")
         on_disk = sorted(p.stem for p in (config_dir() / "perturbation").glob("*.yaml"))
         assert sorted(names) == on_disk  # every perturbation is in the suite
+        registry = load_plugins().registry
         for name in names:
             cfg = compose("config", overrides=["+experiment=robustness", f"+perturbation={name}"])
             parts = split_tag(cfg.run.tag)
             assert parts is not None and name in (f"{parts[0]}_{parts[1]}", "none"), name
             assert cfg.dataset.scale == 0.3
+            # every world parameter it sets is one the campus takes, within its bounds
+            node = OmegaConf.to_container(cfg.dataset, resolve=True)
+            assert isinstance(node, dict)
+            registry.get("dataset", node.pop("name")).params_model.model_validate(node)
