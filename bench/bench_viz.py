@@ -1,0 +1,95 @@
+"""What a Rerun recording (``viz=rerun``) costs the main job: its wall time with and without it, in one sitting.
+
+Usage: ``.venv/bin/python bench/bench_viz.py [--pairs N] [hydra overrides...]``
+
+Runs the default ``sgf-run`` configuration (the main job, campus_delivery at full length; overrides
+such as ``dataset.scale=0.2`` shorten it) into a temporary run directory, alternately without and
+with ``viz=rerun`` (off, on, on, off, ... so that a drifting machine load falls on both sides
+alike), and prints each run's wall time, the robot's work (the stages after ``dataset``, whose
+time includes the observers' per-stage hooks), the recording's own time per keyframe on its thread
+and on the pipeline's, and the size of ``run.rrd``; then the ratio of the summed wall times, on over
+off.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import sgf_plugins.rerun_viz as rerun_viz
+from hydra import compose, initialize_config_dir
+
+from sgf_pipeline import Pipeline
+from sgf_pipeline.config import config_dir
+
+
+def observer_clock() -> list[float]:
+    """Wrap the recording's methods so that their wall times add up: [recording thread, pipeline thread]."""
+    spent = [0.0, 0.0]
+    methods = [(rerun_viz._Recording, n, 0) for n in ("log_frame", "log_end", "close")]
+    methods += [(rerun_viz._Recorder, n, 1) for n in ("__init__", "stage_done", "frame_done")]
+    for cls, name, cell in methods:
+        original = getattr(cls, name)
+
+        def timed(self: Any, *args: Any, _original: Any = original, _cell: int = cell, **kwargs: Any) -> Any:
+            t0 = time.perf_counter()
+            try:
+                return _original(self, *args, **kwargs)
+            finally:
+                spent[_cell] += time.perf_counter() - t0
+
+        setattr(cls, name, timed)
+    return spent
+
+
+def run(overrides: list[str], viz: bool, out: Path, spent: list[float]) -> dict[str, Any]:
+    """One run of the main job; its wall time, work, keyframes, the observer's time and the recording's size."""
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=[*overrides, "run.progress=false", *(["viz=rerun"] if viz else [])])
+    spent[:] = [0.0, 0.0]
+    t0 = time.perf_counter()
+    metrics = Pipeline.from_config(cfg, run_dir=out).run()
+    wall = time.perf_counter() - t0
+    recording = out / rerun_viz.RECORDING
+    return {
+        "wall": wall,
+        "work": metrics["timing"]["seconds"],
+        "frames": metrics["timing"]["frames"],
+        "recording": spent[0],
+        "pipeline": spent[1],
+        "mib": recording.stat().st_size / 2**20 if recording.exists() else 0.0,
+        "ate": metrics["ate_rmse_m"]["sgf"],
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pairs", type=int, default=2, help="pairs of runs, without and with the recording")
+    args, overrides = parser.parse_known_args()
+    print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average {os.getloadavg()}")
+    print(f"overrides: {' '.join(overrides) or '(the main job)'}")
+    spent = observer_clock()
+    order = [k % 4 in (1, 2) for k in range(2 * args.pairs)]  # off, on, on, off, ...
+    results: dict[bool, list[dict[str, Any]]] = {False: [], True: []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for k, viz in enumerate(order):
+            r = run(overrides, viz, Path(tmp) / f"run{k}", spent)
+            results[viz].append(r)
+            print(
+                f"viz {'on ' if viz else 'off'}: wall {r['wall']:6.1f} s, work {r['work']:6.1f} s, {r['frames']} "
+                f"keyframes, recording {1000 * r['recording'] / r['frames']:5.2f} ms per keyframe on its thread and "
+                f"{1000 * r['pipeline'] / r['frames']:4.2f} ms on the pipeline's, run.rrd "
+                f"{r['mib']:.1f} MiB, ATE {r['ate']:.3f} m; load average {os.getloadavg()[0]:.2f}"
+            )
+    off, on = (sum(r["wall"] for r in results[v]) for v in (False, True))
+    work_off, work_on = (sum(r["work"] for r in results[v]) for v in (False, True))
+    print(f"wall time with the recording over without: {on / off:.3f} (robot's work {work_on / work_off:.3f})")
+
+
+if __name__ == "__main__":
+    main()
