@@ -5,7 +5,8 @@ Usage: ``.venv/bin/python bench/bench_viz.py [--pairs N] [hydra overrides...]``
 Runs the default ``sgf-run`` configuration (the main job, campus_delivery at full length; overrides
 such as ``dataset.scale=0.2`` shorten it) into a temporary run directory, alternately without and
 with ``viz=rerun`` (off, on, on, off, ... so that a drifting machine load falls on both sides
-alike), and prints each run's wall time, the robot's work (the stages after ``dataset``, whose
+alike), and prints each run's wall time, the process's CPU time (what a machine shared with other
+jobs measures more steadily), the robot's work (the stages after ``dataset``, whose
 time includes the observers' per-stage hooks), the recording's own time per keyframe on its thread
 and on the pipeline's, and the size of ``run.rrd``; then the ratio of the summed wall times, on over
 off.
@@ -31,7 +32,7 @@ from sgf_pipeline.config import config_dir
 def observer_clock() -> list[float]:
     """Wrap the recording's methods so that their wall times add up: [recording thread, pipeline thread]."""
     spent = [0.0, 0.0]
-    methods = [(rerun_viz._Recording, n, 0) for n in ("log_frame", "log_end", "close")]
+    methods: list[tuple[type, str, int]] = [(rerun_viz._Recording, n, 0) for n in ("log_frame", "log_end", "close")]
     methods += [(rerun_viz._Recorder, n, 1) for n in ("__init__", "stage_done", "frame_done")]
     for cls, name, cell in methods:
         original = getattr(cls, name)
@@ -52,12 +53,13 @@ def run(overrides: list[str], viz: bool, out: Path, spent: list[float]) -> dict[
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("config", overrides=[*overrides, "run.progress=false", *(["viz=rerun"] if viz else [])])
     spent[:] = [0.0, 0.0]
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), time.process_time()
     metrics = Pipeline.from_config(cfg, run_dir=out).run()
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
     recording = out / rerun_viz.RECORDING
     return {
         "wall": wall,
+        "cpu": cpu,
         "work": metrics["timing"]["seconds"],
         "frames": metrics["timing"]["frames"],
         "recording": spent[0],
@@ -81,14 +83,15 @@ def main() -> None:
             r = run(overrides, viz, Path(tmp) / f"run{k}", spent)
             results[viz].append(r)
             print(
-                f"viz {'on ' if viz else 'off'}: wall {r['wall']:6.1f} s, work {r['work']:6.1f} s, {r['frames']} "
-                f"keyframes, recording {1000 * r['recording'] / r['frames']:5.2f} ms per keyframe on its thread and "
+                f"viz {'on ' if viz else 'off'}: wall {r['wall']:6.1f} s, CPU {r['cpu']:6.1f} s, "
+                f"work {r['work']:6.1f} s, {r['frames']} keyframes, recording "
+                f"{1000 * r['recording'] / r['frames']:5.2f} ms per keyframe on its thread and "
                 f"{1000 * r['pipeline'] / r['frames']:4.2f} ms on the pipeline's, run.rrd "
                 f"{r['mib']:.1f} MiB, ATE {r['ate']:.3f} m; load average {os.getloadavg()[0]:.2f}"
             )
-    off, on = (sum(r["wall"] for r in results[v]) for v in (False, True))
-    work_off, work_on = (sum(r["work"] for r in results[v]) for v in (False, True))
-    print(f"wall time with the recording over without: {on / off:.3f} (robot's work {work_on / work_off:.3f})")
+    total = {key: [sum(r[key] for r in results[v]) for v in (False, True)] for key in ("wall", "cpu", "work")}
+    wall, cpu, work = (on / off for off, on in total.values())
+    print(f"with the recording over without: wall time {wall:.3f}, the process's CPU time {cpu:.3f}, work {work:.3f}")
 
 
 if __name__ == "__main__":

@@ -106,16 +106,16 @@ def outcome_colour(outcome: str) -> tuple[int, int, int]:
 
 
 def rerun_missing() -> str | None:
-    """Why the installed rerun-sdk cannot write the recording (how to install it), or None when it can."""
+    """Why the installed rerun-sdk cannot write the recording, saying how to install it; None when it can."""
     wanted = ".".join(map(str, RERUN_VERSION))
-    install = (
-        f"pip install 'sgf-pipeline[viz]' (rerun-sdk {wanted}, Python 3.11 or later; in a checkout "
-        "scripts/setup.sh --dev)"
-    )
+    install = "install it with pip install 'sgf-pipeline[viz]' (in a checkout: scripts/setup.sh --dev)"
     try:
         version = metadata.version("rerun-sdk")
     except metadata.PackageNotFoundError:
-        return f"viz=rerun needs the rerun-sdk package, which is not installed: {install}, or run without viz=rerun"
+        return (
+            f"viz=rerun needs the rerun-sdk package ({wanted}, on Python 3.11 or later), which is not installed: "
+            f"{install}, or run without viz=rerun"
+        )
     if tuple(int(p) for p in version.split(".")[:2] if p.isdigit()) != RERUN_VERSION:
         return f"viz=rerun is written for rerun-sdk {wanted}, and {version} is installed: {install}"
     return None
@@ -611,7 +611,7 @@ def blueprint() -> Any:
         ),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="expanded"),
+        rrb.TimePanel(state="expanded", timeline="frame", play_state="following"),  # a saved run opens at its end
     )
 
 
