@@ -78,7 +78,7 @@ SEND_FRAMES = 10
 #: Keyframes queued for the recording thread at most (the pipeline waits beyond).
 QUEUED_FRAMES = 32
 #: Correction arrows drawn at most, and the smallest correction drawn (m).
-MAX_ARROWS = 300
+MAX_ARROWS = 60
 MIN_CORRECTION = 0.01
 
 _OUTCOME_COLOURS = {
@@ -416,7 +416,7 @@ class _Recording:
                     rr.LineStrips2D(
                         strips,
                         colors=[group_colour(group_id if group_id is not None else sgf.track_id)],
-                        labels=[label] * len(strips),
+                        labels=[label],  # one label for the SGF's parts
                         radii=rr.Radius.ui_points(1.5),
                         draw_order=2.0,
                     ),
@@ -486,10 +486,11 @@ class _Recording:
         if len(keep) > MAX_ARROWS:
             keep = keep[np.linspace(0, len(keep) - 1, MAX_ARROWS).round().astype(int)]
         origins, vectors = before[keep], after[keep] - before[keep]
-        colour = [(255, 255, 255)]
-        self.stream.log("world/correction", rr.Arrows3D(origins=origins, vectors=vectors, colors=colour))
+        colour, radius = [(255, 255, 255, 160)], rr.Radius.ui_points(0.75)
+        self.stream.log("world/correction", rr.Arrows3D(origins=origins, vectors=vectors, colors=colour, radii=radius))
         self.stream.log(
-            "map/correction", rr.Arrows2D(origins=_map_xy(origins), vectors=_map_xy(vectors), colors=colour)
+            "map/correction",
+            rr.Arrows2D(origins=_map_xy(origins), vectors=_map_xy(vectors), colors=colour, radii=radius),
         )
 
     def _log_loops(self, first: int, candidates: list[dict[str, Any]], final: bool) -> None:
@@ -593,7 +594,7 @@ def blueprint() -> Any:
                 rrb.Spatial2DView(origin="camera", name="camera"),
                 rrb.Spatial2DView(origin="bev", name="BEV, saliency and SGFs", overrides={"bev/sgfs": now}),
                 rrb.TensorView(origin="sgf/descriptor", name="SGF descriptor (rings x sectors)"),
-                row_shares=[3, 3, 1],
+                row_shares=[3, 3, 2],
             ),
             rrb.Tabs(
                 rrb.Spatial2DView(
@@ -611,7 +612,7 @@ def blueprint() -> Any:
         ),
         rrb.BlueprintPanel(state="collapsed"),
         rrb.SelectionPanel(state="collapsed"),
-        rrb.TimePanel(state="expanded", timeline="frame", play_state="following"),  # a saved run opens at its end
+        rrb.TimePanel(state="collapsed", timeline="frame", play_state="following"),  # a saved run opens at its end
     )
 
 
