@@ -1,6 +1,7 @@
 """What a Rerun recording (``viz=rerun``) costs the main job: its wall time with and without it, in one sitting.
 
-Usage: ``.venv/bin/python bench/bench_viz.py [--pairs N] [hydra overrides...]``
+Usage: ``.venv/bin/python bench/bench_viz.py [--pairs N] [hydra overrides...]``,
+or ``.venv/bin/python bench/bench_viz.py --replay N``
 
 Runs the default ``sgf-run`` configuration (the main job, campus_delivery at full length; overrides
 such as ``dataset.scale=0.2`` shorten it) into a temporary run directory, alternately without and
@@ -8,8 +9,11 @@ with ``viz=rerun`` (off, on, on, off, ... so that a drifting machine load falls 
 alike), and prints each run's wall time, the process's CPU time (what a machine shared with other
 jobs measures more steadily), the robot's work (the stages after ``dataset``, whose
 time includes the observers' per-stage hooks), the recording's own time per keyframe on its thread
-and on the pipeline's, and the size of ``run.rrd``; then the ratio of the summed wall times, on over
-off.
+and on the pipeline's, and the size of ``run.rrd``; then the ratios of the summed times, on over off.
+
+``--replay N`` measures the recording alone: N keyframes of the main job's first camera image
+(640 x 480) with a BEV, a saliency map and a growing estimate of the main job's sizes, through the
+recording on this thread; it prints the process's CPU time per keyframe (the SDK's threads included).
 """
 
 from __future__ import annotations
@@ -22,11 +26,14 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import sgf_plugins.rerun_viz as rerun_viz
 from hydra import compose, initialize_config_dir
 
 from sgf_pipeline import Pipeline
 from sgf_pipeline.config import config_dir
+from sgf_pipeline.runner import RunInfo
+from sgf_pipeline.types import Bev, BevGrid, CameraImage, PoseEstimate, SaliencyMap
 
 
 def observer_clock() -> list[float]:
@@ -69,11 +76,49 @@ def run(overrides: list[str], viz: bool, out: Path, spent: list[float]) -> dict[
     }
 
 
+def replay(frames: int) -> None:
+    """The recording alone, on the main job's first camera image and outputs of its sizes: CPU time per keyframe."""
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("config", overrides=["pipeline=[dataset]", "run.progress=false"])
+    pipeline = Pipeline.from_config(cfg)
+    camera = next(iter(pipeline.frames())).image  # a rendered campus frame: the JPEG a camera image makes
+    rng = np.random.default_rng(0)
+    grid = BevGrid(0.02, 0.5, 5.62, -2.56, 2.56)
+    bev = Bev(camera[-256:, 192:448].copy(), np.ones((256, 256), bool), grid, 0, 0.0)
+    saliency = SaliencyMap(rng.random((256, 256)).astype(np.float32), bev)
+    stages = ("enhance", "ipm", "odometry_scale", "saliency", "detector", "descriptor", "association", "loop")
+    poses: dict[int, np.ndarray] = {}
+    keys = []
+    for i in range(frames):
+        odometry = np.eye(4)
+        odometry[:2, 3] = 0.25 * i, 0.01 * i
+        poses[i] = odometry
+        outputs = {CameraImage: CameraImage(camera, i), Bev: bev, SaliencyMap: saliency}
+        outputs[PoseEstimate] = PoseEstimate(i, dict(poses))
+        keys.append(
+            rerun_viz._Keyframe(i, 0.1 * i, camera, odometry, odometry, outputs, dict.fromkeys(stages, 1e-3), 0, [])
+        )
+    with tempfile.TemporaryDirectory() as tmp:
+        run = RunInfo(run_dir=Path(tmp), stages=[], sequence="replay", total_frames=frames)
+        t0 = time.process_time()  # every thread of the process: the SDK's own ones too
+        recording = rerun_viz._Recording(run, rerun_viz.RerunOptions())
+        for key in keys:
+            recording.log_frame(key)
+        recording.close(finished=True)
+        spent = time.process_time() - t0
+        size = (Path(tmp) / rerun_viz.RECORDING).stat().st_size
+    print(f"recording alone: {1000 * spent / frames:.2f} ms of CPU per keyframe, {size / frames / 1024:.0f} KiB each")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=2, help="pairs of runs, without and with the recording")
+    parser.add_argument("--replay", type=int, default=0, help="only replay this many synthetic keyframes")
     args, overrides = parser.parse_known_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average {os.getloadavg()}")
+    if args.replay:
+        replay(args.replay)
+        return
     print(f"overrides: {' '.join(overrides) or '(the main job)'}")
     spent = observer_clock()
     order = [k % 4 in (1, 2) for k in range(2 * args.pairs)]  # off, on, on, off, ...
