@@ -11,6 +11,8 @@ as a JPEG of the window's size. Nothing is downloaded.
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import socket
 import subprocess
 import sys
@@ -22,12 +24,14 @@ import cv2
 
 
 def free_port() -> int:
+    """A TCP port free on this machine now."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
 
 def main() -> None:
+    """Shoot the viewer on the recording at the frame asked for."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("recording", type=Path)
     parser.add_argument("image", type=Path)
@@ -40,7 +44,8 @@ def main() -> None:
     port = free_port()
     rerun = Path(sys.executable).parent / "rerun"
     command = [str(rerun), "--headless", "--port", str(port), "--window-size", args.size, "--hide-welcome-screen"]
-    viewer = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # its own process group: the `rerun` script starts the viewer's binary as a child, which must end too
+    viewer = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
         while True:
@@ -61,7 +66,7 @@ def main() -> None:
             client.save_screenshot(str(shot))
             image = cv2.imread(str(shot))
     finally:
-        viewer.terminate()
+        os.killpg(viewer.pid, signal.SIGTERM)
         viewer.wait(timeout=30)
     width, height = map(int, args.size.split("x"))
     image = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)  # it shoots at the display's scale

@@ -398,6 +398,7 @@ def test_connect_streams_to_a_running_viewer(tmp_path: Path) -> None:
         [str(BIN / "rerun"), "--serve-grpc", "--bind", "127.0.0.1", "--port", str(port), "--save", str(received)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
+        start_new_session=True,  # the `rerun` script's child (the server) is stopped with it
     )
     try:
         deadline = time.monotonic() + 30
@@ -414,7 +415,7 @@ def test_connect_streams_to_a_running_viewer(tmp_path: Path) -> None:
         while time.monotonic() < deadline and not received.exists():
             time.sleep(0.2)
     finally:
-        server.send_signal(signal.SIGINT)  # the viewer's server finishes its file on Ctrl-C
+        os.killpg(server.pid, signal.SIGINT)  # the viewer's server finishes its file on Ctrl-C
         server.wait(timeout=30)
     rows = read(received)
     assert [r["frame"] for r in temporal(rows, "/camera/image")] == list(range(12))
