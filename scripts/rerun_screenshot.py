@@ -65,6 +65,8 @@ def main() -> None:
             shot = Path(tmp) / "shot.png"
             client.save_screenshot(str(shot))
             image = cv2.imread(str(shot))
+            if image is None:
+                sys.exit("the viewer wrote no screenshot")
     finally:
         os.killpg(viewer.pid, signal.SIGTERM)
         viewer.wait(timeout=30)
