@@ -11,8 +11,9 @@ duration, or a date when the dataset's clock is Unix time):
   frame, track and group;
 - ``map/*`` (2-D, x right and y up: y is logged negated) and ``world/*`` (3-D): ``odometry``,
   ``ground_truth`` (a segment per keyframe, shown from the start to the cursor), ``estimate``
-  (the back-end's current estimate), ``correction`` (arrows from each pose to where the back-end
-  moved it, on a frame that re-solves) and ``loops/<n>``: row ``n`` of ``loop_candidates.csv``, a line
+  (the back-end's current estimate; ``map/robot`` its newest pose, heading as an arrow), ``correction``
+  (arrows from poses to where the back-end moved them, shown on a frame that re-solves, at most 60)
+  and ``loops/<n>``: row ``n`` of ``loop_candidates.csv``, a line
   between the estimated poses of its two frames in its outcome's colour, labelled with the outcome
   and its detail; ``log/loops`` and ``log/sgfs`` say the same as text;
 - ``timing/<kind>``: each stage's milliseconds.
@@ -21,7 +22,8 @@ One frame after the last, the end of the run is logged: the final trajectory and
 and the loops the end of the run decided or changed, so the recording ends as the run directory
 does. The recording is written to ``<run dir>/run.partial.rrd`` and renamed ``run.rrd`` once the run
 has finished (a failed run keeps the partial one); ``spawn``, ``connect`` and ``serve`` stream it to
-a viewer as well.
+a viewer as well. The logging runs on a thread of its own, ten keyframes at a time
+(``bench/RESULTS.md`` has its cost); the pipeline's thread only hands the outputs over.
 """
 
 from __future__ import annotations
