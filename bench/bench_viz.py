@@ -1,6 +1,6 @@
 """What a Rerun recording (``viz=rerun``) costs the main job: its wall time with and without it, in one sitting.
 
-Usage: ``.venv/bin/python bench/bench_viz.py [--pairs N] [hydra overrides...]``,
+Usage: ``.venv/bin/python bench/bench_viz.py [--pairs N | --lockstep] [hydra overrides...]``,
 or ``.venv/bin/python bench/bench_viz.py --replay N``
 
 Runs the default ``sgf-run`` configuration (the main job, campus_delivery at full length; overrides
@@ -10,6 +10,10 @@ alike), and prints each run's wall time, the process's CPU time (what a machine 
 jobs measures more steadily), the robot's work (the stages after ``dataset``, whose
 time includes the observers' per-stage hooks), the recording's own time per keyframe on its thread
 and on the pipeline's, and the size of ``run.rrd``; then the ratios of the summed times, on over off.
+
+``--lockstep`` runs the two at once in one process, one keyframe of each in turn, each keyframe's
+recording waited for before the other pipeline goes on: both sides see the same load, and the
+ratio of their times (work, and work plus rendering) is an upper bound of the recording's cost.
 
 ``--replay N`` measures the recording alone: N keyframes of the main job's first camera image
 (640 x 480) with a BEV, a saliency map and a growing estimate of the main job's sizes, through the
@@ -22,6 +26,7 @@ import argparse
 import os
 import platform
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -110,14 +115,65 @@ def replay(frames: int) -> None:
     print(f"recording alone: {1000 * spent / frames:.2f} ms of CPU per keyframe, {size / frames / 1024:.0f} KiB each")
 
 
+def lockstep(overrides: list[str]) -> None:
+    """The main job twice at once, without and with the recording, one keyframe of each in turn.
+
+    The recording of each keyframe is waited for before the other pipeline goes on, so that its
+    whole cost counts against the run that records (none of it overlaps the other's work): an
+    upper bound of what the recording's thread costs, measured under the same load on both sides.
+    """
+    with tempfile.TemporaryDirectory() as tmp:
+        pipelines = {}
+        for viz in (False, True):
+            with initialize_config_dir(str(config_dir()), version_base="1.3"):
+                cfg = compose("config", overrides=[*overrides, "run.progress=false", *(["viz=rerun"] if viz else [])])
+            pipelines[viz] = Pipeline.from_config(cfg, run_dir=Path(tmp) / ("on" if viz else "off"))
+        spent = {False: 0.0, True: 0.0}
+
+        def drained(pipeline: Pipeline) -> None:
+            recorder = rerun_viz._OBSERVER._runs.get(id(pipeline.info))
+            if recorder is not None:
+                done = threading.Event()
+                recorder.jobs.put(done.set)
+                done.wait()
+
+        streams = zip(pipelines[False].frames(), pipelines[True].frames(), strict=True)
+        for k, frames in enumerate(streams):
+            for viz in (False, True) if k % 2 == 0 else (True, False):
+                t0 = time.perf_counter()
+                pipelines[viz].process(frames[viz])
+                drained(pipelines[viz])
+                spent[viz] += time.perf_counter() - t0
+        for viz in (False, True):
+            t0 = time.perf_counter()
+            metrics = pipelines[viz].finish()
+            spent[viz] += time.perf_counter() - t0
+            info = pipelines[viz].info
+            print(
+                f"viz {'on ' if viz else 'off'}: {info.frames_processed} keyframes, work and recording "
+                f"{spent[viz]:.1f} s, rendering {info.dataset_seconds:.1f} s, ATE {metrics['ate_rmse_m']['sgf']:.3f} m"
+            )
+        rendering = {viz: pipelines[viz].info.dataset_seconds for viz in (False, True)}
+        work = spent[True] / spent[False]
+        job = (spent[True] + rendering[True]) / (spent[False] + rendering[False])
+        print(
+            f"keyframe by keyframe, with the recording over without: the robot's work {work:.3f}, "
+            f"the whole job (work and rendering) {job:.3f}; load average {os.getloadavg()[0]:.2f}"
+        )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pairs", type=int, default=2, help="pairs of runs, without and with the recording")
     parser.add_argument("--replay", type=int, default=0, help="only replay this many synthetic keyframes")
+    parser.add_argument("--lockstep", action="store_true", help="both runs at once, a keyframe of each in turn")
     args, overrides = parser.parse_known_args()
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, load average {os.getloadavg()}")
     if args.replay:
         replay(args.replay)
+        return
+    if args.lockstep:
+        lockstep(overrides)
         return
     print(f"overrides: {' '.join(overrides) or '(the main job)'}")
     spent = observer_clock()
