@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
 # Set up .venv with the CPU build of torch and sgf-pipeline installed editable.
 #   scripts/setup.sh          runtime
-#   scripts/setup.sh --dev    plus the test, lint and sweep tools
+#   scripts/setup.sh --dev    plus the test, lint and sweep tools and the Rerun viewer SDK
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 PYTHON=${PYTHON:-python3}
 TORCH_VERSION=${TORCH_VERSION:-2.13.0}
 extras=""
-[ "${1:-}" = "--dev" ] && extras="[dev,sweeps]"
+[ "${1:-}" = "--dev" ] && extras="[dev,sweeps,viz]"
 
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
 pip_install() {

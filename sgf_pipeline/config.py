@@ -123,7 +123,9 @@ def format_validation_error(group: str, model: type[BaseModel], error: Validatio
         if field is not None and field.annotation is not None:
             ann = field.annotation
             expected = f"; expected {getattr(ann, '__name__', None) or str(ann).replace('typing.', '')}"
-        if item["type"] == "extra_forbidden":
+        if item["type"] == "value_error" and not item["loc"]:  # a model's own check: its message says it all
+            lines.append(f"{key}: {item['ctx']['error']}")
+        elif item["type"] == "extra_forbidden":
             known = ", ".join(model.model_fields) or "none"
             lines.append(f"{key}: unknown parameter (parameters of this variant: {known})")
         else:
@@ -153,16 +155,18 @@ def _check_finite(node: Any, path: str) -> None:
             _check_finite(v, f"{path}[{i}]")
 
 
-def check_keys(raw: Mapping[str, Any], kinds: Iterable[str]) -> None:
-    """Refuse top-level keys that are neither runner options nor the node of a stage kind (typos)."""
+def check_keys(raw: Mapping[str, Any], kinds: Iterable[str], observers: Iterable[str] = ()) -> None:
+    """Refuse top-level keys that are neither runner options, nor the node of a stage kind or an observer (typos)."""
     # a blocked plugin's node of the default config may stay
-    known = set(TOP_LEVEL_KEYS) | set(kinds) | set(PAPER_STAGES) | set(EXTENSION_STAGES) | {"hydra"}
+    observers = sorted(observers)
+    known = set(TOP_LEVEL_KEYS) | set(kinds) | set(observers) | set(PAPER_STAGES) | set(EXTENSION_STAGES) | {"hydra"}
     unknown = sorted(str(k) for k in raw if k not in known)
     if unknown:
+        nodes = f" and the observers' nodes ({', '.join(observers)})" if observers else ""
         raise ConfigError(
-            f"unknown top-level key(s) {unknown}: a config holds {', '.join(TOP_LEVEL_KEYS)} and one node per "
-            f"stage kind ({', '.join(sorted(set(kinds)))}); check the spelling, or install the plugin that "
-            "registers that stage kind"
+            f"unknown top-level key(s) {unknown}: a config holds {', '.join(TOP_LEVEL_KEYS)}, one node per "
+            f"stage kind ({', '.join(sorted(set(kinds)))}){nodes}; check the spelling, or install the plugin that "
+            "registers that stage kind or node"
         )
 
 

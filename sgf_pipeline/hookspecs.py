@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING, Any
 import pluggy
 
 if TYPE_CHECKING:
+    from pydantic import BaseModel
+
     from sgf_pipeline.registry import StageRegistry
     from sgf_pipeline.runner import RunInfo, StageNode
     from sgf_pipeline.types import Frame
@@ -29,6 +31,15 @@ class PipelineHooks:
         """Register the stage classes (variants) that this plugin offers.
 
         :param registry: call ``registry.add(StageClass)`` once per variant.
+        """
+
+    @hookspec
+    def sgf_observer_options(self) -> dict[str, type[BaseModel]] | None:
+        """The top-level config nodes an observer plugin reads, each with its pydantic model (``extra="forbid"``).
+
+        Such a node sits beside the stage nodes (``sgf-run viz=rerun`` selects ``conf/viz/rerun.yaml``);
+        the runner validates it while the pipeline is built and hands it to every hook as
+        ``run.observer_options[name]``, which has no entry when the config has no such node.
         """
 
     @hookspec

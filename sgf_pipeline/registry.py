@@ -5,14 +5,15 @@ from __future__ import annotations
 import os
 import re
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib import metadata
-from typing import Any
+from typing import Any, cast
 
 import pluggy
 from pydantic import BaseModel
 
 from sgf_pipeline import hookspecs
+from sgf_pipeline.config import TOP_LEVEL_KEYS
 from sgf_pipeline.errors import ConfigError, PluginError
 from sgf_pipeline.stage import Dataset, Stage, StageClass, StageParams, StageSignature, signature_of
 
@@ -127,10 +128,12 @@ def _names_from_env(var: str) -> set[str] | None:
 
 @dataclass
 class LoadedPlugins:
-    """The plugin manager and the registry built from its plugins."""
+    """The plugin manager, the registry built from its plugins, and the observers' config nodes."""
 
     manager: pluggy.PluginManager
     registry: StageRegistry
+    #: top-level config node -> its options model (``sgf_observer_options``)
+    observer_options: dict[str, type[BaseModel]] = field(default_factory=dict)
 
 
 def load_plugins(
@@ -186,7 +189,33 @@ def load_plugins(
     registry = StageRegistry()
     for impl in manager.hook.sgf_register_stages.get_hookimpls():
         impl.function(registry=registry._scoped(impl.plugin_name, distributions.get(impl.plugin_name)))
-    return LoadedPlugins(manager, registry)
+    return LoadedPlugins(manager, registry, _observer_options(manager, registry))
+
+
+def _observer_options(manager: pluggy.PluginManager, registry: StageRegistry) -> dict[str, type[BaseModel]]:
+    """The config nodes the observer plugins declare, checked: new names, models that refuse unknown keys."""
+    owners: dict[str, str] = {}
+    nodes: dict[str, type[BaseModel]] = {}
+    for impl in manager.hook.sgf_observer_options.get_hookimpls():
+        where = f"plugin {impl.plugin_name!r}"
+        declared = cast("dict[str, Any]", impl.function() or {})
+        for name, model in declared.items():
+            if not isinstance(name, str) or not _NAME.match(name):
+                raise PluginError(f"{where}: an observer's config node must be a lower-case identifier, got {name!r}")
+            if name in TOP_LEVEL_KEYS or name in registry.kinds():
+                raise PluginError(f"{where}: config node {name!r} is taken by the runner or a stage kind")
+            if name in owners:
+                raise PluginError(
+                    f"config node {name!r} is declared by plugins {owners[name]!r} and {impl.plugin_name!r}; "
+                    f"block one with {BLOCK_ENV}=<entry point name>"
+                )
+            if not (isinstance(model, type) and issubclass(model, BaseModel)) or (
+                model.model_config.get("extra") != "forbid"
+            ):
+                raise PluginError(f"{where}: the options of {name!r} must be a pydantic model refusing unknown keys")
+            owners[name] = impl.plugin_name
+            nodes[name] = model
+    return nodes
 
 
 def describe_params(model: type[BaseModel]) -> list[tuple[str, str, Any, str]]:

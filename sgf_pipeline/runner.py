@@ -21,7 +21,14 @@ from typing import IO, Any
 
 import numpy as np
 
-from sgf_pipeline.config import PipelineConfig, StageConfig, check_keys, format_validation_error, parse_config
+from sgf_pipeline.config import (
+    PipelineConfig,
+    StageConfig,
+    check_keys,
+    format_validation_error,
+    parse_config,
+    validate_options,
+)
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.errors import ConfigError, PipelineGraphError, SgfError, StageError
 from sgf_pipeline.registry import LoadedPlugins, VariantInfo, load_plugins
@@ -59,7 +66,11 @@ class StageNode:
 
 @dataclass
 class RunInfo:
-    """What observers see of a run: stages in order, counts and the output directory."""
+    """What observers see of a run: stages in order, counts, the output directory and their own options.
+
+    ``context`` is the context the stages share (at the end it holds their trajectories and artifacts);
+    ``observer_options`` the validated config nodes the observers declare (``sgf_observer_options``).
+    """
 
     run_dir: Path | None
     stages: list[StageNode]
@@ -72,6 +83,8 @@ class RunInfo:
     first_timestamp: float | None = None
     last_timestamp: float | None = None
     options: Any = None
+    context: RunContext | None = None
+    observer_options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -135,6 +148,12 @@ class Pipeline:
             sequence=self.dataset_node.name,
             total_frames=0,
             options=config.run,
+            context=self.context,
+            observer_options={
+                name: validate_options(name, model, (effective_config or {})[name])
+                for name, model in plugins.observer_options.items()
+                if (effective_config or {}).get(name) is not None
+            },
         )
         self._previous: dict[str, Any] = {}
         self._odometry = PoseLog()
@@ -170,7 +189,7 @@ class Pipeline:
         config = parse_config(raw)
         if plugins is None:
             plugins = load_plugins(allow=config.plugins.allow, block=config.plugins.block)
-        check_keys(raw, [*plugins.registry.kinds(), *config.pipeline])
+        check_keys(raw, [*plugins.registry.kinds(), *config.pipeline], plugins.observer_options)
         return cls(config, plugins, Path(run_dir) if run_dir is not None else None, effective_config=raw)
 
     def _instantiate(self, sc: StageConfig) -> StageNode:

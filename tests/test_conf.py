@@ -1,4 +1,4 @@
-"""The configuration folder: every option of every group validates against its registered variant."""
+"""The configuration folder: every option of every group validates against its registered variant or observer."""
 
 from __future__ import annotations
 
@@ -31,17 +31,21 @@ def stage_options() -> list[tuple[str, Path]]:
 
 
 @pytest.fixture(scope="module")
-def registry():
-    return load_plugins().registry
+def plugins():
+    return load_plugins()
 
 
 @pytest.mark.parametrize(("kind", "path"), stage_options(), ids=lambda v: getattr(v, "stem", v))
-def test_each_option_validates_against_its_variant(registry, kind: str, path: Path):
+def test_each_option_validates_against_its_variant(plugins, kind: str, path: Path):
     node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
     assert isinstance(node, dict) and "name" in node, f"{path} needs a `name` key"
-    variant = registry.get(kind, node["name"])
-    params = {k: v for k, v in node.items() if k not in RESERVED_KEYS}
-    validated = variant.params_model.model_validate(params)
+    observer = plugins.observer_options.get(kind)  # an observer's node (viz), else a stage variant's
+    if observer is not None:
+        params, model = node, observer
+    else:
+        params = {k: v for k, v in node.items() if k not in RESERVED_KEYS}
+        model = plugins.registry.get(kind, node["name"]).params_model
+    validated = model.model_validate(params)
     for key, value in params.items():
         assert getattr(validated, key) == value or isinstance(value, (list, dict)), (path, key)
     first_line = path.read_text().splitlines()[0]

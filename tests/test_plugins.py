@@ -9,7 +9,7 @@ import re
 from pathlib import Path
 
 import pytest
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 from sgf_testing import ROOT, run_cli
 
 from sgf_pipeline import PluginError, Stage, StageRegistry, hookimpl, hookspecs, load_plugins
@@ -127,6 +127,73 @@ def test_a_plugin_that_fails_to_import_is_named(monkeypatch: pytest.MonkeyPatch)
         match=r"plugin 'broken' \(no_such_module_xyz\).*failed to import.*SGF_PIPELINE_DISABLED_PLUGINS=broken",
     ):
         load_plugins()
+
+
+class WatchOptions(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    every: int = Field(1, ge=1)
+
+    @model_validator(mode="after")
+    def _not_thirteen(self) -> WatchOptions:
+        if self.every == 13:
+            raise ValueError("watch.every=13 is unlucky: choose another")
+        return self
+
+
+class Watcher:
+    """An observer with a config node of its own (``watch``), seen by its hooks as ``run.observer_options``."""
+
+    def __init__(self, node: str = "watch", model: type = WatchOptions) -> None:
+        self.node, self.model = node, model
+        self.seen: list[object] = []
+
+    @hookimpl
+    def sgf_observer_options(self) -> dict[str, type]:
+        return {self.node: self.model}
+
+    @hookimpl
+    def sgf_run_start(self, run) -> None:  # type: ignore[no-untyped-def]
+        self.seen.append(run.observer_options.get(self.node))
+
+
+def test_an_observer_reads_its_own_config_node():
+    from toy_stages import ToyPlugin
+
+    from sgf_pipeline import ConfigError, Pipeline
+
+    watcher = Watcher()
+    plugins = load_plugins(extra=[("toy", ToyPlugin()), ("watcher", watcher)])
+    assert plugins.observer_options["watch"] is WatchOptions
+    config = {"pipeline": ["dataset"], "dataset": {"name": "figure_eight", "frames": 3}, "run": {"progress": False}}
+    Pipeline.from_config({**config, "watch": {"every": 5}}, plugins=plugins).run()
+    Pipeline.from_config(config, plugins=plugins).run()  # no node: the observer is told so
+    assert watcher.seen == [WatchOptions(every=5), None]
+    # validated while the pipeline is built: unknown keys, bad values and the model's own checks
+    with pytest.raises(ConfigError, match=r"watch\.often: unknown parameter \(parameters of this variant: every\)"):
+        Pipeline.from_config({**config, "watch": {"often": 2}}, plugins=plugins)
+    with pytest.raises(ConfigError, match=r"watch\.every: Input should be greater than or equal to 1"):
+        Pipeline.from_config({**config, "watch": {"every": 0}}, plugins=plugins)
+    with pytest.raises(ConfigError, match=r"watch: watch\.every=13 is unlucky: choose another$"):
+        Pipeline.from_config({**config, "watch": {"every": 13}}, plugins=plugins)
+    # without the observer its node is a typo like any other
+    with pytest.raises(ConfigError, match=r"unknown top-level key\(s\) \['watch'\]"):
+        Pipeline.from_config({**config, "watch": {"every": 5}}, plugins=load_plugins(extra=[("toy", ToyPlugin())]))
+
+
+@pytest.mark.parametrize(
+    ("watchers", "message"),
+    [
+        ([Watcher("enhance")], "config node 'enhance' is taken by the runner or a stage kind"),
+        ([Watcher("run")], "config node 'run' is taken by the runner or a stage kind"),
+        ([Watcher("Watch")], "must be a lower-case identifier"),
+        ([Watcher(model=LooseParams)], "must be a pydantic model refusing unknown keys"),
+        ([Watcher(), Watcher()], "config node 'watch' is declared by plugins 'w0' and 'w1'"),
+    ],
+)
+def test_observer_config_nodes_that_break_the_contract(watchers: list[Watcher], message: str):
+    with pytest.raises(PluginError, match=re.escape(message)):
+        load_plugins(extra=[(f"w{k}", w) for k, w in enumerate(watchers)])
 
 
 def test_every_hookspec_is_documented():

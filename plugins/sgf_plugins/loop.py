@@ -501,6 +501,7 @@ class IcpLoopClosing(Stage):
         self.position_only = 0
         self.earlier_members = 0
         self.decisions: list[dict[str, Any]] = []  # every candidate's outcome: loop_candidates.csv
+        context.artifacts["loop_candidates"] = self.decisions  # grows as matches are decided: observers watch it
         self._icp_detail = ""  # what the last failed ICP missed
         self._sgf_group: list[int] = []
         self._sgf_xy: list[np.ndarray] = []

@@ -38,7 +38,8 @@ class SelectedView:
     outline: np.ndarray
 
 
-def _group_colour(group_id: int) -> tuple[int, int, int]:
+def group_colour(group_id: int) -> tuple[int, int, int]:
+    """A saturated colour per SGF group (RGB), the same in every figure."""
     hue = (group_id * 47) % 180
     hsv = np.array([[[hue, 220, 255]]], dtype=np.uint8)
     r, g, b = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0, 0]
@@ -102,7 +103,7 @@ class SgfFigureObserver:
         if image.dtype != np.uint8:
             image = np.clip(image * (255.0 if image.max() <= 1.0 else 1.0), 0, 255).astype(np.uint8)
         image[~bev.valid] = (image[~bev.valid] * 0.35).astype(np.uint8)
-        cv2.drawContours(image, contours, -1, _group_colour(group_id), 2)
+        cv2.drawContours(image, contours, -1, group_colour(group_id), 2)
         return SelectedView(frame_index, group_id, new_group, symmetric, instance_id, image, outline)
 
     @hookimpl
