@@ -334,13 +334,16 @@ class OdometryScale:
 
 @dataclass(frozen=True)
 class YawBiasCorrection:
-    """A heading bias per metre the back-end takes off the odometry after frame ``since``.
+    """The back-end's model of the odometry's heading bias per metre, which the gates size their drift by.
 
-    ``sigma`` (rad/m) is the uncertainty of the bias left in the odometry steps after ``since``.
+    The bias is taken off the odometry steps after frame ``since`` (None: off none of them);
+    ``sigma`` (rad/m) is the uncertainty of the bias left in those steps, ``uncorrected`` (rad/m)
+    the root mean square of the bias in the steps no correction covers, as the back-end knows it now.
     """
 
-    since: int
+    since: int | None
     sigma: float
+    uncorrected: float
 
 
 @dataclass(frozen=True)

@@ -533,14 +533,20 @@ def test_the_odometry_heading_bias_is_estimated_from_loops_and_corrects_the_driv
         tail = context.trajectories["sgf"].poses[2 * lap :]
         results[estimate_bias] = (rmse_xy(tail, biased.gt[2 * lap :]), context.metrics["backend"])
         # the published estimates say from which frame the odometry is corrected, and how well the bias is known
-        corrected = [e.yaw_bias for e in estimates if e.yaw_bias is not None]
+        models = [e.yaw_bias for e in estimates if e.yaw_bias is not None]
         if not estimate_bias:
-            assert corrected == []
+            assert models == []
             continue
+        # a model from the first frame: before any loop the bias wheel odometry is expected to have
+        assert len(models) == len(estimates) and models[0].since is None
+        assert models[0].uncorrected == pytest.approx(math.radians(0.1))
+        corrected = [c for c in models if c.since is not None]
         loop_frames = sorted(loops)
-        first = next(k for k, e in enumerate(estimates) if e.yaw_bias is not None)
+        first = next(k for k, e in enumerate(estimates) if e.yaw_bias is not None and e.yaw_bias.since is not None)
         assert first in loop_frames[1:]  # applied on a loop, once a second one agrees
         assert {c.since for c in corrected} == {first}
+        # once loops measured it, the bias on uncorrected odometry is theirs: 0.2 deg/m
+        assert math.degrees(corrected[-1].uncorrected) == pytest.approx(0.2, abs=0.02)
         sigma = corrected[-1].sigma
         assert sigma == pytest.approx(math.radians(context.metrics["backend"]["odometry_yaw_bias"]["sigma_deg_per_m"]))
         assert 0.0 < sigma < math.radians(0.1)

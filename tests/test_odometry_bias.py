@@ -218,6 +218,8 @@ def test_the_cameras_estimate_is_taken_off_before_any_loop() -> None:
     estimator.camera(BIAS, BIAS / 4.0)  # the camera sees the bias at four sigmas
     assert estimator.value == pytest.approx(BIAS) and estimator.since == 99 and estimator.loops == 0
     assert estimator.residual_sigma == pytest.approx(BIAS / 4.0)
+    # the odometry before frame 99 kept all of it: the gates count the measured bias there
+    assert estimator.uncorrected_sigma == pytest.approx(math.hypot(BIAS, BIAS / 4.0))
     corrected = np.stack([estimator.correct(k, odo[k]) for k in range(100, len(odo))])
 
     # from then on the drive turns like the truth: the heading error stops growing
@@ -231,14 +233,16 @@ def test_the_cameras_estimate_is_taken_off_before_any_loop() -> None:
 
 
 def test_an_uncertain_camera_informs_without_correcting_and_a_vague_one_is_ignored() -> None:
-    estimator = HeadingBias(math.radians(0.5), math.radians(0.5))
+    estimator = HeadingBias(math.radians(0.5), math.radians(0.5), reading_sigma=math.radians(0.1))
     feed(estimator, np.stack([pose_from_xy_yaw(float(k), 0.0, 0.0) for k in range(20)]))
+    assert estimator.uncorrected_sigma == pytest.approx(math.radians(0.1))  # unmeasured: the bias expected
     estimator.camera(math.radians(1.0), math.radians(0.6))  # less certain than the prior: ignored
     estimator.camera(math.radians(0.01), math.inf)
     assert estimator.since is None and estimator.sigma == math.inf
     estimator.camera(math.radians(0.01), math.radians(0.02))  # within its own uncertainty of zero
     assert estimator.value == 0.0 and estimator.since == 19  # nothing taken off, but the bias is known small
     assert estimator.residual_sigma == pytest.approx(math.hypot(math.radians(0.02), math.radians(0.01)))
+    assert estimator.uncorrected_sigma == pytest.approx(estimator.residual_sigma)  # nothing was taken off anywhere
 
 
 def test_the_camera_reads_loops_of_one_lap_where_the_expected_bias_cannot() -> None:

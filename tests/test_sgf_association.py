@@ -8,6 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from sgf_plugins.odometry_bias import EXPECTED_YAW_BIAS
 from sgf_plugins.sgf.association import OnlineGroupsParams, OnlineSgfGroups, SgfGroup, group_purity, loop_pairs
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams, describe
 from sgf_plugins.sgf.hu import hu_moments
@@ -717,7 +718,7 @@ def _a_painted_row_near_an_earlier_look_alike(**params):
     """Arrow C (x = 5 m), then a row of two arrows 63 and 62 m from it: the second arrow's gate reaches C."""
     c = ARROW
     r1, r2 = ARROW.placed(68.0, 0.0, 0.3, instance_id=10), ARROW.placed(67.0, 0.8, 0.3, instance_id=11)
-    s = stage(gate_radius=62.5, drift_rate=0.0, drift_quadratic=0.0, **params)
+    s = stage(gate_radius=62.5, drift_rate=0.0, drift_bias_share=0.0, **params)
     p1, p3, p4 = seen_from(c, 3.0, 0.0), seen_from(r1, 3.0, 0.0), seen_from(r2, 3.0, 0.0)
     (first,) = feed(s, 1, p1, desc(c, p1, 1))
     feed(s, 2, pose_from_xy_yaw(40.0, 0.0, 0.0))
@@ -780,7 +781,7 @@ def _two_arrows_then_back(**params):
 
 
 def test_look_alike_groups_inside_the_gate_tie_and_the_match_is_ambiguous():
-    # after 430 m the gate (1.5 + 0.05 d + 0.0003 d^2 = 79 m) holds both arrows: eq. 10 cannot tell them apart
+    # after 430 m the gate (1.5 + 0.05 d + 0.00044 d^2 = 104 m) holds both arrows: eq. 10 cannot tell them apart
     r1, r4 = _two_arrows_then_back()
     assert not r4.new_group and r4.group_id == r1.group_id  # the nearest on the map wins the tie...
     assert r4.ambiguous and not r4.aliased  # ...but eq. 10 cannot vouch for it
@@ -789,7 +790,7 @@ def test_look_alike_groups_inside_the_gate_tie_and_the_match_is_ambiguous():
     assert alt.group_id != r1.group_id and alt.matched.sgf.instance_id == 9
     assert abs(abs(alt.yaw) - math.pi) < math.radians(8.0) and abs(abs(r4.yaw) - math.pi) < math.radians(8.0)
     # a tighter gate (1.5 + 0.02 d = 10.1 m) holds only the first arrow (the second is 17 m away): unambiguous
-    r1, r4 = _two_arrows_then_back(drift_rate=0.02, drift_quadratic=0.0)
+    r1, r4 = _two_arrows_then_back(drift_rate=0.02, drift_bias_share=0.0)
     assert not r4.new_group and r4.group_id == r1.group_id and not r4.ambiguous and r4.alternatives == ()
 
 
@@ -921,7 +922,7 @@ def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[
             else:
                 distance = float(np.linalg.norm(s.position_of(member, estimate) - here))
                 travelled = abs(since - s._frames.distance(member.sgf.frame_index))
-                radius = p.gate_radius + p.drift_rate * travelled + p.drift_quadratic * travelled**2
+                radius = p.gate_radius + p.drift_rate * travelled + s._per_bias(EXPECTED_YAW_BIAS) * travelled**2
                 if travelled <= p.repeat_window and distance > p.repeat_radius:
                     repeated |= _shared_cells(s, query, member, estimate) < p.repeat_overlap
             if distance <= radius or not p.spatial_gate:
@@ -944,7 +945,7 @@ def test_the_vectorised_gate_is_the_member_by_member_gate():
     seeded = SgfGroup(500)
     seeded.add(template, 0, np.array([30.0, 0.0]))
     s = OnlineSgfGroups(
-        OnlineGroupsParams(gate_radius=2.0, drift_rate=0.01, drift_quadratic=0.0, prior_gate_radius=8.0)
+        OnlineGroupsParams(gate_radius=2.0, drift_rate=0.01, drift_bias_share=0.0, prior_gate_radius=8.0)
     )
     s.seed_groups([seeded])
     s.begin(RunContext(None))
@@ -1015,10 +1016,11 @@ def test_a_revisit_is_no_copy_of_an_unlike_sgf_its_group_took_in_nearby():
 @pytest.mark.parametrize("preset", ["campus_large_loop", "campus_reverse_slope"])
 def test_the_default_gate_holds_the_worlds_odometry_drift_between_two_sightings_of_one_place(preset):
     # Before any loop the estimate is the odometry: between two frames at one place (within 2 m),
-    # the gate over the distance driven between them must hold the odometry's error. Both full-length
-    # routes come back to their start after 1.25 to 1.5 km of a 0.07 deg/m heading bias: 420 to 570 m
-    # of error, beyond the earlier 1.5 + 0.05 d + 0.0002 d^2 (the large loop's nine revisits there
-    # opened new groups or joined look-alikes).
+    # the gate over the distance driven between them must hold the odometry's error, once the heading
+    # bias is measured as it is (0.07 deg/m). Both full-length routes come back to their start after 1.25
+    # to 1.5 km of it: 420 to 570 m of error, beyond a gate of a third of a straight drive's bound,
+    # 1.5 + 0.05 d + 0.0002 d^2 (the large loop's nine revisits there opened new groups or joined
+    # look-alikes).
     from sgf_plugins.world import build_world
 
     world = build_world(preset, seed=0, scale=1.0)
@@ -1033,18 +1035,19 @@ def test_the_default_gate_holds_the_worlds_odometry_drift_between_two_sightings_
     error = np.linalg.norm((odometry[j] - odometry[i]) - (truth[j] - truth[i]), axis=1)
 
     def worst(**params) -> float:
-        return float(np.max(error / stage(**params)._gate_radius(driven)))
+        s = stage(**params)
+        return float(np.max(error / s._gate_radius(driven, s._per_bias(math.radians(0.07)))))
 
     assert driven.max() > 1200.0 and error.max() > 400.0  # the route's end revisits its start
     assert worst() < 0.85
-    assert worst(drift_quadratic=0.0002) > 1.1
+    assert worst(drift_bias_share=0.0002 / (0.5 * math.radians(0.07))) > 1.1  # 0.0002 d^2
 
 
 def _a_copy_seen_after_a_long_drive(**params):
     """Arrow A seen at the start, then 500 m out and 392 m back; a copy of A 100 m from it is seen at the end.
 
-    Online, without a loop, the gate after 890 m (1.5 + 0.05 d + 0.0003 d^2 = 283.6 m) lets the
-    copy join A's group. Frame 1 is where the back-end's heading bias correction will begin.
+    Online, without a loop, the gate after 890 m (1.5 + 0.05 d + 0.00044 d^2 = 391 m for the bias
+    wheel odometry is expected to have, 0.1 deg/m) lets the copy join A's group. Frame 1 is where the back-end's heading bias correction will begin.
     """
     copy_ = ARROW.placed(105.0, 0.0, 0.3, instance_id=9)
     s = stage(**params)
@@ -1062,10 +1065,11 @@ def test_the_back_ends_heading_bias_correction_narrows_the_end_split_gate():
     from sgf_pipeline.types import YawBiasCorrection
 
     truth = SequenceTruth(passes=[], revisits=[])
-    # The estimate corrects the heading bias from frame 1 on, to 0.01 deg/m: the quadratic term shrinks
-    # by 0.01 / 0.07 and the gate after 890 m is 1.5 + 44.5 + 34.0 = 80 m, short of the copy's 100 m.
+    # The back-end measured 0.07 deg/m and takes it off from frame 1 on, leaving 0.01 deg/m: the quadratic
+    # term shrinks by 0.01 / 0.07 and the gate after 890 m is 1.5 + 44.5 + 34.5 = 80 m, short of the copy's 100 m.
     s, poses = _a_copy_seen_after_a_long_drive()
-    corrected = PoseEstimate(4, poses, YawBiasCorrection(1, math.radians(0.01)))
+    measured = math.radians(0.07)
+    corrected = PoseEstimate(4, poses, YawBiasCorrection(1, math.radians(0.01), measured))
     sgf = _finish(s, corrected, truth).metrics["sgf"]
     assert sgf["groups_split"] == 1 and sgf["purity"] == 1.0 and sgf["purity_online"] == 0.5
     # Without the correction (or with it switched off) the gate is the odometry's, and the copy stays.
@@ -1073,9 +1077,12 @@ def test_the_back_ends_heading_bias_correction_narrows_the_end_split_gate():
     assert _finish(s, PoseEstimate(4, poses), truth).metrics["sgf"]["groups_split"] == 0
     s, poses = _a_copy_seen_after_a_long_drive(gate_bias_from_backend=False)
     assert _finish(s, corrected, truth).metrics["sgf"]["groups_split"] == 0
-    # A bias left as large as the one the term is sized for changes nothing (the term never grows).
+    # Nor does a bias measured and not taken off, or a bias left larger than the one measured (the term never grows).
     s, poses = _a_copy_seen_after_a_long_drive()
-    loose = PoseEstimate(4, poses, YawBiasCorrection(1, math.radians(0.2)))
+    measured_only = PoseEstimate(4, poses, YawBiasCorrection(None, math.inf, measured))
+    assert _finish(s, measured_only, truth).metrics["sgf"]["groups_split"] == 0
+    s, poses = _a_copy_seen_after_a_long_drive()
+    loose = PoseEstimate(4, poses, YawBiasCorrection(1, math.radians(0.2), measured))
     assert _finish(s, loose, truth).metrics["sgf"]["groups_split"] == 0
 
 
@@ -1084,11 +1091,15 @@ def test_the_heading_bias_term_shrinks_only_where_the_correction_covers_the_driv
 
     s, poses = _a_copy_seen_after_a_long_drive()
     began = s._frames.get_distance(3)  # the correction begins at frame 3, 500 m out
-    estimate = PoseEstimate(4, poses, YawBiasCorrection(3, math.radians(0.007)))
+    estimate = PoseEstimate(4, poses, YawBiasCorrection(3, math.radians(0.007), math.radians(0.07)))
     travelled = np.array([0.0, began - 1.0, began, began + 400.0, np.nan])
+    # half a straight drive's 0.5 b d^2: 0.00031 for the 0.07 deg/m measured, 0.000031 for the 0.007 left
+    big, small = 0.25 * math.radians(0.07), 0.25 * math.radians(0.007)
     q = s._quadratic(travelled, [], estimate)
-    assert q.tolist()[:4] == pytest.approx([0.0003, 0.0003, 0.00003, 0.00003]) and q[4] == 0.0003
+    assert q.tolist()[:4] == pytest.approx([big, big, small, small], rel=1e-12) and q[4] == pytest.approx(big)
     # A loop the estimate satisfies spans the early drive: the pose graph took the bias off it there.
     q = s._quadratic(travelled, [(began + 300.0, 0.5)], estimate)
-    assert q.tolist()[:4] == pytest.approx([0.0003, 0.00003, 0.00003, 0.00003])
-    assert s._quadratic(travelled, [], PoseEstimate(4, poses)).tolist()[:4] == [0.0003] * 4
+    assert q.tolist()[:4] == pytest.approx([big, small, small, small], rel=1e-12)
+    # no model from the back-end: the bias wheel odometry is expected to have, 0.1 deg/m
+    expected = s._quadratic(travelled, [], PoseEstimate(4, poses)).tolist()[:4]
+    assert expected == pytest.approx([0.25 * math.radians(0.1)] * 4, rel=1e-12)

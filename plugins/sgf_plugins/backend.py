@@ -379,11 +379,11 @@ class _GraphBackend(_Backend):
         return PoseEstimate(self.graph.store.frames[-1], self.graph.store.snapshot(), self._yaw_bias())
 
     def _yaw_bias(self) -> YawBiasCorrection | None:
-        """The heading bias correction of the odometry and its uncertainty; None while none is made."""
+        """The heading bias model: where it is taken off the odometry, and its uncertainty; None when not estimated."""
         bias = self.graph.heading_bias
-        if bias is None or bias.since is None:
+        if bias is None:
             return None
-        return YawBiasCorrection(bias.since, bias.residual_sigma)
+        return YawBiasCorrection(bias.since, bias.residual_sigma, bias.uncorrected_sigma)
 
     def poses(self) -> tuple[list[float], np.ndarray, PoseEstimate | None]:
         """Timestamps, poses and the latest estimate of the processed frames."""

@@ -18,11 +18,12 @@ back-end's first estimate) is compared with ICP's by a chi-square test whose cov
 ICP's plus a drift term that grows with ``d``, the distance the estimate has travelled since a
 loop closure last anchored the two poses: ``sigma_xy^2 = floor^2 + (scale d)^2 + sxy^2 d +
 syaw^2 d^3 / 3 + (bias d^2 / 2)^2`` (translation random walk, heading random walk, scale error,
-heading bias) and ``sigma_yaw^2 = floor^2 + syaw^2 d + (bias d)^2``. ``bias`` is
-``gate_yaw_bias_deg_per_m`` until the back-end takes its own estimate of the bias off the odometry
-(``backend.odometry_yaw_bias``); from then on it is that estimate's uncertainty
-(``PoseEstimate.yaw_bias``) wherever the corrected drive spans all of ``d``, so the gate narrows as
-much as the drift it predicts. ``d`` is the shortest odometry path between the two frames in a graph
+heading bias) and ``sigma_yaw^2 = floor^2 + syaw^2 d + (bias d)^2``. ``bias`` comes from the
+back-end's model of the heading bias (``PoseEstimate.yaw_bias``, which the association's gate
+shares): the uncertainty of the bias left where the back-end takes its estimate off the odometry
+and the corrected drive spans all of ``d``, else the bias as the camera and the loops measured it
+so far (before any measurement, the bias wheel odometry is expected to have), so the gate narrows
+as much as the drift it predicts. ``d`` is the shortest odometry path between the two frames in a graph
 where each accepted loop that the estimate satisfies (the back-end has absorbed it) joins its
 two frames at no cost; a loop that the back-end did not absorb (``backend=none``, batch
 optimisation only at the end, a loop down-weighted by the robust kernel) anchors nothing, so
@@ -62,7 +63,7 @@ SGFs seen after it count too: the first marking of a revisit (a reverse one abov
 from a stretch never driven before) has no neighbour behind it that both passes saw. A neighbour
 tens of metres from its sighting lies off by the odometry's drift over that path; the consensus
 tolerance grows with it, linearly (``consensus_drift``) and, for the heading bias that bends each
-pass, quadratically (``consensus_yaw_bias_deg_per_m``).
+pass, quadratically (``consensus_heading_bias``: by the bias the back-end's model holds).
 
 A match into an aliased group (a repeated pattern: dashes, chevrons, bars) may be with the wrong
 copy, one period away, where the pattern's other copies agree with it too; it needs
@@ -114,6 +115,7 @@ from sgf_plugins.loop_consistency import (
     inconsistent_loops,
     loop_heading_bias,
 )
+from sgf_plugins.odometry_bias import EXPECTED_YAW_BIAS, corrected_yaw_bias, uncorrected_yaw_bias
 from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, yaw_to_shift
 
 _MAP = -1  # the prior map as one node of the anchoring graph
@@ -195,13 +197,10 @@ class IcpLoopParams(StageParams):
         "(a robot whose heading wanders more sets its own)",
     )
     gate_scale_error: float = Field(0.02, ge=0.0, description="odometry scale error (fraction of distance)")
-    gate_yaw_bias_deg_per_m: float = Field(
-        0.07, ge=0.0, description="odometry heading bias (deg per m): heading error grows with d, position with d^2"
-    )
     gate_bias_from_backend: bool = Field(
         True,
-        description="once the back-end corrects the odometry for its heading bias, the gate counts that estimate's "
-        "uncertainty instead of gate_yaw_bias_deg_per_m (never more)",
+        description="the gate counts the heading bias as the back-end's model holds it (the uncertainty left where "
+        "it corrects the odometry, the measured bias elsewhere); false = the bias wheel odometry is expected to have",
     )
     gate_bridged_bias: bool = Field(
         True,
@@ -217,10 +216,10 @@ class IcpLoopParams(StageParams):
     consensus_drift: float = Field(
         0.02, ge=0.0, description="...plus this much per metre travelled from either sighting (local odometry drift)"
     )
-    consensus_yaw_bias_deg_per_m: float | None = Field(
-        0.07,
-        ge=0.0,
-        description="...plus the odometry's heading bias: 0.5 * bias * L**2 per sighting L m away (null: none)",
+    consensus_heading_bias: bool = Field(
+        True,
+        description="...plus the odometry's heading bias (the back-end's model): 0.5 * bias * L**2 per sighting "
+        "L m away",
     )
     consensus_exclude: float = Field(
         2.0, ge=0.0, description="neighbours this close (m) to the matched SGF are the same marking, not evidence"
@@ -408,19 +407,16 @@ class _Waiting:
 
 
 def drift_covariance(
-    distance: float, p: IcpLoopParams, yaw_bias_sigma: float | None = None, bias_distance: float | None = None
+    distance: float, p: IcpLoopParams, yaw_bias: float = EXPECTED_YAW_BIAS, bias_distance: float | None = None
 ) -> np.ndarray:
     """Covariance (x, y, yaw) of a relative pose predicted across ``distance`` metres since the last anchor.
 
-    ``yaw_bias_sigma`` (rad/m): the heading bias left in the estimate's odometry once the back-end
-    corrects it (``PoseEstimate.yaw_bias``); it replaces ``gate_yaw_bias_deg_per_m`` when smaller.
+    ``yaw_bias`` (rad/m): the heading bias in the estimate's odometry (root mean square).
     ``bias_distance``: the part of ``distance`` the heading bias acts on (default: all of it).
     """
     d = max(distance, 0.0)
     s_yaw = math.radians(p.gate_sigma_yaw_deg)
-    bias = math.radians(p.gate_yaw_bias_deg_per_m)
-    if yaw_bias_sigma is not None and p.gate_bias_from_backend:
-        bias = min(bias, yaw_bias_sigma)
+    bias = abs(yaw_bias)
     b = d if bias_distance is None else min(max(bias_distance, 0.0), d)
     var_xy = (
         p.gate_floor_xy**2
@@ -989,12 +985,12 @@ class IcpLoopClosing(Stage):
         frame. A neighbour agrees when an SGF of the earlier pass (within the window around the
         matched SGF, and at least ``min_separation_distance`` of path before the neighbour) lies
         within ``consensus_radius + consensus_drift * (path from the two sightings)`` of it (with
-        ``consensus_yaw_bias_deg_per_m``, plus ``0.5 * bias * L**2`` for each sighting ``L`` m away:
-        a heading bias bends each pass's odometry) and looks like it (eq. 10 distance at most
-        ``consensus_distance``); with ``consensus_heading_deg`` set, at the heading the match
-        predicts for it, within that many degrees, and a neighbour that looks alike at the opposite
-        heading too (a bar, a disc) confirms the position but not the heading, and counts
-        ``consensus_unoriented_weight``. Agreeing neighbours closer than
+        ``consensus_heading_bias``, plus ``0.5 * bias * L**2`` for each sighting ``L`` m away:
+        a heading bias bends each pass's odometry; the bias the back-end's model holds) and looks
+        like it (eq. 10 distance at most ``consensus_distance``); with ``consensus_heading_deg`` set,
+        at the heading the match predicts for it, within that many degrees, and a neighbour that
+        looks alike at the opposite heading too (a bar, a disc) confirms the position but not the
+        heading, and counts ``consensus_unoriented_weight``. Agreeing neighbours closer than
         ``consensus_exclude`` to each other, or to the query, are one marking; the count is of
         markings. A look-alike marking elsewhere on campus has other neighbours, so its match finds
         none. With ``unlike``, neighbours that look like the query (eq. 10 distance at most
@@ -1029,7 +1025,7 @@ class IcpLoopClosing(Stage):
             alike = shifted_distances(query.matrix, np.stack([self._sgf_matrix[k] for k in neighbours])).min(axis=1)
             neighbours = neighbours[alike > p.consensus_distance]
         far = np.abs(dist[earlier] - d_i)  # path from the matched sighting to each earlier SGF
-        bias = None if p.consensus_yaw_bias_deg_per_m is None else math.radians(p.consensus_yaw_bias_deg_per_m)
+        bias = uncorrected_yaw_bias(self._estimate) if p.consensus_heading_bias else None
         cap = 0.5 * self._copy_spacing(a) if unlike else math.inf
         for k in neighbours:
             here = rot @ xy[k] + (x, y)
@@ -1272,18 +1268,20 @@ class IcpLoopClosing(Stage):
     ) -> np.ndarray:
         """The gate's drift covariance across ``distance`` m since the last anchor up to frame ``newest``.
 
-        The heading bias acts on ``bias_distance`` m of it (all, by default). The back-end's bias
-        estimate replaces the configured bias when it corrected the odometry over all of that
-        (the drive from its ``since`` frame to ``newest``).
+        The heading bias acts on ``bias_distance`` m of it (all, by default): the uncertainty of the
+        bias left when the back-end corrected the odometry over all of that (the drive from its
+        ``since`` frame to ``newest``), else the bias as the back-end's model holds it.
         """
+        if not self.p.gate_bias_from_backend:
+            return drift_covariance(distance, self.p, EXPECTED_YAW_BIAS, bias_distance)
         biased = distance if bias_distance is None else bias_distance
-        correction = None if estimate is None else estimate.yaw_bias
-        sigma = None
-        if correction is not None:
-            start = self.frames.get_distance(correction.since)
+        bias = uncorrected_yaw_bias(estimate)
+        corrected = corrected_yaw_bias(estimate)
+        if corrected is not None:
+            start = self.frames.get_distance(corrected[0])
             if start is not None and self.frames.distance(newest) - start >= biased:
-                sigma = correction.sigma
-        return drift_covariance(distance, self.p, sigma, bias_distance)
+                bias = min(bias, corrected[1])
+        return drift_covariance(distance, self.p, bias, bias_distance)
 
     def _bias_distance(self, i: int, j: int, distance: float, estimate: PoseEstimate | None) -> float | None:
         """The part of the path from frame ``i`` to the newer ``j`` that the odometry's heading bias bends.

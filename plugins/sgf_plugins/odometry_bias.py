@@ -38,11 +38,13 @@ import math
 import numpy as np
 
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, xy_yaw
+from sgf_pipeline.types import PoseEstimate
 
 #: Largest bias the estimate may take (rad per metre: 1 degree per metre turns a robot round in 360 m).
 MAX_YAW_BIAS = math.radians(1.0)
 #: The bias wheel odometry is expected to have (rad per metre): it chooses between readings of the loops'
-#: turns that the loops cannot tell apart (the campus presets drift by 0.07 deg/m).
+#: turns that the loops cannot tell apart, and the gates count it until the back-end knows better
+#: (:func:`uncorrected_yaw_bias`). Wheel odometry drifts by up to a few tenths of a degree per metre.
 EXPECTED_YAW_BIAS = math.radians(0.1)
 #: Biases tried over +-max_bias for the global minimum (a step of 0.002 deg/m at 1 deg/m: a loop over
 #: 2.6 km, the longest here, has a valley about 0.01 deg/m wide).
@@ -114,6 +116,17 @@ class HeadingBias:
     def residual_sigma(self) -> float:
         """The uncertainty (rad/m) of the bias left in the odometry once ``value`` is taken off."""
         return math.hypot(self.sigma, self.estimate - self.value)
+
+    @property
+    def uncorrected_sigma(self) -> float:
+        """The root mean square (rad/m) of the bias in odometry steps nothing was taken off.
+
+        The estimate and its uncertainty once the camera or ``min_loops`` agreeing loops measured
+        it; ``reading_sigma``, the bias odometry is expected to have, before.
+        """
+        if self._camera is None and self.agreeing < self.min_loops:
+            return self.reading_sigma
+        return math.hypot(self.sigma, self.estimate)
 
     def camera(self, bias: float, sigma: float) -> None:
         """Take the camera's estimate of the bias as the prior (ignored while no more certain than the prior)."""
@@ -212,6 +225,23 @@ class HeadingBias:
             residual = _wrap(raw[None, :] - grid[:, None] * lengths[None, :]) / np.sqrt(variances)[None, :]
             cost = cost + 0.5 * np.minimum(residual**2, self.kernel_width**2).sum(axis=1)
         return float(grid[int(np.argmin(cost))])
+
+
+def uncorrected_yaw_bias(estimate: PoseEstimate | None) -> float:
+    """The heading bias (rad/m, root mean square) a gate counts on odometry nothing was taken off.
+
+    The back-end's model (``PoseEstimate.yaw_bias``) when it publishes one, else ``EXPECTED_YAW_BIAS``.
+    """
+    correction = None if estimate is None else estimate.yaw_bias
+    return EXPECTED_YAW_BIAS if correction is None else correction.uncorrected
+
+
+def corrected_yaw_bias(estimate: PoseEstimate | None) -> tuple[int, float] | None:
+    """The frame after which the back-end takes the heading bias off, and the bias left there (rad/m); None: nowhere."""
+    correction = None if estimate is None else estimate.yaw_bias
+    if correction is None or correction.since is None:
+        return None
+    return correction.since, correction.sigma
 
 
 def with_heading_bias(odometry: np.ndarray, bias: float) -> np.ndarray:

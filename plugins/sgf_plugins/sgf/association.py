@@ -27,6 +27,7 @@ from sgf_pipeline.types import (
 )
 from sgf_plugins.anchoring import anchored_distances
 from sgf_plugins.frame_log import FrameLog
+from sgf_plugins.odometry_bias import EXPECTED_YAW_BIAS, corrected_yaw_bias, uncorrected_yaw_bias
 from sgf_plugins.sgf.polar import (
     ColumnSet,
     align,
@@ -111,21 +112,18 @@ class OnlineGroupsParams(StageParams):
     drift_rate: float = Field(
         0.05, ge=0.0, description="gate growth per metre travelled between the two sightings (odometry drift)"
     )
-    drift_quadratic: float = Field(
-        0.0003,
+    drift_bias_share: float = Field(
+        0.5,
         ge=0.0,
-        description="gate growth per squared metre travelled, for the odometry's heading bias (position error ~ d^2); "
-        "a straight drive's bound is half the bias in rad/m; a route that turns back stays under it "
-        "(campus_large_loop's return to its start after 1.5 km: 0.00024)",
+        description="gate growth per squared metre travelled, for the odometry's heading bias b (rad/m; position "
+        "error ~ d^2), as a share of a straight drive's bound 0.5 b: a route that turns back stays under it "
+        "(a loop route's return to its start after 1.5 km: 0.4 of it)",
     )
     gate_bias_from_backend: bool = Field(
         True,
-        description="once the back-end takes the odometry's heading bias off (the estimate's yaw_bias), the "
-        "quadratic term scales by the bias left, its sigma, over drift_bias_deg_per_m (never up), between members "
-        "whose drive the correction covers: seen after it began, or between the two frames of an anchoring loop",
-    )
-    drift_bias_deg_per_m: float = Field(
-        0.07, gt=0.0, description="the odometry heading bias (deg/m) drift_quadratic is sized for"
+        description="b as the back-end's model holds it (the estimate's yaw_bias): the uncertainty of the bias left "
+        "between members whose drive its correction covers (seen after it began, or between the two frames of an "
+        "anchoring loop), the measured bias elsewhere; false = the bias wheel odometry is expected to have",
     )
     member_gate: bool = Field(
         True,
@@ -555,6 +553,10 @@ class OnlineSgfGroups(Stage):
             if all(t is not None for t in ends):
                 self._closures.append(_Closure(c.frame_from, c.frame_to, np.asarray(c.relative), *ends))  # type: ignore[arg-type]
 
+    def _per_bias(self, bias: float) -> float:
+        """The gate's growth per squared metre for a heading bias (rad/m): ``drift_bias_share`` of 0.5 b."""
+        return self.params.drift_bias_share * 0.5 * abs(bias)
+
     def _travelled_at(self, frame_index: int) -> float | None:
         """Distance travelled up to a frame: remembered for recent frames and for group members."""
         known = self._frames.get_distance(frame_index)
@@ -591,10 +593,11 @@ class OnlineSgfGroups(Stage):
     def _gate_radius(self, travelled: np.ndarray, quadratic: np.ndarray | float | None = None) -> np.ndarray:
         """The spatial gate's radius (m) for the distances travelled between two sightings.
 
-        ``quadratic``: the heading bias term per pair (:meth:`_quadratic`); ``drift_quadratic`` by default.
+        ``quadratic``: the heading bias term per pair (:meth:`_quadratic`); by default that of the
+        bias wheel odometry is expected to have.
         """
         p = self.params
-        q = p.drift_quadratic if quadratic is None else quadratic
+        q = self._per_bias(EXPECTED_YAW_BIAS) if quadratic is None else quadratic
         return p.gate_radius + p.drift_rate * travelled + q * travelled**2
 
     def _quadratic(
@@ -602,27 +605,32 @@ class OnlineSgfGroups(Stage):
     ) -> np.ndarray:
         """The gate's heading bias term for members seen at ``travelled`` metres (``gate_bias_from_backend``).
 
-        Once the back-end corrects the odometry's heading bias (``PoseEstimate.yaw_bias``), the
-        estimate keeps only the bias left in it, about its sigma, on the drive after the correction
-        began; between the two frames of a loop it satisfies, the pose graph has spread the loop's
-        error, a constant bias included. There the term is ``drift_quadratic`` scaled by that sigma
-        over ``drift_bias_deg_per_m``; elsewhere (and for a pair with one member elsewhere) it stays.
+        The bias is the back-end's model of it (``PoseEstimate.yaw_bias``): as measured so far on
+        odometry nothing was taken off. Once the back-end takes its estimate off, the estimate keeps
+        only the bias left in it, about its sigma, on the drive after the correction began; between
+        the two frames of a loop it satisfies, the pose graph has spread the loop's error, a constant
+        bias included. There the term counts that sigma (never more than elsewhere); for a pair with
+        one member elsewhere it stays.
         """
         p = self.params
-        q = np.full(np.shape(travelled), p.drift_quadratic)
-        correction = None if estimate is None else estimate.yaw_bias
-        if not p.gate_bias_from_backend or correction is None:
+        if not p.gate_bias_from_backend:
+            return np.full(np.shape(travelled), self._per_bias(EXPECTED_YAW_BIAS))
+        uncorrected = uncorrected_yaw_bias(estimate)
+        q = np.full(np.shape(travelled), self._per_bias(uncorrected))
+        corrected = corrected_yaw_bias(estimate)
+        if corrected is None:
             return q
-        if self._bias_began is None or self._bias_began[0] != correction.since:
-            known = self._travelled_at(correction.since)  # remembered: the frame log forgets old frames
-            self._bias_began = None if known is None else (correction.since, known)
+        since, sigma = corrected
+        if self._bias_began is None or self._bias_began[0] != since:
+            known = self._travelled_at(since)  # remembered: the frame log forgets old frames
+            self._bias_began = None if known is None else (since, known)
         if self._bias_began is None:
             return q
         began = self._bias_began[1]
         covered = travelled >= began  # NaN (a map member): never covered
         for a, b in shortcuts:
             covered |= (travelled >= min(a, b)) & (travelled <= max(a, b))
-        q[covered] = p.drift_quadratic * min(1.0, math.degrees(correction.sigma) / p.drift_bias_deg_per_m)
+        q[covered] = self._per_bias(min(uncorrected, sigma))
         return q
 
     def split_groups(self, estimate: PoseEstimate | None) -> int:
