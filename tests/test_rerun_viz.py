@@ -411,14 +411,24 @@ def test_connect_streams_to_a_running_viewer(tmp_path: Path) -> None:
         config = toy(save=False, connect=f"127.0.0.1:{port}")
         Pipeline.from_config(config, run_dir=tmp_path / "run", plugins=plugins).run()
         assert not list((tmp_path / "run").glob("*.rrd"))  # viz.save=false
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and not received.exists():
-            time.sleep(0.2)
+        deadline = time.monotonic() + 60  # the server writes what it received as it comes: wait for all of it
+        while time.monotonic() < deadline and _images_saved(received) < 12:
+            time.sleep(0.5)
     finally:
         os.killpg(server.pid, signal.SIGINT)  # the viewer's server finishes its file on Ctrl-C
         server.wait(timeout=30)
     rows = read(received)
     assert [r["frame"] for r in temporal(rows, "/camera/image")] == list(range(12))
+
+
+def _images_saved(path: Path) -> int:
+    """Camera images in a recording the viewer's server is still writing (0 while it cannot be read yet)."""
+    if not path.exists():
+        return 0
+    try:
+        return len(temporal(read(path), "/camera/image"))
+    except Exception:  # a chunk half written
+        return 0
 
 
 class _FetchWebViewer:
