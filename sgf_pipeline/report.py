@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from sgf_pipeline.ablation import ablation_table, render_ablation
 from sgf_pipeline.errors import DataError
 from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text, read_text, read_yaml
 from sgf_pipeline.robustness import plot_robustness, render_robustness, robustness_table
@@ -287,6 +288,8 @@ def render_markdown(runs: list[RunRecord], tables: dict[str, Any], figures: dict
     out = [f"# sgf-report: {len(runs)} run(s)", ""]
     if tables.get("robustness"):
         out += render_robustness(tables["robustness"], tables.get("robustness_figure"))
+    if tables.get("ablation"):
+        out += render_ablation(tables["ablation"])
     if tables["swept"]:
         out += ["Swept: " + ", ".join(f"`{k}`" for k in tables["swept"]), ""]
     out += ["Values are mean ± standard deviation over seeds; counts are summed over seeds.", ""]
@@ -472,11 +475,15 @@ def write_report(root: str | Path, out_dir: str | Path | None = None) -> dict[st
         tables["robustness"] = robustness
         if plot_robustness(out / "robustness.png", robustness):
             tables["robustness_figure"] = "robustness.png"
+    ablation = ablation_table(runs)
+    if ablation["rows"]:
+        tables["ablation"] = ablation
+    suite = bool(robustness["rows"] or ablation["rows"])
     figures: dict[str, str] = {}
     plot_timing(out / "timing.png", runs)
     if (out / "timing.png").exists():
         figures["Per-stage timing"] = "timing.png"
-    for run in runs if not robustness["rows"] else ():  # a suite's hundreds of runs: their figures stay in their runs
+    for run in runs if not suite else ():  # a suite's hundreds of runs: their figures stay in their runs
         for name, title in (
             ("trajectory.png", "Trajectories"),
             ("sgf_frames.png", "Selected SGFs and groups"),

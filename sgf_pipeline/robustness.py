@@ -102,7 +102,8 @@ def split_tag(tag: Any) -> tuple[str, str] | None:
     return (variant, severity) if variant and severity in SEVERITIES else None
 
 
-def _number(metrics: dict[str, Any], *path: str) -> Any:
+def metric(metrics: dict[str, Any], *path: str) -> Any:
+    """The value at a path of nested keys of metrics.json; None where a key is missing."""
     node: Any = metrics
     for key in path:
         node = node.get(key) if isinstance(node, dict) else None
@@ -114,8 +115,8 @@ def perturbed_runs(runs: Iterable[RunRecord]) -> list[PerturbedRun]:
     tagged = []
     for run in runs:
         parts = split_tag(run.config.get("run", {}).get("tag"))
-        ate_odo = _number(run.metrics, "ate_rmse_m", "odometry")
-        ate_sgf = _number(run.metrics, "ate_rmse_m", "sgf")
+        ate_odo = metric(run.metrics, "ate_rmse_m", "odometry")
+        ate_sgf = metric(run.metrics, "ate_rmse_m", "sgf")
         if parts is None or ate_odo is None or ate_sgf is None:
             continue
         scale = run.config.get("dataset", {}).get("scale")
@@ -150,7 +151,10 @@ def perturbed_runs(runs: Iterable[RunRecord]) -> list[PerturbedRun]:
     return out
 
 
-def _mean_std(values: Sequence[float]) -> tuple[float, float]:
+def mean_std(values: Sequence[float]) -> tuple[float, float]:
+    """Mean and sample standard deviation (0 for one value; NaN for none)."""
+    if not values:
+        return math.nan, math.nan
     mean = sum(values) / len(values)
     var = sum((v - mean) ** 2 for v in values) / (len(values) - 1) if len(values) > 1 else 0.0
     return mean, math.sqrt(var)
@@ -174,8 +178,8 @@ def robustness_table(runs: Iterable[RunRecord]) -> dict[str, Any]:
                 "severity": severity,
                 "sequence": sequence,
                 "seeds": sorted(str(r.seed) for r in group),
-                "ratio": _mean_std([r.ratio for r in group]),
-                "ate_sgf": _mean_std([r.ate_sgf for r in group]),
+                "ratio": mean_std([r.ratio for r in group]),
+                "ate_sgf": mean_std([r.ate_sgf for r in group]),
                 "within": sum(r.within for r in group),
                 "runs": len(group),
                 "false_closed": sum(r.false_closed for r in group),

@@ -18,7 +18,7 @@ from sgf_pipeline.config import RESERVED_KEYS, config_dir
 
 CONF = config_dir()
 APP_CONFIGS = {"config", "sgf_plugins"}
-NON_STAGE_GROUPS = {"experiment", "local", "hydra", "perturbation"}  # perturbation: tests/test_robustness_report.py
+NON_STAGE_GROUPS = {"experiment", "local", "hydra", "perturbation", "ablate"}  # tests/test_robustness_report.py, test_ablation.py
 
 
 def stage_options() -> list[tuple[str, Path]]:
@@ -93,6 +93,9 @@ def test_each_experiment_composes(name: str):
         cfg = compose(app, overrides=[f"+experiment={name}"], return_hydra_config=True)
     if app == "config":
         assert "pipeline" in cfg
+        if cfg.hydra.mode is None:  # one configuration, named by its tag (the paper as printed)
+            assert not cfg.hydra.sweeper.params and cfg.run.tag
+            return
         assert cfg.hydra.mode.name == "MULTIRUN"
         assert cfg.hydra.sweeper.params, "an experiment sweeps something"
         for key in cfg.hydra.sweeper.params:
