@@ -923,7 +923,7 @@ def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[
                 distance = float(np.linalg.norm(s.position_of(member, estimate) - here))
                 travelled = abs(since - s._frames.distance(member.sgf.frame_index))
                 radius = p.gate_radius + p.drift_rate * travelled + s._per_bias(EXPECTED_YAW_BIAS) * travelled**2
-                if travelled <= p.repeat_window and distance > p.repeat_radius:
+                if travelled < p.repeat_window and distance > p.repeat_radius:
                     repeated |= _shared_cells(s, query, member, estimate) < p.repeat_overlap
             if distance <= radius or not p.spatial_gate:
                 nearest = min(nearest, distance)

@@ -153,7 +153,8 @@ class OnlineGroupsParams(StageParams):
         15.0,
         ge=0.0,
         description="a group member seen within this many metres of travel, but away from the query, is another "
-        "copy of a repeated pattern (give-way triangles, zebra bars, dashes): the query may not join it",
+        "copy of a repeated pattern (give-way triangles, zebra bars, dashes): the query may not join it; 0 = no "
+        "repeated-pattern test",
     )
     repeat_radius: float = Field(0.5, gt=0.0, description="...away means farther than this on the map (m)")
     repeat_overlap: float | None = Field(
@@ -499,7 +500,7 @@ class OnlineSgfGroups(Stage):
         if unknown.any():
             odometry = np.asarray(query.sgf.odometry, dtype=np.float64)[:3, 3]
             travelled[unknown] = np.linalg.norm(index.odometry[:n][unknown, :3, 3] - odometry, axis=1)
-        repeated = ~anchored & (travelled <= p.repeat_window) & (distance > p.repeat_radius)
+        repeated = ~anchored & (travelled < p.repeat_window) & (distance > p.repeat_radius)
         if p.repeat_overlap is not None and repeated.any():
             footprint = self._footprint(query, estimate)
             for k in np.flatnonzero(repeated):
