@@ -18,7 +18,8 @@ from sgf_pipeline.config import RESERVED_KEYS, config_dir
 
 CONF = config_dir()
 APP_CONFIGS = {"config", "sgf_plugins"}
-NON_STAGE_GROUPS = {"experiment", "local", "hydra", "perturbation", "ablate"}  # tests/test_robustness_report.py, test_ablation.py
+#: groups that are no stage (perturbation and ablate: tests/test_robustness_report.py, tests/test_ablation.py)
+NON_STAGE_GROUPS = {"experiment", "local", "hydra", "perturbation", "ablate"}
 
 
 def stage_options() -> list[tuple[str, Path]]:
