@@ -80,8 +80,7 @@ def ablation_table(runs: Iterable[RunRecord]) -> dict[str, Any]:
         spread = max(row["ate_sgf"][1], reference["ate_sgf"][1])
         if row["ate_sgf"][0] - reference["ate_sgf"][0] > spread:
             costs.append(f"{row['ate_sgf'][0] - reference['ate_sgf'][0]:.2f} m ATE")
-        verdict = verdicts.setdefault(row["name"], {"costs": {}, "sequences": []})
-        verdict["sequences"].append(row["sequence"])
+        verdict = verdicts.setdefault(row["name"], {"costs": {}})
         if costs:
             verdict["costs"][row["sequence"]] = costs
     for verdict in verdicts.values():

@@ -1280,7 +1280,7 @@ class IcpLoopClosing(Stage):
         if corrected is not None:
             start = self.frames.get_distance(corrected[0])
             if start is not None and self.frames.distance(newest) - start >= biased:
-                bias = min(bias, corrected[1])
+                bias = corrected[1]
         return drift_covariance(distance, self.p, bias, bias_distance)
 
     def _bias_distance(self, i: int, j: int, distance: float, estimate: PoseEstimate | None) -> float | None:

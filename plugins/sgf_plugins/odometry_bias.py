@@ -237,11 +237,15 @@ def uncorrected_yaw_bias(estimate: PoseEstimate | None) -> float:
 
 
 def corrected_yaw_bias(estimate: PoseEstimate | None) -> tuple[int, float] | None:
-    """The frame after which the back-end takes the heading bias off, and the bias left there (rad/m); None: nowhere."""
+    """The frame after which the back-end takes the heading bias off, and the bias a gate counts there (rad/m).
+
+    The uncertainty of the bias left, never more than the bias on odometry nothing was taken off;
+    None where nothing is taken off.
+    """
     correction = None if estimate is None else estimate.yaw_bias
     if correction is None or correction.since is None:
         return None
-    return correction.since, correction.sigma
+    return correction.since, min(correction.sigma, correction.uncorrected)
 
 
 def with_heading_bias(odometry: np.ndarray, bias: float) -> np.ndarray:

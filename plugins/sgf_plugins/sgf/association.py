@@ -591,15 +591,13 @@ class OnlineSgfGroups(Stage):
         self._shortcuts = (estimate, shortcuts)
         return shortcuts
 
-    def _gate_radius(self, travelled: np.ndarray, quadratic: np.ndarray | float | None = None) -> np.ndarray:
+    def _gate_radius(self, travelled: np.ndarray, quadratic: np.ndarray | float) -> np.ndarray:
         """The spatial gate's radius (m) for the distances travelled between two sightings.
 
-        ``quadratic``: the heading bias term per pair (:meth:`_quadratic`); by default that of the
-        bias wheel odometry is expected to have.
+        ``quadratic``: the heading bias term per pair (:meth:`_quadratic`).
         """
         p = self.params
-        q = self._per_bias(EXPECTED_YAW_BIAS) if quadratic is None else quadratic
-        return p.gate_radius + p.drift_rate * travelled + q * travelled**2
+        return p.gate_radius + p.drift_rate * travelled + quadratic * travelled**2
 
     def _quadratic(
         self, travelled: np.ndarray, shortcuts: list[tuple[float, float]], estimate: PoseEstimate | None
@@ -616,8 +614,7 @@ class OnlineSgfGroups(Stage):
         p = self.params
         if not p.gate_bias_from_backend:
             return np.full(np.shape(travelled), self._per_bias(EXPECTED_YAW_BIAS))
-        uncorrected = uncorrected_yaw_bias(estimate)
-        q = np.full(np.shape(travelled), self._per_bias(uncorrected))
+        q = np.full(np.shape(travelled), self._per_bias(uncorrected_yaw_bias(estimate)))
         corrected = corrected_yaw_bias(estimate)
         if corrected is None:
             return q
@@ -631,7 +628,7 @@ class OnlineSgfGroups(Stage):
         covered = travelled >= began  # NaN (a map member): never covered
         for a, b in shortcuts:
             covered |= (travelled >= min(a, b)) & (travelled <= max(a, b))
-        q[covered] = self._per_bias(min(uncorrected, sigma))
+        q[covered] = self._per_bias(sigma)
         return q
 
     def split_groups(self, estimate: PoseEstimate | None) -> int:
