@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 from omegaconf import OmegaConf
-from sgf_plugins.backend import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
+from sgf_plugins.backend.stages import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
 
 from sgf_pipeline.calibration import Calibration, Intrinsics
 from sgf_pipeline.context import RunContext

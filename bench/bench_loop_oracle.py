@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from sgf_plugins.backend import Isam2Backend, Isam2Params
+from sgf_plugins.backend.stages import Isam2Backend, Isam2Params
 from sgf_plugins.world.world import CampusWorld, build_world
 
 from sgf_pipeline.context import RunContext

@@ -18,7 +18,7 @@ from collections.abc import Callable
 import cv2
 from bench_ipm import RESULTS, machine, write_section
 from sgf_plugins.ipm import MotionCompensatedIPM, MotionCompensatedIpmParams
-from sgf_plugins.odometry_scale import BevMotionParams, BevMotionScale
+from sgf_plugins.odometry.scale import BevMotionParams, BevMotionScale
 from sgf_plugins.world import build_world
 
 from sgf_pipeline import RunContext

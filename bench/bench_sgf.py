@@ -10,13 +10,15 @@ import argparse
 import itertools
 import math
 import platform
+import sys
 import time
 from collections.abc import Callable
 from functools import partial
+from pathlib import Path
 
 import cv2
 import numpy as np
-from sgf_plugins.sgf.association import OnlineGroupsParams, OnlineSgfGroups
+from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams
 from sgf_plugins.sgf.detector import HuMomentDetector, HuWindowParams, border_band
 from sgf_plugins.sgf.hu import HuScale, hu_distance, hu_moments
@@ -29,7 +31,9 @@ from sgf_plugins.sgf.polar import (
     symmetry_spread,
     voxel_downsample,
 )
-from sgf_plugins.sgf.synthetic import (
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test suite's synthetic drive
+from sgf_synthetic import (
     DEFAULT_GRID,
     Annulus,
     ConvexPart,
@@ -297,7 +301,7 @@ def bench_ground_lift(quick: bool) -> None:
     """Per-SGF cost of eq. 9 on the BEV's plane against the lift onto the driven ground (``descriptor.ground``)."""
     from sgf_plugins.ipm.geometry import bev_to_image_homography
     from sgf_plugins.sgf.descriptor import describe, lift_driven
-    from sgf_plugins.sgf.synthetic import toy_calibration
+    from sgf_synthetic import toy_calibration
 
     from sgf_pipeline.types import SalientGroundFeature
 

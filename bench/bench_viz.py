@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import sgf_plugins.rerun_viz as rerun_viz
+import sgf_plugins.viz.rerun as rerun_viz
 from hydra import compose, initialize_config_dir
 
 from sgf_pipeline import Pipeline

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from backend_world import CALIBRATION, OracleAssociation, ate, make_world, run_stages
-from sgf_plugins.backend import (
+from sgf_plugins.backend.stages import (
     BackendParams,
     GtsamLmBackend,
     Isam2Backend,
@@ -17,7 +17,7 @@ from sgf_plugins.backend import (
     LmParams,
     OdometryBackend,
 )
-from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, position_only_loop
+from sgf_plugins.loop.stage import IcpLoopClosing, IcpLoopParams, position_only_loop
 from sgf_testing import conf_node
 
 from sgf_pipeline.context import RunContext
@@ -398,7 +398,7 @@ def test_a_translation_threshold_relinearizes_less_and_ends_at_the_same_trajecto
 
 
 def test_a_pose_table_takes_many_frames_at_once_like_a_mapping() -> None:
-    from sgf_plugins.pose_graph import PoseStore
+    from sgf_plugins.backend.pose_graph import PoseStore
 
     from sgf_pipeline.types import PoseEstimate
 

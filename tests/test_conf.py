@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
-from sgf_plugins.backend import Isam2Params
-from sgf_plugins.loop import IcpLoopParams
+from sgf_plugins.backend.stages import Isam2Params
+from sgf_plugins.loop.stage import IcpLoopParams
 
 from sgf_pipeline import Pipeline, load_plugins
 from sgf_pipeline.config import RESERVED_KEYS, config_dir

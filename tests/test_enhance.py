@@ -10,7 +10,7 @@ import pytest
 import yaml
 from ipm_scene import GroundScene, render, scene_calibration
 from pydantic import ValidationError
-from sgf_plugins.enhance import ClaheEnhancement, ClaheParams, NoEnhancement, as_rgb
+from sgf_plugins.ipm.enhance import ClaheEnhancement, ClaheParams, NoEnhancement, as_rgb
 
 from sgf_pipeline import DataError, StageParams, load_plugins
 from sgf_pipeline.calibration import Calibration, Intrinsics

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from backend_world import _fill, arrow_points, ell_points, tee_points
-from sgf_plugins.icp import Icp2d, IcpSettings, apply, centroid_seed, se2
-from sgf_plugins.loop import IcpLoopParams
+from sgf_plugins.loop.icp import Icp2d, IcpSettings, apply, centroid_seed, se2
+from sgf_plugins.loop.stage import IcpLoopParams
 
 COLUMN = 2 * math.pi / 90  # one column of the N_s = 90 polar descriptor
 

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from sgf_plugins.datasets.kitti import KittiDataset, KittiParams
 from sgf_plugins.ipm import InversePerspectiveMapping, IpmParams
-from sgf_plugins.odometry_scale import BevMotionParams, BevMotionScale
+from sgf_plugins.odometry.scale import BevMotionParams, BevMotionScale
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.trajectory import read_tum

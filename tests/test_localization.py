@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from backend_world import Marking, OracleAssociation, ate, make_world, rmse, run_stages
-from sgf_plugins.backend import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
-from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams
+from sgf_plugins.backend.stages import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
+from sgf_plugins.loop.stage import IcpLoopClosing, IcpLoopParams
 
 from sgf_pipeline.sgf_map import load_map
 

@@ -23,11 +23,11 @@ from backend_world import (
     make_world,
     run_stages,
 )
-from sgf_plugins.backend import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
-from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, se2
-from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams, drift_covariance, position_only_loop
-from sgf_plugins.odometry_bias import EXPECTED_YAW_BIAS
-from sgf_plugins.sgf.association import SgfGroup
+from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS
+from sgf_plugins.backend.stages import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
+from sgf_plugins.loop.icp import Icp2d, IcpResult, IcpSettings, se2
+from sgf_plugins.loop.stage import IcpLoopClosing, IcpLoopParams, drift_covariance, position_only_loop
+from sgf_plugins.sgf.association.stage import SgfGroup
 from sgf_plugins.sgf.polar import shifted_distances
 
 from sgf_pipeline import RunContext

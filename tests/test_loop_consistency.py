@@ -7,8 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sgf_plugins.icp import se2
-from sgf_plugins.loop_consistency import (
+from sgf_plugins.loop.consistency import (
     LoopEnds,
     bias_corrected_path,
     consistency_ratios,
@@ -18,6 +17,7 @@ from sgf_plugins.loop_consistency import (
     loop_heading_bias,
     maximum_consistent_sets,
 )
+from sgf_plugins.loop.icp import se2
 
 #: The accepted loops of four runs of this session's code at 30 % (campus_large_loop seed 2 with
 #: ipm=mc_hindsight and ipm=plain, campus_reverse_slope seed 0 with ipm=mc and seed 2 with

@@ -32,7 +32,7 @@ if os.environ.get("CI") == "true":
 else:
     pytest.importorskip("rerun")
 
-from sgf_plugins.rerun_viz import PARTIAL_RECORDING, RECORDING, nanoseconds, outcome_colour
+from sgf_plugins.viz.rerun import PARTIAL_RECORDING, RECORDING, nanoseconds, outcome_colour
 
 BIN = Path(sys.executable).parent
 #: The main job, short: a tenth of campus_delivery (220 keyframes, loops accepted and refused), a

@@ -8,12 +8,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
-from sgf_plugins.odometry_bias import EXPECTED_YAW_BIAS
-from sgf_plugins.sgf.association import OnlineGroupsParams, OnlineSgfGroups, SgfGroup, group_purity, loop_pairs
+from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS
+from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups, SgfGroup, group_purity, loop_pairs
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams, describe
 from sgf_plugins.sgf.hu import hu_moments
 from sgf_plugins.sgf.polar import align, shifted_distances
-from sgf_plugins.sgf.synthetic import (
+from sgf_synthetic import (
     DEFAULT_GRID,
     Annulus,
     GroundShape,
@@ -78,7 +78,7 @@ def stage(**params) -> OnlineSgfGroups:
 
 def feed(s: OnlineSgfGroups, frame: int, odometry: np.ndarray, *descriptors, estimate=None):
     """One frame of the association stage (the frame carries the odometry for the distance travelled)."""
-    from sgf_plugins.sgf.synthetic import toy_calibration
+    from sgf_synthetic import toy_calibration
 
     from sgf_pipeline.types import Frame
 
@@ -180,8 +180,8 @@ def test_members_are_kept_without_their_bev_pixels():
 
 
 def test_the_loop_stage_keeps_assignments_for_the_map_without_pixels():
-    from sgf_plugins.loop import IcpLoopClosing, IcpLoopParams
-    from sgf_plugins.sgf.synthetic import toy_calibration
+    from sgf_plugins.loop.stage import IcpLoopClosing, IcpLoopParams
+    from sgf_synthetic import toy_calibration
 
     from sgf_pipeline.types import Frame, GroupAssignments
 
@@ -935,8 +935,8 @@ def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[
 
 def test_the_vectorised_gate_is_the_member_by_member_gate():
 
-    from sgf_plugins.pose_graph import PoseStore
-    from sgf_plugins.sgf.synthetic import toy_calibration
+    from sgf_plugins.backend.pose_graph import PoseStore
+    from sgf_synthetic import toy_calibration
 
     from sgf_pipeline.types import Frame
 

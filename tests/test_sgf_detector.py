@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from sgf_plugins.sgf.detector import FeatureTrack, FeatureView, HuMomentDetector, HuWindowParams, Region, border_band
-from sgf_plugins.sgf.synthetic import (
+from sgf_synthetic import (
     DEFAULT_GRID,
     Annulus,
     ConvexPart,

@@ -11,10 +11,10 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
-from sgf_plugins.sgf.association import OnlineGroupsParams
+from sgf_plugins.sgf.association.stage import OnlineGroupsParams
 from sgf_plugins.sgf.descriptor import PolarContextParams
 from sgf_plugins.sgf.detector import HuWindowParams
-from sgf_plugins.sgf.synthetic import (
+from sgf_synthetic import (
     Annulus,
     ConvexPart,
     GroundShape,

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from sgf_plugins.sgf.association import OnlineGroupsParams
+from sgf_plugins.sgf.association.stage import OnlineGroupsParams
 from sgf_plugins.sgf.polar import (
     ColumnSet,
     align,

@@ -15,9 +15,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 import pytest
-from sgf_plugins.sgf.association import OnlineGroupsParams, OnlineSgfGroups
+from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups
 from sgf_plugins.sgf.descriptor import PolarContextParams, describe
-from sgf_plugins.sgf.synthetic import Annulus, GroundShape, arrow_shape, render_saliency, toy_calibration
+from sgf_synthetic import Annulus, GroundShape, arrow_shape, render_saliency, toy_calibration
 
 from sgf_pipeline import Dataset, Pipeline, Stage, hookimpl, load_plugins
 from sgf_pipeline.geometry import pose_from_xy_yaw
@@ -167,7 +167,7 @@ def test_a_whole_view_region_splits_its_track_and_keeps_no_old_pixels(plugins, t
 
 
 def _sgf(pixels: np.ndarray, frame: int = 0) -> SalientGroundFeature:
-    from sgf_plugins.sgf.synthetic import DEFAULT_GRID
+    from sgf_synthetic import DEFAULT_GRID
 
     return SalientGroundFeature(frame, frame, 0.1 * frame, np.eye(4), pixels, DEFAULT_GRID, 0.9, np.zeros(7), 3, None)
 
@@ -189,7 +189,7 @@ def test_identical_descriptors_share_one_group_at_distance_zero():
 
 def test_a_marking_wider_than_the_descriptor_is_dropped_not_described():
     ring = GroundShape((Annulus(outer=2.4, inner=2.2),), (3.0, 0.0, 0.0), 1)
-    from sgf_plugins.sgf.synthetic import DEFAULT_GRID
+    from sgf_synthetic import DEFAULT_GRID
 
     prob, _ = render_saliency([ring], pose_from_xy_yaw(0.0, 0.0, 0.0), DEFAULT_GRID, supersample=1)
     v, u = np.nonzero(prob >= 0.5)

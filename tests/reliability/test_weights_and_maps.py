@@ -42,7 +42,7 @@ def test_a_truncated_weights_file_is_refused_without_unpickling(tmp_path: Path) 
 
 
 def test_a_map_of_another_descriptor_size_is_refused_before_the_first_frame(saved_map: Path) -> None:
-    from sgf_plugins.sgf.association import OnlineGroupsParams, OnlineSgfGroups
+    from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups
 
     stage = OnlineSgfGroups(OnlineGroupsParams(prior_map=str(saved_map)))
     context = RunContext(run_dir=None, calibration=CALIBRATION)
@@ -52,7 +52,7 @@ def test_a_map_of_another_descriptor_size_is_refused_before_the_first_frame(save
 
 
 def test_a_map_seeds_the_association_with_anchored_groups(saved_map: Path) -> None:
-    from sgf_plugins.sgf.association import OnlineGroupsParams, OnlineSgfGroups
+    from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups
 
     from sgf_pipeline.sgf_map import load_map
 

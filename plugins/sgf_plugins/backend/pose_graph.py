@@ -7,7 +7,7 @@ with the offset, its covariance carried by the offset's adjoint). When localizin
 the map's frames that SGFs were matched to (``m<map frame index>``, held by priors at their
 map poses). Poses are ``Pose2`` or ``Pose3`` (roll and pitch from the IMU as attitude factors).
 With ``NoiseSettings.yaw_bias_sigma`` set, the odometry's heading bias per metre is estimated from
-the loops and taken off the odometry steps that follow (:mod:`sgf_plugins.odometry_bias`).
+the loops and taken off the odometry steps that follow (:mod:`sgf_plugins.backend.heading_bias`).
 GTSAM is imported inside functions so that listing plugins stays fast.
 """
 
@@ -22,7 +22,7 @@ import numpy as np
 
 from sgf_pipeline.geometry import invert, rotation_rpy, xy_yaw
 from sgf_pipeline.types import Frame, LoopConstraint
-from sgf_plugins.odometry_bias import EXPECTED_YAW_BIAS, HeadingBias, ScaledOdometry, with_heading_bias
+from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS, HeadingBias, ScaledOdometry, with_heading_bias
 
 PoseKind = Literal["pose2", "pose3"]
 FREE_ROLL_PITCH = 0.1  # rad, first-pose prior on roll and pitch (observed by the IMU, not a gauge)

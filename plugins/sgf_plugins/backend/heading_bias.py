@@ -263,7 +263,7 @@ def _wrap(angles: np.ndarray) -> np.ndarray:
 class ScaledOdometry:
     """Odometry whose steps' translations are multiplied by the scale factor known when each step is taken.
 
-    The factor comes from ``odometry_scale`` (:mod:`sgf_plugins.odometry_scale`). Like the heading
+    The factor comes from ``odometry_scale`` (:mod:`sgf_plugins.odometry.scale`). Like the heading
     bias, a new factor corrects the steps that follow; earlier steps keep the factor of their time.
     Until a factor other than 1 arrives, the odometry passes through unchanged.
     """

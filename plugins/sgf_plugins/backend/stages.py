@@ -28,7 +28,7 @@ from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.sgf_map import SgfMap, build_map, load_map, save_map
 from sgf_pipeline.trajectory import Trajectory
 from sgf_pipeline.types import Frame, LoopConstraints, OdometryScale, PoseEstimate, YawBiasCorrection
-from sgf_plugins.pose_graph import FRAME_SYMBOL, MAP_SYMBOL, NoiseSettings, PoseGraph, PoseStore, X
+from sgf_plugins.backend.pose_graph import FRAME_SYMBOL, MAP_SYMBOL, NoiseSettings, PoseGraph, PoseStore, X
 
 log = logging.getLogger("sgf_pipeline")
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sgf_plugins.odometry_bias import EXPECTED_YAW_BIAS, HeadingBias
+from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS, HeadingBias
 
 
 @dataclass(frozen=True)
@@ -55,7 +55,7 @@ def loop_heading_bias(
 
     ``frames`` and ``odometry`` (N, 4, 4): the path, in order; ``loops``: per loop its two frames, its
     relative yaw and that yaw's variance. A Cauchy-weighted least squares with a zero-mean prior
-    (:class:`sgf_plugins.odometry_bias.HeadingBias`), so one false loop among true ones hardly moves
+    (:class:`sgf_plugins.backend.heading_bias.HeadingBias`), so one false loop among true ones hardly moves
     it; zero unless two loops agree on it and it stands out of its uncertainty.
     """
     estimator = HeadingBias(prior_sigma, odometry_sigma_yaw, kernel_width, reading_sigma=reading_sigma)

@@ -25,9 +25,9 @@ from sgf_pipeline.types import (
     SgfDescriptor,
     SgfDescriptors,
 )
-from sgf_plugins.anchoring import anchored_distances
-from sgf_plugins.frame_log import FrameLog
-from sgf_plugins.odometry_bias import EXPECTED_YAW_BIAS, corrected_yaw_bias, uncorrected_yaw_bias
+from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS, corrected_yaw_bias, uncorrected_yaw_bias
+from sgf_plugins.odometry.anchoring import anchored_distances
+from sgf_plugins.odometry.frame_log import FrameLog
 from sgf_plugins.sgf.polar import (
     ColumnSet,
     align,
@@ -291,7 +291,7 @@ class OnlineSgfGroups(Stage):
     or the odometry pose when no back-end runs; the gate keeps identical standard markings at
     different places (perceptual aliasing) in different groups while allowing for drift. With
     ``anchored_gate``, the distance travelled is counted as the loop stage counts it
-    (:mod:`sgf_plugins.anchoring`): a loop closure that the estimate meets (within
+    (:mod:`sgf_plugins.odometry.anchoring`): a loop closure that the estimate meets (within
     ``anchor_tolerance``) joins its two frames at no cost, so once a revisit is anchored the gate
     shrinks back to what the odometry drifts since the loop, not since the first sighting.
 

@@ -57,7 +57,7 @@ from sgf_pipeline.types import (
     SgfDescriptors,
     SgfDetections,
 )
-from sgf_plugins.visualize import group_colour
+from sgf_plugins.viz.figures import group_colour
 
 if TYPE_CHECKING:
     from sgf_pipeline.types import SalientGroundFeature

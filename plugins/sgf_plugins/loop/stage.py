@@ -105,17 +105,17 @@ from sgf_pipeline.types import (
     SequenceTruth,
     SgfDescriptor,
 )
-from sgf_plugins.anchoring import anchored_distances
-from sgf_plugins.frame_log import FrameLog
-from sgf_plugins.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2, se2_params
-from sgf_plugins.loop_consistency import (
+from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS, corrected_yaw_bias, uncorrected_yaw_bias
+from sgf_plugins.loop.consistency import (
     LoopEnds,
     bias_corrected_path,
     consistency_ratios,
     inconsistent_loops,
     loop_heading_bias,
 )
-from sgf_plugins.odometry_bias import EXPECTED_YAW_BIAS, corrected_yaw_bias, uncorrected_yaw_bias
+from sgf_plugins.loop.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2, se2_params
+from sgf_plugins.odometry.anchoring import anchored_distances
+from sgf_plugins.odometry.frame_log import FrameLog
 from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, yaw_to_shift
 
 _MAP = -1  # the prior map as one node of the anchoring graph
@@ -1504,7 +1504,7 @@ class IcpLoopClosing(Stage):
         self._consistency_entry = entry
 
     def _consistency(self, threshold: float, truths: list[bool | None]) -> tuple[dict[str, Any], list[int]]:
-        """Accepted loops outside the largest mutually consistent set (:mod:`sgf_plugins.loop_consistency`).
+        """Accepted loops outside the largest mutually consistent set (:mod:`sgf_plugins.loop.consistency`).
 
         Returns the metrics entry and those loops' places in ``self.accepted`` (map loops and position-only
         loops, whose cycles have no turn to close, are not judged).

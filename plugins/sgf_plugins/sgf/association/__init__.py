@@ -1,0 +1,1 @@
+"""Online grouping of SGF descriptors (paper Sec. III-C, eq. 9-10)."""
