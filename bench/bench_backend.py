@@ -5,7 +5,7 @@
     .venv/bin/python bench/bench_backend.py --growth 16000   # update time per window as the graph grows
     .venv/bin/python bench/bench_backend.py --replay rec.npz # a recorded soak's back-end input (bench_soak --record)
 
-Budgets (issue #8): iSAM2 median update under 10 ms at 10,000 poses with loop closures; batch
+Budgets: iSAM2 median update under 10 ms at 10,000 poses with loop closures; batch
 Levenberg-Marquardt over ~9,000 Pose2 keyframes (2.7 km) with a few dozen loops under 1 s.
 The route is laps of a 400 m x 250 m block with drifting odometry; loop constraints join the
 current keyframe to the same place on the first lap, measured from the ground truth.
@@ -147,7 +147,7 @@ def bench_growth(n: int, seed: int, window: int = 2000) -> dict[str, list[float]
     spacing), loops every 10 m after the first lap: with a node per keyframe, and with the defaults.
 
     Keys: ``"node_distance=<m>"``, each a list of window means; ``"partial_check_off"`` is the
-    node-per-keyframe graph with GTSAM's full relinearization check (the defaults before #10).
+    node-per-keyframe graph with GTSAM's full relinearization check.
     """
     rng = np.random.default_rng(seed)
     gt = route(n, 0.3)

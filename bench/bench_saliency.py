@@ -193,7 +193,7 @@ def render(inf: list[dict], train: list[dict], args: argparse.Namespace) -> str:
         f"### Training: forward + loss + backward + AdamW step, batches of {args.batch} at {args.size}x{args.size}",
         "",
         "Two threads help on an idle machine and lose to one when other jobs share the two cores (threads",
-        "wait for each other at every operation: on 2026-11-22, at load 4.7, selfreformer trained 0.7",
+        "wait for each other at every operation: at load 4.7, selfreformer trains 0.7",
         "images/s with 2 threads and 11.4 with 1); `sgf-train` uses `train.threads=1` by default. Hours are",
         "at the measured wall rate.",
         "",

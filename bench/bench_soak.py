@@ -6,10 +6,10 @@ Usage: ``.venv/bin/python bench/bench_soak.py [--laps 4] [--preset NAME] [--reco
 The route is ``campus_large_loop`` (2.8 km) driven ``--laps`` times in a row: a bench-only dataset
 replays the preset's frames lap after lap. The route ends 55 m from its start, facing the other
 way; between laps the robot is carried back, and the odometry moves by the true pose of the
-start seen from the end, so that loops between laps agree with it (before the eleventh session
-the odometry went on from the end as if the start were there, and every loop between laps
-pulled against it). The ground-truth pose is not passed on (the ATE of a soak is not its point); the
-marking instances are, so that ``saliency=ground_truth`` soaks the pipeline without the network. An observer records,
+start seen from the end, so that loops between laps agree with it (odometry that went on from the
+end as if the start were there would pull every loop between laps against it). The ground-truth
+pose is not passed on (the ATE of a soak is not its point); the marking instances are, so that
+``saliency=ground_truth`` soaks the pipeline without the network. An observer records,
 per window of 1000 processed frames, the distance driven, the peak and current resident memory,
 and the wall and CPU time per frame; the script then prints per lap the median time per frame and
 the memory, the memory growth per kilometre after the first lap (when the caches are warm), and

@@ -17,10 +17,10 @@ RESERVED_KEYS = ("name", "rename")
 #: Top-level keys of a run's config besides the stage nodes (``hydra`` is Hydra's own and never validated).
 TOP_LEVEL_KEYS = ("pipeline", "run", "plugins", "map")
 
-#: The paper's pipeline, in data-flow order (DESIGN.md section 1).
+#: The paper's pipeline, in data-flow order (docs/method.md).
 PAPER_STAGES = ("dataset", "enhance", "ipm", "saliency", "detector", "descriptor", "association", "loop", "backend")
 
-#: Stage kinds the shipped default config runs besides the paper's (extensions, docs/measurements.md).
+#: Stage kinds the shipped default config runs besides the paper's (extensions, docs/method.md).
 EXTENSION_STAGES = ("odometry_scale",)
 
 

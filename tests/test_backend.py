@@ -476,7 +476,7 @@ def test_a_loop_to_a_frame_between_nodes_moves_by_the_adjoint() -> None:
 
 def test_isam2_reports_how_much_each_update_reeliminates_and_a_contradicted_graph_shows(world) -> None:  # type: ignore[no-untyped-def]
     """``backend.isam2`` in metrics.json: a graph whose loops contradict its odometry (a jump the odometry
-    missed, like the soak's lap ends before the eleventh session) keeps re-eliminating much of itself."""
+    missed, like a soak's lap ends without the carry back to the start) keeps re-eliminating much of itself."""
     loops = true_loops(world)
     consistent, _ = feed(world, Isam2Backend(Isam2Params(save_map=False)), loops)
     from backend_world import World

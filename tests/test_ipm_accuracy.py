@@ -85,7 +85,7 @@ def test_mc_ipm_against_plain_ipm_by_kind_of_ground(hilly: IpmAccuracy) -> None:
     assert transition["mc_plane"] * 2.5 <= transition["plain"] and transition["mc_plane"] < transition["mc_ahead"]
     assert abs(flat["mc_plane"] - flat["plain"]) < 0.03
     # ipm=mc_hindsight: the plane of the path the robot drove next (the BEV made 6.5 m later); on this
-    # window, flat / slope / transition / bump: 3.7 / 7.1 / 5.0 / 16.0 cm (issue #5's 3x at transitions
+    # window, flat / slope / transition / bump: 3.7 / 7.1 / 5.0 / 16.0 cm (the target: 3x at transitions
     # and over bumps, and agreement on flat ground)
     assert transition["mc_hindsight"] * 3.0 <= transition["plain"] and bump["mc_hindsight"] * 3.0 <= bump["plain"]
     assert slope["mc_hindsight"] * 1.5 <= slope["plain"] and abs(flat["mc_hindsight"] - flat["plain"]) < 0.03

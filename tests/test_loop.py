@@ -542,7 +542,7 @@ def test_a_tie_between_look_alikes_is_resolved_by_the_neighbouring_markings() ->
     # under the wrong hypothesis (B) the L would sit 20 m from anything seen: no support; under A, the L (and B) agree
     a_option = replace(by_frame[68].items[0], group_id=1, matched=seen[28], alternatives=())
     assert stage._support(a_option, c) == 2
-    # tie_support = 0: ties never give loop factors, as before
+    # tie_support = 0: ties never give loop factors
     strict = IcpLoopClosing(IcpLoopParams(gate=False, tie_support=0))
     assert _run_loop(strict, frames, by_frame) == [] and strict.counts["ambiguous"] == 1
 
@@ -1158,7 +1158,7 @@ def test_a_match_into_a_view_of_the_same_pass_is_redone_with_the_groups_earlier_
     assert (loop.frame_from, loop.frame_to, loop.instance_ids) == (28, 68, (1, 1))
     assert np.allclose(xy_yaw(loop.relative), xy_yaw(invert(frames[28].odometry) @ frames[68].odometry), atol=0.02)
     assert stage.earlier_members == 1 and stage.counts["separation"] == 0
-    # without an earlier pass in the group, the same-pass match is refused as before
+    # without an earlier pass in the group, the same-pass match is refused
     del by_frame[28]
     alone = IcpLoopClosing(IcpLoopParams(min_support=0))
     assert _run_loop(alone, frames, by_frame) == [] and alone.counts["separation"] == 1 and alone.earlier_members == 0

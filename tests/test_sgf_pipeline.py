@@ -210,7 +210,7 @@ def test_without_the_spatial_gate_identical_arrows_merge(recorded):
 
 
 def test_the_learning_free_detector_drives_the_same_loop(recorded, tmp_path):
-    """#7 must also work with ``saliency=classical``: top-hat and threshold on the recorded BEVs."""
+    """``saliency=classical`` (top-hat and threshold on the recorded BEVs) drives the same loop."""
     plugins = load_plugins(extra=[("sgf_test_stream", TestPlugin())])
     cfg = config()
     cfg["saliency"] = conf_node("saliency/classical.yaml")

@@ -179,7 +179,7 @@ def test_bag_info_ranks_topics_by_type_and_role():
 
 @pytest.mark.slow
 def test_bag_info_prints_a_command_that_runs_as_printed(kitti_bag: Path, tmp_path: Path):
-    """The issue's bag: topic names alone, the camera 1.65 m high and 1 degree down, no ipm.* override."""
+    """A bag given by topic names alone, the camera 1.65 m high and 1 degree down, no ipm.* override."""
     proc = subprocess.run(
         [str(BIN / "sgf-bag-info"), f"path={kitti_bag}"], capture_output=True, text=True, timeout=120, cwd=tmp_path
     )

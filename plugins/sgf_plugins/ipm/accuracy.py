@@ -1,4 +1,4 @@
-"""How metric the BEV of each IPM variant is on the synthetic world, by kind of ground (issue #5, Table 4).
+"""How metric the BEV of each IPM variant is on the synthetic world, by kind of ground (Table 4).
 
 For a frame, every BEV sample point ``(x, y)`` claims that the ground ``x`` metres ahead and ``y``
 to the left of the robot (on the horizontal, in its heading frame, as the ground-truth marking

@@ -2,7 +2,7 @@
 
 MC-IPM (paper Sec. III-A) compensates the robot's roll and pitch against a reference attitude from
 past poses. Where the grade of the ground *ahead* changes (the foot of a hill, its crest), no past
-pose knows it (docs/measurements.md, "MC-IPM on the world's ground"). The camera sees it: the ground
+pose knows it (docs/results.md, Table 4). The camera sees it: the ground
 seen from two places along the drive is related by the homography its plane induces,
 
     x_s ~ K (R_st - t_st n^T / h) K^-1 x_t,                 (plane n . X = -h in camera t)

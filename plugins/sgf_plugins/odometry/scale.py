@@ -3,7 +3,7 @@
 Wheel odometry counts distance with a steady relative error (tyre radius, load, slip): the
 campus robot's over-counts by about 1 %. Loop closures cannot see it: a lap drawn 1 % too large
 still closes on itself, so eq. 11 keeps the error and a route 130 m across ends up to a metre off
-everywhere (docs/measurements.md: it is most of Table 2's remaining ATE). The camera can: the ground in
+everywhere (most of Table 2's remaining ATE without this stage; docs/method.md). The camera can: the ground in
 a bird's-eye view is metric, so two views of it one metre apart are related by the robot's true
 motion. :class:`BevMotionScale` resamples the near ground of every keyframe with the fixed
 homography of plain IPM (eq. 3-4 without compensation, so MC-IPM's per-frame attitude noise stays

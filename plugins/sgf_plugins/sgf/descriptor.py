@@ -64,7 +64,7 @@ class PolarContextParams(StageParams):
         description="driven: metres of driving on either side of the view whose median odometry (IMU) roll and pitch "
         "is the camera's, the view's own deviation from it counted through attitude_noise (0.6 steadies the "
         "lift: the IMU's noise tilts the whole driven ground under the camera, 0.25 degrees stretch paint 4.4 m "
-        "ahead by 6 %); 0 = the view's own attitude (the default: not better on Tables 2 and 3, docs/measurements.md)",
+        "ahead by 6 %); 0 = the view's own attitude (the default: not better on Tables 2 and 3, docs/method.md)",
     )
     attitude_noise: float = Field(
         0.005,
@@ -161,7 +161,7 @@ class PolarContext(Stage):
     ``ground=driven`` lifts the pixels along their camera rays onto the ground the robot drove
     over between the view and the SGF's selection (``sgf_plugins.sgf.terrain``), instead of onto
     the BEV's plane: where the grade changes under a marking the plane misplaces it by about
-    d^2 / h times the change (docs/measurements.md, "SGF points on the driven ground").
+    d^2 / h times the change (docs/method.md, "SGF points on the ground driven over").
     """
 
     kind = "descriptor"

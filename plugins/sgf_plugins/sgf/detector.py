@@ -129,7 +129,7 @@ class HuWindowParams(StageParams):
         "merge",
         description="what must keep border_margin from the border for a view to have fully appeared: the region's "
         "pixels (the paper's test), or also the half merge_distance around them, where a further part of the same "
-        "SGF would merge in (the cut-off end of a row of chevrons; docs/measurements.md, forty-third session)",
+        "SGF would merge in (the cut-off end of a row of chevrons; docs/method.md)",
     )
     min_overlap: float = Field(
         0.3, gt=0.0, le=1.0, description="share of a view's predicted pixels on a region to continue its track"
