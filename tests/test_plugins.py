@@ -225,6 +225,7 @@ def test_import_linter_contract_holds():
     result = run_cli("lint-imports", cwd=ROOT)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "The core never imports a plugin KEPT" in result.stdout
+    assert "The core's layers: each module imports only the ones below it KEPT" in result.stdout
 
 
 def test_hookimpl_marker_is_the_projects():
