@@ -84,11 +84,34 @@ def load_plugins(
     for name, plugin in extra:
         manager.register(plugin, name=name)
         distributions[name] = None
+    _check_pending(manager, entry_points=seen)
 
     registry = StageRegistry()
     for impl in manager.hook.sgf_register_stages.get_hookimpls():
         impl.function(registry=registry._scoped(impl.plugin_name, distributions.get(impl.plugin_name)))
     return LoadedPlugins(manager, registry, _observer_options(manager, registry))
+
+
+def _check_pending(manager: pluggy.PluginManager, entry_points: set[str]) -> None:
+    """Refuse a plugin that implements a hook no hookspec declares (a misspelt hook would never be called)."""
+    try:
+        manager.check_pending()
+    except pluggy.PluginValidationError as exc:
+        callers = {name: c for name, c in vars(manager.hook).items() if isinstance(c, pluggy.HookCaller)}
+        unknown = [
+            (impl.plugin_name, name)
+            for name, caller in callers.items()
+            if not caller.has_spec()
+            for impl in caller.get_hookimpls()
+            if not impl.optionalhook
+        ]
+        plugin, hook = unknown[0] if unknown else (manager.get_name(exc.plugin), "?")
+        known = ", ".join(sorted(name for name, caller in callers.items() if caller.has_spec()))
+        block = f", or block the plugin with {BLOCK_ENV}={plugin}" if plugin in entry_points else ""
+        raise PluginError(
+            f"plugin {plugin!r} implements hook {hook!r}, which no hookspec declares; the hooks are: {known}. "
+            f"Rename or remove the hook{block}"
+        ) from None
 
 
 def _observer_options(manager: pluggy.PluginManager, registry: StageRegistry) -> dict[str, type[BaseModel]]:

@@ -196,6 +196,22 @@ def test_observer_config_nodes_that_break_the_contract(watchers: list[Watcher], 
         load_plugins(extra=[(f"w{k}", w) for k, w in enumerate(watchers)])
 
 
+class Misspelt:
+    """An observer whose hook no hookspec declares (``sgf_run_started`` for ``sgf_run_start``)."""
+
+    @hookimpl
+    def sgf_run_started(self, run: object) -> None:
+        raise AssertionError("never called")
+
+
+def test_a_hook_no_hookspec_declares_fails_at_start_up_naming_plugin_and_hook():
+    with pytest.raises(PluginError) as caught:
+        load_plugins(allow=[], extra=[("misspelt", Misspelt())])
+    message = str(caught.value)
+    assert "plugin 'misspelt' implements hook 'sgf_run_started', which no hookspec declares" in message
+    assert "the hooks are: " in message and "sgf_run_start" in message
+
+
 def test_every_hookspec_is_documented():
     specs = [m for n, m in inspect.getmembers(hookspecs.PipelineHooks, inspect.isfunction) if n.startswith("sgf_")]
     assert len(specs) >= 7
