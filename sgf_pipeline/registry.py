@@ -140,14 +140,23 @@ def _observer_options(manager: pluggy.PluginManager, registry: StageRegistry) ->
     return nodes
 
 
-def describe_params(model: type[BaseModel]) -> list[tuple[str, str, Any, str]]:
-    """``(name, type, default, description)`` of each parameter of a Params model."""
+def describe_params(
+    model: type[BaseModel], defaults: BaseModel | None = None, prefix: str = ""
+) -> list[tuple[str, str, Any, str]]:
+    """``(key, type, default, description)`` of each parameter of a Params model.
+
+    A parameter that is itself a model (a group of parameters such as ``gate``) gives one row per
+    parameter inside it, keyed with dots (``gate.sigma_yaw_deg``) as a config override names it.
+    """
     rows = []
     for field_name, info in model.model_fields.items():
         annotation = info.annotation
+        default = getattr(defaults, field_name) if defaults is not None else info.get_default(call_default_factory=True)
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel) and isinstance(default, annotation):
+            rows += describe_params(annotation, default, f"{prefix}{field_name}.")
+            continue
         type_name = getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
-        default = info.get_default(call_default_factory=True)
         if isinstance(default, BaseModel):
             default = default.model_dump()
-        rows.append((field_name, type_name, default, info.description or ""))
+        rows.append((prefix + field_name, type_name, default, info.description or ""))
     return rows
