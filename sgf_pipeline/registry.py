@@ -6,7 +6,7 @@ import os
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from importlib import metadata
-from typing import Any, cast
+from typing import Any, cast, get_args
 
 import pluggy
 from pydantic import BaseModel
@@ -155,7 +155,9 @@ def describe_params(
         if isinstance(annotation, type) and issubclass(annotation, BaseModel) and isinstance(default, annotation):
             rows += describe_params(annotation, default, f"{prefix}{field_name}.")
             continue
-        type_name = getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
+        type_name = str(annotation).replace("typing.", "")  # list[str], Literal['a', 'b'], float | None
+        if isinstance(annotation, type) and not get_args(annotation):
+            type_name = annotation.__name__
         if isinstance(default, BaseModel):
             default = default.model_dump()
         rows.append((prefix + field_name, type_name, default, info.description or ""))
