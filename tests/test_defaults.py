@@ -12,11 +12,11 @@ from typing import Any
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, Field, ValidationError
 from pydantic_core import PydanticUndefined
 
 from sgf_pipeline import StageParams, load_plugins
-from sgf_pipeline.config import RESERVED_KEYS, config_dir
+from sgf_pipeline.config import RESERVED_KEYS, config_dir, format_validation_error
 from sgf_pipeline.registry import describe_params
 
 CONF = config_dir()
@@ -107,3 +107,28 @@ def test_sgf_plugins_describes_nested_parameters_by_their_override_keys():
         ("gate.sigma_yaw_deg", 2.0),
         ("gate.probability", 0.99),
     ]
+
+
+def test_a_config_error_inside_a_parameter_group_names_the_dotted_key_and_the_groups_parameters():
+    class Strict(StageParams):
+        gate: StrictGate = Field(default_factory=lambda: StrictGate())
+
+    with pytest.raises(ValidationError) as wrong_type:
+        Strict.model_validate({"gate": {"sigma_yaw_deg": "wide"}})
+    assert format_validation_error("loop", Strict, wrong_type.value).endswith("; expected float")
+    assert format_validation_error("loop", Strict, wrong_type.value).startswith("loop.gate.sigma_yaw_deg: ")
+    with pytest.raises(ValidationError) as unknown:
+        Strict.model_validate({"gate": {"sigma_yaw": 2.0}})
+    assert format_validation_error("loop", Strict, unknown.value) == (
+        "loop.gate.sigma_yaw: unknown parameter (parameters of loop.gate: sigma_yaw_deg, probability)"
+    )
+    with pytest.raises(ValidationError) as flat:
+        Strict.model_validate({"gates": {}})
+    assert format_validation_error("loop", Strict, flat.value) == (
+        "loop.gates: unknown parameter (parameters of this variant: gate)"
+    )
+
+
+class StrictGate(StageParams):
+    sigma_yaw_deg: float = 2.0
+    probability: float = 0.99
