@@ -13,6 +13,7 @@ import hydra
 import yaml
 from omegaconf import DictConfig
 from pydantic import BaseModel
+from pydantic_core import PydanticUndefined
 
 from sgf_pipeline.cli.common import console, friendly_errors
 from sgf_pipeline.config import PluginOptions, RunOptions, config_dir
@@ -82,8 +83,8 @@ def _cell(text: str) -> str:
 
 
 def _value(value: Any) -> str:
-    """A default as a config file spells it (``null``, ``true``, ``[]``), in code style."""
-    return "`" + _cell(json.dumps(value, default=str)) + "`" if value != "" else '`""`'
+    """A default as a config file spells it (``null``, ``true``, ``[]``) in code style; without one, ``required``."""
+    return "required" if value is PydanticUndefined else "`" + _cell(json.dumps(value, default=str)) + "`"
 
 
 def _param_table(rows: list[dict[str, Any]], prefix: str) -> list[str]:
