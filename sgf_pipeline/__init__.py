@@ -7,9 +7,10 @@ contract, the registry and the pipeline runner.
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.errors import ConfigError, DataError, PipelineGraphError, PluginError, SgfError, StageError
 from sgf_pipeline.hookspecs import hookimpl, hookspec
-from sgf_pipeline.registry import StageRegistry, load_plugins
+from sgf_pipeline.registry import load_plugins
 from sgf_pipeline.runner import Pipeline, StepResult
 from sgf_pipeline.stage import Dataset, Previous, Stage, StageParams
+from sgf_pipeline.variants import StageRegistry
 
 __version__ = "0.1.0"
 

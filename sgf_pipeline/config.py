@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic.fields import FieldInfo
 
 from sgf_pipeline.errors import ConfigError
 
@@ -112,13 +113,28 @@ def _find_target(node: Any, path: str) -> str | None:
     return None
 
 
+def _located(model: type[BaseModel], loc: tuple[int | str, ...]) -> tuple[type[BaseModel], FieldInfo | None]:
+    """The model holding the key at ``loc`` (into nested parameter groups) and that key's field, if it has one."""
+    owner, field = model, None
+    for depth, part in enumerate(loc):
+        field = owner.model_fields.get(str(part))
+        inner = field.annotation if field is not None else None
+        if depth == len(loc) - 1 or not (isinstance(inner, type) and issubclass(inner, BaseModel)):
+            return owner, field  # the key itself, or the list or mapping holding the item
+        owner = inner
+    return owner, field
+
+
 def format_validation_error(group: str, model: type[BaseModel], error: ValidationError) -> str:
-    """One line per problem: the config key, what is wrong, and the expected type."""
+    """One line per problem: the config key, what is wrong, and the expected type.
+
+    A key inside a nested parameter group is named with dots (``loop.gate.sigma_yaw_deg``).
+    """
     lines = []
     for item in error.errors():
         loc = ".".join(str(p) for p in item["loc"])
         key = f"{group}.{loc}" if loc else group
-        field = model.model_fields.get(str(item["loc"][0])) if item["loc"] else None
+        owner, field = _located(model, item["loc"]) if item["loc"] else (model, None)
         expected = ""
         if field is not None and field.annotation is not None:
             ann = field.annotation
@@ -126,8 +142,9 @@ def format_validation_error(group: str, model: type[BaseModel], error: Validatio
         if item["type"] == "value_error" and not item["loc"]:  # a model's own check: its message says it all
             lines.append(f"{key}: {item['ctx']['error']}")
         elif item["type"] == "extra_forbidden":
-            known = ", ".join(model.model_fields) or "none"
-            lines.append(f"{key}: unknown parameter (parameters of this variant: {known})")
+            known = ", ".join(owner.model_fields) or "none"
+            where = "this variant" if owner is model else key.rsplit(".", 1)[0]
+            lines.append(f"{key}: unknown parameter (parameters of {where}: {known})")
         else:
             lines.append(f"{key}: {item['msg']} (got {item.get('input')!r}){expected}")
     return "\n  ".join(lines)

@@ -13,9 +13,9 @@ import pluggy
 if TYPE_CHECKING:
     from pydantic import BaseModel
 
-    from sgf_pipeline.registry import StageRegistry
-    from sgf_pipeline.runner import RunInfo, StageNode
+    from sgf_pipeline.run_info import RunInfo, StageNode
     from sgf_pipeline.types import Frame
+    from sgf_pipeline.variants import StageRegistry
 
 PROJECT = "sgf_pipeline"
 

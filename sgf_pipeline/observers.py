@@ -8,7 +8,7 @@ from collections.abc import Callable
 from typing import Any
 
 from sgf_pipeline.hookspecs import hookimpl
-from sgf_pipeline.runner import RunInfo, StageNode
+from sgf_pipeline.run_info import RunInfo, StageNode
 from sgf_pipeline.types import Frame
 
 log = logging.getLogger("sgf_pipeline")

@@ -8,17 +8,16 @@ import logging
 import math
 import traceback
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import yaml
 
-from sgf_pipeline.evaluation import ate_rmse
+from sgf_pipeline.errors import StageError
+from sgf_pipeline.evaluation import aligned_positions, ate_rmse
 from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text
+from sgf_pipeline.run_info import RunView, peak_rss_mb
 from sgf_pipeline.trajectory import Trajectory, write_tum
-
-if TYPE_CHECKING:
-    from sgf_pipeline.runner import Pipeline
 
 log = logging.getLogger("sgf_pipeline")
 
@@ -92,14 +91,12 @@ def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def collect_metrics(pipeline: Pipeline, trajectories: dict[str, Trajectory]) -> dict[str, Any]:
+def collect_metrics(run: RunView, trajectories: dict[str, Trajectory]) -> dict[str, Any]:
     """Merge the skeleton, ATE, the stages' metrics and the observers' reports."""
-    from sgf_pipeline.runner import peak_rss_mb
-
     metrics: dict[str, Any] = {
         "status": "finished",
-        "sequence": pipeline.info.sequence,
-        "stages": {n.kind: n.name for n in pipeline.order},
+        "sequence": run.info.sequence,
+        "stages": {n.kind: n.name for n in run.info.stages},
     }
     metrics = _merge(metrics, METRIC_SKELETON)
     gt = trajectories.get("gt")
@@ -108,35 +105,35 @@ def collect_metrics(pipeline: Pipeline, trajectories: dict[str, Trajectory]) -> 
             est = trajectories.get(name)
             if est is not None and len(est) >= 3:
                 try:
-                    metrics["ate_rmse_m"][name] = ate_rmse(gt, est, "se3", pipeline.config.run.ate_max_time_diff)
+                    metrics["ate_rmse_m"][name] = ate_rmse(gt, est, "se3", run.options.ate_max_time_diff)
                 except Exception as exc:
                     log.warning("ATE of %s not computed: %s", name, exc)
                     metrics.setdefault("warnings", []).append(f"ATE of {name} not computed: {exc}")
-    metrics = _merge(metrics, pipeline.context.metrics)
-    metrics["runner"] = pipeline.drop_report()
-    for report in pipeline.plugins.manager.hook.sgf_report_metrics(run=pipeline.info):
+    metrics = _merge(metrics, run.context.metrics)
+    metrics["runner"] = run.dropped
+    for report in run.hooks.sgf_report_metrics(run=run.info):
         if report:
             metrics = _merge(metrics, report)
     metrics["peak_rss_mb"] = round(peak_rss_mb(), 1)
     return metrics
 
 
-def write_run(pipeline: Pipeline, trajectories: dict[str, Trajectory], metrics: dict[str, Any]) -> None:
+def write_run(run: RunView, trajectories: dict[str, Trajectory], metrics: dict[str, Any]) -> None:
     """Write every file of the run directory atomically."""
-    run_dir = pipeline.run_dir
+    run_dir = run.run_dir
     assert run_dir is not None
     run_dir.mkdir(parents=True, exist_ok=True)
     for name, trajectory in trajectories.items():
         write_tum(run_dir / f"trajectory_{name}.tum", trajectory)
-    if pipeline.effective_config is not None:
-        atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(pipeline.effective_config, sort_keys=False))
-    loops = pipeline.context.artifacts.get("loops")
+    if run.effective_config is not None:
+        atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(run.effective_config, sort_keys=False))
+    loops = run.context.artifacts.get("loops")
     if loops is not None:
         atomic_write_text(run_dir / "loops.csv", render_loops_csv(loops))
-    candidates = pipeline.context.artifacts.get("loop_candidates")
+    candidates = run.context.artifacts.get("loop_candidates")
     if candidates is not None:
         atomic_write_text(run_dir / "loop_candidates.csv", render_candidates_csv(candidates))
-    if pipeline.config.run.plots:
+    if run.options.plots:
         plot_trajectories(run_dir / "trajectory.png", trajectories, metrics, loops)
         atomic_write_text(run_dir / "report.md", render_report(metrics, loops))
     atomic_write_json(run_dir / "metrics.json", metrics)
@@ -151,18 +148,16 @@ def link_figures(run_dir: Path) -> None:
         atomic_write_text(report, report.read_text().rstrip("\n") + "\n\n## Figures\n\n" + section)
 
 
-def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:
+def write_failure(run: RunView, status: str, exc: BaseException) -> None:
     """Record a failed or interrupted run, keeping whatever the run directory already holds.
 
     ``failure.json`` names the error (and the stage and frame of a stage error); the trajectories
     so far are written as ``trajectory_<name>.partial.tum``: odometry and ground truth of the
     processed frames, and any trajectory a stage published before the failure.
     """
-    from sgf_pipeline.errors import StageError
-
-    run_dir = pipeline.run_dir
+    run_dir = run.run_dir
     assert run_dir is not None
-    info = pipeline.info
+    info = run.info
     payload: dict[str, Any] = {
         "status": status,
         "error": f"{type(exc).__name__}: {exc}",
@@ -170,7 +165,7 @@ def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:
         "frame": None,
         "frames_seen": info.frames_seen,
         "frames_processed": info.frames_processed,
-        "runner": pipeline.drop_report(),
+        "runner": run.dropped,
         "traceback": traceback.format_exception(type(exc), exc, exc.__traceback__)[-6:],
     }
     if isinstance(exc, StageError):
@@ -178,10 +173,9 @@ def write_failure(pipeline: Pipeline, status: str, exc: BaseException) -> None:
         payload["frame"] = exc.frame_index
     try:
         run_dir.mkdir(parents=True, exist_ok=True)
-        partial = dict(pipeline.context.trajectories)
-        for name, log_ in (("odometry", pipeline._odometry), ("gt", pipeline._ground_truth)):
-            if len(log_):
-                partial.setdefault(name, log_.trajectory())
+        partial = dict(run.context.trajectories)
+        for name, trajectory in run.recorded.items():
+            partial.setdefault(name, trajectory)
         for name, trajectory in partial.items():
             write_tum(run_dir / f"trajectory_{name}.partial.tum", trajectory)
         atomic_write_json(run_dir / "failure.json", payload)
@@ -266,8 +260,6 @@ def plot_trajectories(
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from sgf_pipeline.evaluation import aligned_positions
 
     fig, ax = plt.subplots(figsize=(7, 7), dpi=110)
     gt = trajectories.get("gt")

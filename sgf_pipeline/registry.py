@@ -1,122 +1,23 @@
-"""Plugin discovery (pluggy, entry-point group ``sgf_pipeline``) and the registry of stage variants."""
+"""Plugin discovery (pluggy, entry-point group ``sgf_pipeline``): the plugin manager and its stage registry."""
 
 from __future__ import annotations
 
 import os
-import re
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from importlib import metadata
-from typing import Any, cast
+from typing import Any, cast, get_args
 
 import pluggy
 from pydantic import BaseModel
 
-from sgf_pipeline import hookspecs
+from sgf_pipeline import hookspecs, observers
 from sgf_pipeline.config import TOP_LEVEL_KEYS
-from sgf_pipeline.errors import ConfigError, PluginError
-from sgf_pipeline.stage import Dataset, Stage, StageClass, StageParams, StageSignature, signature_of
+from sgf_pipeline.errors import PluginError
+from sgf_pipeline.variants import BLOCK_ENV, NAME, StageRegistry
 
 ENTRY_POINT_GROUP = "sgf_pipeline"
 ALLOW_ENV = "SGF_PIPELINE_PLUGINS"
-BLOCK_ENV = "SGF_PIPELINE_DISABLED_PLUGINS"
-_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
-
-
-@dataclass(frozen=True)
-class VariantInfo:
-    """A registered stage variant and where it came from."""
-
-    kind: str
-    name: str
-    cls: StageClass
-    plugin: str
-    distribution: str | None
-    signature: StageSignature
-
-    @property
-    def params_model(self) -> type[StageParams]:
-        """The variant's pydantic ``Params`` model."""
-        return self.cls.Params
-
-    def describe_source(self) -> str:
-        """``plugin (distribution)`` for listings."""
-        return f"{self.plugin} ({self.distribution})" if self.distribution else self.plugin
-
-
-class StageRegistry:
-    """All stage variants offered by the loaded plugins, indexed by ``kind`` and ``name``."""
-
-    def __init__(self) -> None:
-        self._variants: dict[str, dict[str, VariantInfo]] = {}
-        self._plugin = "<direct>"
-        self._distribution: str | None = None
-
-    def _scoped(self, plugin: str, distribution: str | None) -> StageRegistry:
-        view = StageRegistry.__new__(StageRegistry)
-        view._variants = self._variants
-        view._plugin = plugin
-        view._distribution = distribution
-        return view
-
-    def add(self, cls: StageClass) -> None:
-        """Register a stage class (a :class:`Stage` or :class:`Dataset` subclass)."""
-        where = f"plugin {self._plugin!r}"
-        if not isinstance(cls, type) or not issubclass(cls, (Stage, Dataset)):
-            raise PluginError(f"{where} registered {cls!r}, which is not a Stage or Dataset subclass")
-        for attr in ("kind", "name", "output"):
-            value = getattr(cls, attr, None)
-            if not isinstance(value, str) or not _NAME.match(value):
-                raise PluginError(f"{where}: {cls.__qualname__}.{attr} must be a lower-case identifier, got {value!r}")
-        params = getattr(cls, "Params", None)
-        if not isinstance(params, type) or not issubclass(params, BaseModel):
-            raise PluginError(f"{where}: {cls.__qualname__}.Params must be a pydantic model")
-        if params.model_config.get("extra") != "forbid":
-            raise PluginError(
-                f"{where}: {cls.__qualname__}.Params must refuse unknown keys; derive it from StageParams"
-            )
-        try:
-            signature = signature_of(cls)
-        except TypeError as exc:
-            raise PluginError(f"{where}: {exc}") from None
-        existing = self._variants.get(cls.kind, {}).get(cls.name)
-        if existing is not None and existing.cls is not cls:
-            raise PluginError(
-                f"variant {cls.kind}={cls.name} is registered twice: by {existing.describe_source()} "
-                f"and by {self._plugin}; block one with {BLOCK_ENV}=<entry point name>"
-            )
-        self._variants.setdefault(cls.kind, {})[cls.name] = VariantInfo(
-            cls.kind, cls.name, cls, self._plugin, self._distribution, signature
-        )
-
-    def kinds(self) -> list[str]:
-        """Registered stage kinds, sorted."""
-        return sorted(self._variants)
-
-    def variants(self, kind: str) -> list[VariantInfo]:
-        """Registered variants of one kind, sorted by name."""
-        return [self._variants[kind][n] for n in sorted(self._variants.get(kind, {}))]
-
-    def get(self, kind: str, name: str) -> VariantInfo:
-        """The variant ``kind=name``; a clear error lists the registered ones when it is unknown."""
-        if kind not in self._variants:
-            known = ", ".join(self.kinds()) or "none"
-            raise ConfigError(
-                f"{kind}: no plugin registers stages of kind {kind!r}. Registered kinds: {known}. "
-                "Install the plugin that provides it, or remove it from `pipeline`."
-            )
-        found = self._variants[kind].get(name)
-        if found is None:
-            known = ", ".join(sorted(self._variants[kind]))
-            raise ConfigError(
-                f"{kind}: unknown variant {name!r}. Registered variants of {kind!r}: {known}. "
-                f"Choose one with `{kind}=<variant>`; `sgf-plugins` lists them with their parameters."
-            )
-        return found
-
-    def __iter__(self) -> Any:
-        for kind in self.kinds():
-            yield from self.variants(kind)
 
 
 def _names_from_env(var: str) -> set[str] | None:
@@ -147,8 +48,6 @@ def load_plugins(
     ``block`` (or ``$SGF_PIPELINE_DISABLED_PLUGINS``) excludes some; ``extra`` registers plugin
     objects directly (``(name, module_or_object)``), as tests and embedding applications do.
     """
-    from sgf_pipeline import observers
-
     manager = pluggy.PluginManager(hookspecs.PROJECT)
     manager.add_hookspecs(hookspecs.PipelineHooks)
     for name, factory in observers.BUILTIN_OBSERVERS:
@@ -185,11 +84,34 @@ def load_plugins(
     for name, plugin in extra:
         manager.register(plugin, name=name)
         distributions[name] = None
+    _check_pending(manager, entry_points=seen)
 
     registry = StageRegistry()
     for impl in manager.hook.sgf_register_stages.get_hookimpls():
         impl.function(registry=registry._scoped(impl.plugin_name, distributions.get(impl.plugin_name)))
     return LoadedPlugins(manager, registry, _observer_options(manager, registry))
+
+
+def _check_pending(manager: pluggy.PluginManager, entry_points: set[str]) -> None:
+    """Refuse a plugin that implements a hook no hookspec declares (a misspelt hook would never be called)."""
+    try:
+        manager.check_pending()
+    except pluggy.PluginValidationError as exc:
+        callers = {name: c for name, c in vars(manager.hook).items() if isinstance(c, pluggy.HookCaller)}
+        unknown = [
+            (impl.plugin_name, name)
+            for name, caller in callers.items()
+            if not caller.has_spec()
+            for impl in caller.get_hookimpls()
+            if not impl.optionalhook
+        ]
+        plugin, hook = unknown[0] if unknown else (manager.get_name(exc.plugin), "?")
+        known = ", ".join(sorted(name for name, caller in callers.items() if caller.has_spec()))
+        block = f", or block the plugin with {BLOCK_ENV}={plugin}" if plugin in entry_points else ""
+        raise PluginError(
+            f"plugin {plugin!r} implements hook {hook!r}, which no hookspec declares; the hooks are: {known}. "
+            f"Rename or remove the hook{block}"
+        ) from None
 
 
 def _observer_options(manager: pluggy.PluginManager, registry: StageRegistry) -> dict[str, type[BaseModel]]:
@@ -200,7 +122,7 @@ def _observer_options(manager: pluggy.PluginManager, registry: StageRegistry) ->
         where = f"plugin {impl.plugin_name!r}"
         declared = cast("dict[str, Any]", impl.function() or {})
         for name, model in declared.items():
-            if not isinstance(name, str) or not _NAME.match(name):
+            if not isinstance(name, str) or not NAME.match(name):
                 raise PluginError(f"{where}: an observer's config node must be a lower-case identifier, got {name!r}")
             if name in TOP_LEVEL_KEYS or name in registry.kinds():
                 raise PluginError(f"{where}: config node {name!r} is taken by the runner or a stage kind")
@@ -218,14 +140,25 @@ def _observer_options(manager: pluggy.PluginManager, registry: StageRegistry) ->
     return nodes
 
 
-def describe_params(model: type[BaseModel]) -> list[tuple[str, str, Any, str]]:
-    """``(name, type, default, description)`` of each parameter of a Params model."""
+def describe_params(
+    model: type[BaseModel], defaults: BaseModel | None = None, prefix: str = ""
+) -> list[tuple[str, str, Any, str]]:
+    """``(key, type, default, description)`` of each parameter of a Params model.
+
+    A parameter that is itself a model (a group of parameters such as ``gate``) gives one row per
+    parameter inside it, keyed with dots (``gate.sigma_yaw_deg``) as a config override names it.
+    """
     rows = []
     for field_name, info in model.model_fields.items():
         annotation = info.annotation
-        type_name = getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
-        default = info.get_default(call_default_factory=True)
+        default = getattr(defaults, field_name) if defaults is not None else info.get_default(call_default_factory=True)
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel) and isinstance(default, annotation):
+            rows += describe_params(annotation, default, f"{prefix}{field_name}.")
+            continue
+        type_name = str(annotation).replace("typing.", "")  # list[str], Literal['a', 'b'], float | None
+        if isinstance(annotation, type) and not get_args(annotation):
+            type_name = annotation.__name__
         if isinstance(default, BaseModel):
             default = default.model_dump()
-        rows.append((field_name, type_name, default, info.description or ""))
+        rows.append((prefix + field_name, type_name, default, info.description or ""))
     return rows

@@ -11,16 +11,16 @@ import graphlib
 import logging
 import math
 import os
-import resource
 import time
 from collections import Counter, deque
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 
+from sgf_pipeline import outputs
 from sgf_pipeline.config import (
     PipelineConfig,
     StageConfig,
@@ -31,8 +31,9 @@ from sgf_pipeline.config import (
 )
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.errors import ConfigError, PipelineGraphError, SgfError, StageError
-from sgf_pipeline.registry import LoadedPlugins, VariantInfo, load_plugins
-from sgf_pipeline.stage import Dataset, InputSpec, Stage
+from sgf_pipeline.registry import LoadedPlugins, load_plugins
+from sgf_pipeline.run_info import RunInfo, RunView, StageNode
+from sgf_pipeline.stage import Dataset, Stage
 from sgf_pipeline.trajectory import Trajectory
 from sgf_pipeline.types import Frame, PathAhead, PoseEstimate
 
@@ -45,46 +46,6 @@ LOCK_FILE = ".sgf-run.lock"
 #: Largest deviation of an odometry rotation from orthonormal that the runner accepts.
 _RIGID_TOLERANCE = 1e-3
 _LOGGED_PER_REASON = 5
-
-
-@dataclass
-class StageNode:
-    """A configured stage in the graph: its variant, instance and wired inputs."""
-
-    kind: str
-    name: str
-    variant: VariantInfo
-    stage: Stage | Dataset
-    output: str
-    inputs: list[tuple[InputSpec, str]] = field(default_factory=list)
-
-    @property
-    def label(self) -> str:
-        """``kind=name`` for messages."""
-        return f"{self.kind}={self.name}"
-
-
-@dataclass
-class RunInfo:
-    """What observers see of a run: stages in order, counts, the output directory and their own options.
-
-    ``context`` is the context the stages share (at the end it holds their trajectories and artifacts);
-    ``observer_options`` the validated config nodes the observers declare (``sgf_observer_options``).
-    """
-
-    run_dir: Path | None
-    stages: list[StageNode]
-    sequence: str
-    total_frames: int
-    frames_seen: int = 0
-    frames_processed: int = 0
-    dataset_seconds: float = 0.0
-    work_seconds: float = 0.0
-    first_timestamp: float | None = None
-    last_timestamp: float | None = None
-    options: Any = None
-    context: RunContext | None = None
-    observer_options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass
@@ -358,6 +319,20 @@ class Pipeline:
             "ground_truth_dropped": self._ground_truth_dropped,
         }
 
+    def view(self) -> RunView:
+        """The run so far as its output files are written from: a read-only view."""
+        logs = (("odometry", self._odometry), ("gt", self._ground_truth))
+        return RunView(
+            info=self.info,
+            options=self.config.run,
+            run_dir=self.run_dir,
+            effective_config=self.effective_config,
+            context=self.context,
+            hooks=self.plugins.manager.hook,
+            dropped=self.drop_report(),
+            recorded={name: log_.trajectory() for name, log_ in logs if len(log_)},
+        )
+
     def process(self, frame: Frame) -> StepResult:
         """Run every stage after ``dataset`` on one frame.
 
@@ -511,8 +486,6 @@ class Pipeline:
 
     def finish(self) -> dict[str, Any]:
         """Finalize every stage, compute metrics and write the run directory."""
-        from sgf_pipeline import outputs
-
         if self._finished:
             raise RuntimeError("finish() was called twice")
         self.begin()
@@ -538,14 +511,13 @@ class Pipeline:
                 others = ", ".join(f"{e.kind}={e.name} in {phase}" for e, phase in failures[1:])
                 first.args = (f"{first.args[0]} (also failed: {others})",)
             raise first
+        view = self.view()
         trajectories = dict(self.context.trajectories)
-        if len(self._odometry):
-            trajectories.setdefault("odometry", self._odometry.trajectory())
-        if len(self._ground_truth):
-            trajectories.setdefault("gt", self._ground_truth.trajectory())
-        metrics = outputs.collect_metrics(self, trajectories)
+        for name, trajectory in view.recorded.items():
+            trajectories.setdefault(name, trajectory)
+        metrics = outputs.collect_metrics(view, trajectories)
         if self.run_dir is not None:
-            outputs.write_run(self, trajectories, metrics)
+            outputs.write_run(view, trajectories, metrics)
             self._written = True
         self.release()
         self.plugins.manager.hook.sgf_run_end(run=self.info, metrics=metrics)
@@ -555,8 +527,6 @@ class Pipeline:
         return metrics
 
     def _write_failure(self, exc: BaseException) -> None:
-        from sgf_pipeline import outputs
-
         if self.run_dir is None or not self._begun:
             return
         if self._written:  # every file of the run is complete; the error came after (an observer)
@@ -571,7 +541,7 @@ class Pipeline:
                     break
                 except Exception as error:  # a stage broken by the stop itself: the others still keep theirs
                     log.warning("%s could not keep its results so far: %s: %s", node.label, type(error).__name__, error)
-        outputs.write_failure(self, status, exc)
+        outputs.write_failure(self.view(), status, exc)
 
 
 def read_ahead(frames: Iterable[tuple[Frame, bool]], distance: float, max_seconds: float = math.inf) -> Iterator[Frame]:
@@ -698,8 +668,3 @@ def _lock_directory(run_dir: Path) -> IO[str] | None:
     handle.write(f"{os.getpid()}\n")
     handle.flush()
     return handle
-
-
-def peak_rss_mb() -> float:
-    """Peak resident memory of this process in MiB."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0

@@ -38,7 +38,8 @@ def plugins():
 
 @pytest.mark.parametrize(("kind", "path"), stage_options(), ids=lambda v: getattr(v, "stem", v))
 def test_each_option_validates_against_its_variant(plugins, kind: str, path: Path):
-    node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    with initialize_config_dir(str(CONF), version_base="1.3"):  # composed: a preset extends its base
+        node = OmegaConf.to_container(compose("config", overrides=[f"{kind}={path.stem}"])[kind], resolve=True)
     assert isinstance(node, dict) and "name" in node, f"{path} needs a `name` key"
     observer = plugins.observer_options.get(kind)  # an observer's node (viz), else a stage variant's
     if observer is not None:
@@ -149,3 +150,38 @@ def test_design_weights_are_set_from_the_command_line():
     assert isinstance(node, dict)
     params = WorldParams.model_validate({k: v for k, v in node.items() if k not in RESERVED_KEYS})
     assert params.design_weights == {"random_shape": 8.0}
+
+
+CAMPUS_PRESETS = ("campus_delivery", "campus_large_loop", "campus_large_loop_night", "campus_reverse_slope")
+
+
+def composed_dataset(name: str) -> dict[str, object]:
+    with initialize_config_dir(str(CONF), version_base="1.3"):
+        node = OmegaConf.to_container(compose("config", overrides=[f"dataset={name}"]).dataset, resolve=True)
+    assert isinstance(node, dict)
+    return {str(k): v for k, v in node.items()}
+
+
+@pytest.mark.parametrize("name", CAMPUS_PRESETS)
+def test_a_campus_preset_is_the_shared_base_and_what_differs(plugins, name: str):
+    node = composed_dataset(name)
+    params = plugins.registry.get("dataset", name).params_model()
+    assert node == {"name": name, **params.model_dump(mode="json")}  # the world's preset, key by key
+    assert list(node) == ["name", *type(params).model_fields]  # in the order a run's config.yaml lists them
+    own = OmegaConf.to_container(OmegaConf.load(CONF / "dataset" / f"{name}.yaml"))
+    base = OmegaConf.to_container(OmegaConf.load(CONF / "dataset" / "campus" / "base.yaml"))
+    assert isinstance(own, dict) and isinstance(base, dict)
+    assert own.pop("defaults") == ["campus/base@_here_", "_self_"] and own.pop("name") == name
+    assert {key: value for key, value in own.items() if base.get(key) == value} == {}, "a preset holds what differs"
+
+
+def test_the_campus_presets_differ_in_their_route_and_the_night_alone():
+    nodes = {name: composed_dataset(name) for name in CAMPUS_PRESETS}
+    delivery = nodes["campus_delivery"]
+    changed = {name: {k for k, v in node.items() if delivery[k] != v} for name, node in nodes.items()}
+    assert changed == {
+        "campus_delivery": set(),
+        "campus_large_loop": {"name"},
+        "campus_large_loop_night": {"name", "night"},
+        "campus_reverse_slope": {"name"},
+    }

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import difflib
 import inspect
 import json
 import re
@@ -13,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 from sgf_testing import ROOT, run_cli
 
 from sgf_pipeline import PluginError, Stage, StageRegistry, hookimpl, hookspecs, load_plugins
+from sgf_pipeline.cli.plugins import REGENERATE
 from sgf_pipeline.registry import ALLOW_ENV, BLOCK_ENV
 from sgf_pipeline.types import CameraImage, Frame
 
@@ -196,6 +198,37 @@ def test_observer_config_nodes_that_break_the_contract(watchers: list[Watcher], 
         load_plugins(extra=[(f"w{k}", w) for k, w in enumerate(watchers)])
 
 
+class Misspelt:
+    """An observer whose hook no hookspec declares (``sgf_run_started`` for ``sgf_run_start``)."""
+
+    @hookimpl
+    def sgf_run_started(self, run: object) -> None:
+        raise AssertionError("never called")
+
+
+def test_a_hook_no_hookspec_declares_fails_at_start_up_naming_plugin_and_hook():
+    with pytest.raises(PluginError) as caught:
+        load_plugins(allow=[], extra=[("misspelt", Misspelt())])
+    message = str(caught.value)
+    assert "plugin 'misspelt' implements hook 'sgf_run_started', which no hookspec declares" in message
+    assert "the hooks are: " in message and "sgf_run_start" in message
+
+
+def test_docs_configuration_is_what_sgf_plugins_generates():
+    result = run_cli("sgf-plugins", "format=markdown")
+    assert result.returncode == 0, result.stderr
+    committed = (ROOT / "docs" / "configuration.md").read_text()
+    if committed != result.stdout:
+        diff = difflib.unified_diff(
+            committed.splitlines(), result.stdout.splitlines(), "docs/configuration.md", "generated", lineterm=""
+        )
+        pytest.fail(
+            f"docs/configuration.md is not what sgf-plugins generates; regenerate it with `{REGENERATE}`:\n"
+            + "\n".join(list(diff)[:40])
+        )
+    assert "## `loop`" in committed and "| `run.keyframe_distance` | `float` |" in committed
+
+
 def test_every_hookspec_is_documented():
     specs = [m for n, m in inspect.getmembers(hookspecs.PipelineHooks, inspect.isfunction) if n.startswith("sgf_")]
     assert len(specs) >= 7
@@ -225,6 +258,7 @@ def test_import_linter_contract_holds():
     result = run_cli("lint-imports", cwd=ROOT)
     assert result.returncode == 0, result.stdout + result.stderr
     assert "The core never imports a plugin KEPT" in result.stdout
+    assert "The core's layers: each module imports only the ones below it KEPT" in result.stdout
 
 
 def test_hookimpl_marker_is_the_projects():

@@ -254,3 +254,22 @@ def test_a_keyframe_waits_for_its_path_only_so_long():
         assert seen == k + 30 and not path.complete and len(path) == 30
     # after the stop: complete again
     assert out[125][1].complete and not out[155][1].complete  # the last ones: the sequence ended
+
+
+def test_the_run_files_are_written_from_a_read_only_view_of_the_pipeline(plugins):
+    import dataclasses
+
+    from sgf_pipeline import outputs
+
+    pipeline = Pipeline.from_config(config(backend={"name": "trust_odometry"}), plugins=plugins)
+    for frame in itertools.islice(pipeline.frames(), 4):
+        pipeline.process(frame)
+    view = pipeline.view()
+    assert view.info is pipeline.info and view.context is pipeline.context and view.options is pipeline.config.run
+    assert view.dropped == pipeline.drop_report()
+    assert {name: len(t) for name, t in view.recorded.items()} == {"odometry": 4, "gt": 4}
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        view.run_dir = Path("elsewhere")  # type: ignore[misc]
+    metrics = outputs.collect_metrics(view, dict(view.recorded))
+    assert metrics["stages"] == {"dataset": "figure_eight", "backend": "trust_odometry"}
+    assert metrics["ate_rmse_m"]["odometry"] is not None and metrics["runner"] == view.dropped
