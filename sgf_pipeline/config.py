@@ -112,13 +112,26 @@ def _find_target(node: Any, path: str) -> str | None:
     return None
 
 
+def _nested_model(model: type[BaseModel], loc: tuple[int | str, ...]) -> tuple[type[BaseModel], int]:
+    """The nested parameter model that holds the field ``loc`` names, and that field's index in ``loc``."""
+    depth = 0
+    while depth < len(loc) - 1:
+        field = model.model_fields.get(str(loc[depth]))
+        annotation = field.annotation if field is not None else None
+        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+            break
+        model, depth = annotation, depth + 1
+    return model, depth
+
+
 def format_validation_error(group: str, model: type[BaseModel], error: ValidationError) -> str:
     """One line per problem: the config key, what is wrong, and the expected type."""
     lines = []
     for item in error.errors():
         loc = ".".join(str(p) for p in item["loc"])
         key = f"{group}.{loc}" if loc else group
-        field = model.model_fields.get(str(item["loc"][0])) if item["loc"] else None
+        owner, depth = _nested_model(model, item["loc"])
+        field = owner.model_fields.get(str(item["loc"][depth])) if item["loc"] else None
         expected = ""
         if field is not None and field.annotation is not None:
             ann = field.annotation
@@ -126,7 +139,7 @@ def format_validation_error(group: str, model: type[BaseModel], error: Validatio
         if item["type"] == "value_error" and not item["loc"]:  # a model's own check: its message says it all
             lines.append(f"{key}: {item['ctx']['error']}")
         elif item["type"] == "extra_forbidden":
-            known = ", ".join(model.model_fields) or "none"
+            known = ", ".join(owner.model_fields) or "none"
             lines.append(f"{key}: unknown parameter (parameters of this variant: {known})")
         else:
             lines.append(f"{key}: {item['msg']} (got {item.get('input')!r}){expected}")

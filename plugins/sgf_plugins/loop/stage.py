@@ -5,9 +5,9 @@ when the association matched a view of the same pass, the group's closest member
 pass), their point sets are aligned by 2-D ICP seeded by the relative yaw of the best column shift
 (so reverse loops converge) and by the centroids. ``GroupAssignment.yaw`` is read as the
 rotation (rad, counter-clockwise) that turns the new SGF's points about their centroid onto
-the matched SGF's; with ``seed_both_signs`` the opposite sign is tried too, so the
+the matched SGF's; with ``fit.seed_both_signs`` the opposite sign is tried too, so the
 association's sign convention does not matter (one more ICP of ~300 points, a few ms), and
-``yaw_probe_deg`` either side of each seed as well: a long, thin marking fixes its heading weakly,
+``fit.yaw_probe_deg`` either side of each seed as well: a long, thin marking fixes its heading weakly,
 ICP stops on either wall of that shallow valley, and the loop takes the middle of its stops.
 A converged alignment with a low RMS residual and a high two-way inlier ratio becomes a
 relative-pose constraint between the two frames, unless the current estimate says it cannot
@@ -34,40 +34,40 @@ Look-alike markings (the campus repeats standard ones) defeat eq. 10 and, while 
 larger than their spacing, the gate too. The association then reports the match as ambiguous with
 the tied groups as ``alternatives``; each option is put through ICP and the gate, and then
 through the neighbour consensus (:meth:`IcpLoopClosing._support`): the SGFs seen in the last
-``consensus_window`` metres, carried by the locally accurate odometry and the option's ICP pose
-into the earlier pass, must land on look-alike SGFs of that pass (with ``consensus_heading_deg``
+``consensus.window`` metres, carried by the locally accurate odometry and the option's ICP pose
+into the earlier pass, must land on look-alike SGFs of that pass (with ``consensus.heading_deg``
 set, look-alike at the heading the match predicts for them, and a neighbour that looks alike
 turned half a turn too, a bar or a disc, fixes no heading and counts
-``consensus_unoriented_weight``; off by default, see docs/measurements.md). A neighbour of a common
-design (look-alikes in more than ``consensus_common_groups`` other groups, 3 by default) counts that
+``consensus.unoriented_weight``; off by default, see docs/measurements.md). A neighbour of a common
+design (look-alikes in more than ``consensus.common_groups`` other groups, 3 by default) counts that
 limit over their number: a wrong match finds copies of a common design where it predicts them by
 chance, and at a crossing laid out like another one, several at once (it can also refuse a true
 loop whose one agreeing neighbour is common; docs/measurements.md). The one option with at
-least ``tie_support`` agreeing markings wins; none or several, and the match gives no factor.
-``min_support`` asks the same of every loop, except a match into a distinct marking: one the
-query looks like (eq. 10 within ``consensus_distance``) while no SGF of any other group comes within
-``distinct_distance`` of it. Such a marking (a custom one, painted once) vouches for itself and
-needs ``distinct_support`` agreeing neighbours (0 by default: ICP and the gate decide), so a route
+least ``consensus.tie_support`` agreeing markings wins; none or several, and the match gives no factor.
+``consensus.min_support`` asks the same of every loop, except a match into a distinct marking: one the
+query looks like (eq. 10 within ``consensus.distance``) while no SGF of any other group comes within
+``distinct.distance`` of it. Such a marking (a custom one, painted once) vouches for itself and
+needs ``distinct.support`` agreeing neighbours (0 by default: ICP and the gate decide), so a route
 that revisits one marking only (campus_delivery) can close its loop. The risk it takes is the
 second copy of a repeated design met before any third copy made it look common; the gate is what
-stands against that, and only while it predicts the match within ``distinct_gate_sigma`` metres (a
+stands against that, and only while it predicts the match within ``distinct.gate_sigma`` metres (a
 gate wider than the campus cannot). Once loops have anchored the estimate, the gate itself tells a
-design's copies apart: a match the gate predicts within ``gate_support_sigma`` metres needs no
+design's copies apart: a match the gate predicts within ``gate.support_sigma`` metres needs no
 neighbours either, unless an SGF of another group that looks like the query was seen within the
 gate's reach of the matched one and could be what the query saw: matched to it, the query would
-pass ICP and the gate too (``gate_support_alternatives``), and it is not a round marking against a
-shaped one (``gate_support_round``; :meth:`IcpLoopClosing._gate_decides`); a tie that the gate
-leaves one option of is resolved the same way. With ``consensus_wait`` (the default), a match that has too few
-agreeing neighbours so far waits while the robot drives ``consensus_window`` metres on, and the
+pass ICP and the gate too (``gate.support_alternatives``), and it is not a round marking against a
+shaped one (``gate.support_round``; :meth:`IcpLoopClosing._gate_decides`); a tie that the gate
+leaves one option of is resolved the same way. With ``consensus.wait`` (the default), a match that has too few
+agreeing neighbours so far waits while the robot drives ``consensus.window`` metres on, and the
 SGFs seen after it count too: the first marking of a revisit (a reverse one above all, entered
 from a stretch never driven before) has no neighbour behind it that both passes saw. A neighbour
 tens of metres from its sighting lies off by the odometry's drift over that path; the consensus
-tolerance grows with it, linearly (``consensus_drift``) and, for the heading bias that bends each
-pass, quadratically (``consensus_heading_bias``: by the bias the back-end's model holds).
+tolerance grows with it, linearly (``consensus.drift``) and, for the heading bias that bends each
+pass, quadratically (``consensus.heading_bias``: by the bias the back-end's model holds).
 
 A match into an aliased group (a repeated pattern: dashes, chevrons, bars) may be with the wrong
 copy, one period away, where the pattern's other copies agree with it too; it needs
-``aliased_support`` agreeing markings that do not look like the query, each within half the
+``consensus.aliased_support`` agreeing markings that do not look like the query, each within half the
 period of the copies seen around it (0: aliased groups never give loop factors). When ICP
 finds several distinct near-equal fits (a twofold symmetric shape turned by 180 degrees, a row
 laid on itself one period on), the gate must leave exactly one, else the match is
@@ -75,7 +75,7 @@ laid on itself one period on), the gate must leave exactly one, else the match i
 
 On a prior SGF map (``matched`` is a :class:`~sgf_pipeline.sgf_map.MapDescriptor`), a match is
 an inter-session constraint (``from_map``). Before the run is anchored in the map frame there is
-no prediction: the first ``map_anchor_matches`` matches of different map groups must agree with
+no prediction: the first ``map.anchor_matches`` matches of different map groups must agree with
 each other (the map-implied relative pose between their frames against the run's own estimate,
 same test); afterwards map matches are gated like loops, the map acting as one anchored node.
 """
@@ -86,12 +86,11 @@ import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
-from pydantic import Field
 
-from sgf_pipeline import Previous, RunContext, Stage, StageParams, StageRegistry, hookimpl
+from sgf_pipeline import Previous, RunContext, Stage, StageRegistry, hookimpl
 from sgf_pipeline.geometry import invert, wrap_angle, xy_yaw
 from sgf_pipeline.sgf_map import MapDescriptor
 from sgf_pipeline.types import (
@@ -114,6 +113,7 @@ from sgf_plugins.loop.consistency import (
     loop_heading_bias,
 )
 from sgf_plugins.loop.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2, se2_params
+from sgf_plugins.loop.params import GateParams, IcpLoopParams
 from sgf_plugins.odometry.anchoring import anchored_distances
 from sgf_plugins.odometry.frame_log import FrameLog
 from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, yaw_to_shift
@@ -125,247 +125,6 @@ FIT_TOLERANCE_M = 0.25
 SAME_FIT_M = 0.005
 #: Look-alike SGFs nearer each other than this (m) are one marking seen twice, not two copies of a pattern.
 COPY_MIN_SPACING_M = 0.5
-
-
-class IcpLoopParams(StageParams):
-    """Parameters of ICP loop closing, its acceptance tests and the uncertainty gate."""
-
-    metric: Literal["point_to_point", "point_to_line"] = Field(
-        "point_to_point", description="ICP error: point_to_point suits filled SGF regions, point_to_line outlines"
-    )
-    max_iterations: int = Field(100, ge=1, description="ICP iterations per round (coarse, then inliers only)")
-    max_correspondence_distance: float = Field(0.5, gt=0.0, description="pairing distance of the coarse round (m)")
-    inlier_distance: float = Field(0.1, gt=0.0, description="a point is an inlier within this distance (m)")
-    tolerance: float = Field(1e-6, gt=0.0, description="converged when an ICP step is below this (m and rad)")
-    normal_neighbours: int = Field(
-        8, ge=3, description="neighbours of the target line normals (point_to_line, ICP covariance)"
-    )
-    min_points: int = Field(20, ge=3, description="fewer SGF points than this on either side: no ICP")
-    max_fitness: float = Field(0.03, gt=0.0, description="reject when the RMS inlier residual exceeds this (m)")
-    min_inlier_ratio: float = Field(
-        0.85, gt=0.0, le=1.0, description="reject when fewer points of either set have a partner within inlier_distance"
-    )
-    degenerate_sigma: float = Field(
-        0.05,
-        gt=0.0,
-        description="reject when ICP's Hessian leaves a direction this uncertain (m or rad): a bar, a line",
-    )
-    seed_both_signs: bool = Field(
-        True, description="also seed ICP with the negated column-shift yaw (robust to the shift's sign convention)"
-    )
-    extra_yaw_seeds: int = Field(
-        1, ge=0, le=16, description="further seeds evenly spaced in yaw around the first (1: its half-turn alternative)"
-    )
-    yaw_probe_deg: float = Field(
-        5.0,
-        ge=0.0,
-        le=30.0,
-        description="ICP is also seeded this far (deg) either side of each yaw seed; what it finds there only refines "
-        "the seeds' own fits (the middle of a shallow valley in yaw, and its width in the covariance) (0: off)",
-    )
-    max_fit_spread_deg: float | None = Field(
-        10.0,
-        gt=0.0,
-        description="ICP fits of one alignment (within FIT_TOLERANCE_M of each other on the marking) further apart "
-        "in yaw than this: the marking fixes its place but not its heading, no factor (null: their mean, any spread)",
-    )
-    ambiguity_ratio: float = Field(
-        1.25,
-        ge=1.0,
-        description="seeds within this factor of the best RMS are ambiguous; the one nearest the prediction wins",
-    )
-    min_separation_frames: int = Field(0, ge=0, description="the matched SGF must be at least this many frames earlier")
-    min_separation_time: float = Field(0.0, ge=0.0, description="...and this many seconds earlier")
-    min_separation_distance: float = Field(10.0, ge=0.0, description="...and this far back along the odometry path (m)")
-    covariance_floor_xy: float = Field(0.025, gt=0.0, description="added to ICP's translation sigma (m): IPM, sampling")
-    covariance_floor_yaw_deg: float = Field(1.5, gt=0.0, description="added to ICP's yaw sigma (deg)")
-    covariance_range_xy: float = Field(
-        0.0052,
-        ge=0.0,
-        description="added translation sigma per axis (m) per squared metre of each view's range from the robot: "
-        "the BEV's ground error grows as the square of the distance (0 = the floor alone)",
-    )
-    gate: bool = Field(True, description="chi-square test of the ICP pose against the estimate's prediction")
-    gate_probability: float = Field(0.999, gt=0.0, lt=1.0, description="chi-square (3 dof) acceptance probability")
-    gate_floor_xy: float = Field(0.5, gt=0.0, description="prediction sigma when freshly anchored (m)")
-    gate_floor_yaw_deg: float = Field(3.0, gt=0.0, description="prediction sigma when freshly anchored (deg)")
-    gate_sigma_xy: float = Field(0.05, ge=0.0, description="translation random walk of the drift (m per sqrt(m))")
-    gate_sigma_yaw_deg: float = Field(
-        0.1,
-        ge=0.0,
-        description="heading random walk of the drift (deg per sqrt(m)); the campus robot's odometry, with margin "
-        "(a robot whose heading wanders more sets its own)",
-    )
-    gate_scale_error: float = Field(0.02, ge=0.0, description="odometry scale error (fraction of distance)")
-    gate_bias_from_backend: bool = Field(
-        True,
-        description="the gate counts the heading bias as the back-end's model holds it (the uncertainty left where "
-        "it corrects the odometry, the measured bias elsewhere); false = the bias wheel odometry is expected to have",
-    )
-    gate_bridged_bias: bool = Field(
-        True,
-        description="a matched frame between the two frames of an absorbed loop has had the heading bias taken off "
-        "by the pose graph: the gate's bias term counts only the drive since the newest absorbed loop",
-    )
-    consensus_window: float = Field(
-        60.0, gt=0.0, description="m of travel: SGFs seen this far around each sighting are its neighbours"
-    )
-    consensus_radius: float = Field(
-        0.75, gt=0.0, description="a neighbour agrees when the match puts it this close (m) to an earlier SGF..."
-    )
-    consensus_drift: float = Field(
-        0.02, ge=0.0, description="...plus this much per metre travelled from either sighting (local odometry drift)"
-    )
-    consensus_heading_bias: bool = Field(
-        True,
-        description="...plus the odometry's heading bias (the back-end's model): 0.5 * bias * L**2 per sighting "
-        "L m away",
-    )
-    consensus_exclude: float = Field(
-        2.0, ge=0.0, description="neighbours this close (m) to the matched SGF are the same marking, not evidence"
-    )
-    consensus_distance: float = Field(
-        0.15, gt=0.0, le=1.0, description="...and look like it: eq. 10 distance at most this"
-    )
-    consensus_heading_deg: float | None = Field(
-        None,
-        gt=0.0,
-        le=180.0,
-        description="a neighbour agrees only when it looks alike at the heading the match predicts for it, within "
-        "this (deg); null: at any heading (rotation-invariant eq. 10)",
-    )
-    consensus_unoriented_weight: float = Field(
-        0.5,
-        ge=0.0,
-        le=1.0,
-        description="a neighbour that looks alike at the opposite heading too (a bar, a disc) fixes no heading: it "
-        "counts this much of an agreeing marking",
-    )
-    consensus_common_groups: int | None = Field(
-        3,
-        ge=1,
-        description="a neighbour whose design has look-alikes (eq. 10 at most consensus_distance) in more than this "
-        "many other groups is common: it counts this many over their number, since a wrong match finds one of its "
-        "copies where it predicts by chance (null = every neighbour counts fully)",
-    )
-    tie_support: int = Field(
-        1,
-        ge=0,
-        description="look-alike groups tied by eq. 10: the one match with at least this many agreeing neighbours "
-        "wins (0 = tied matches never give loop factors)",
-    )
-    min_support: int = Field(1, ge=0, description="agreeing neighbours every loop needs (0 = ICP and the gate only)")
-    distinct_support: int | None = Field(
-        0,
-        ge=0,
-        description="agreeing neighbours a loop into a distinct marking needs: one the query looks like (eq. 10 at "
-        "most consensus_distance) and that no SGF of another group looks like (all farther than distinct_distance); "
-        "null = min_support",
-    )
-    distinct_gate_sigma: float | None = Field(
-        50.0,
-        gt=0.0,
-        description="m: a distinct marking vouches for itself only while the gate predicts the match this tightly "
-        "(a wider gate cannot tell a copy never seen from the marking; null: at any sigma)",
-    )
-    distinct_distance: float = Field(
-        0.15, ge=0.0, le=1.0, description="eq. 10: an SGF of another group this close makes a marking not distinct"
-    )
-    distinct_ratio: float | None = Field(
-        None,
-        gt=1.0,
-        description="...unless it is this many times farther (eq. 10) than the match and farther than "
-        "distinct_floor: the query is far more like its match than like anything else seen (null: off)",
-    )
-    distinct_floor: float = Field(
-        0.05, ge=0.0, le=1.0, description="eq. 10: an SGF of another group this close always makes a marking common"
-    )
-    gate_support_sigma: float | None = Field(
-        5.0,
-        gt=0.0,
-        description="a match the gate predicts within this position sigma (m) needs no agreeing neighbours, unless an "
-        "SGF of another group that looks like the query (eq. 10 at most consensus_distance) was seen within the "
-        "gate's reach of the matched one: ICP and the gate decide (null = min_support always)",
-    )
-    gate_support_alternatives: bool = Field(
-        True,
-        description="a look-alike within the gate's reach stands against the match only when the query matched to "
-        "it would pass ICP and the gate too; false: any SGF alike by eq. 10 within the reach does",
-    )
-    gate_support_round: bool = Field(
-        True,
-        description="a look-alike in a symmetric group (a round manhole) never stands against a match into a "
-        "shaped group",
-    )
-    symmetric_loops: bool = Field(
-        True,
-        description="a match into a symmetric group (a round manhole, whose heading cannot be read) gives a "
-        "position-only loop: where the marking's centre lies from both poses, the turn left free; closed only when "
-        "the gate alone decides (gate_support_sigma); false = no factor",
-    )
-    position_only_yaw_sigma_deg: float = Field(
-        90.0, gt=0.0, description="a position-only loop's sigma of the turn about its marking (deg): nearly free"
-    )
-    consensus_wait: bool = Field(
-        True,
-        description="a match short of agreeing neighbours waits while the robot drives consensus_window metres on: "
-        "SGFs seen after it count too (false = decide on the SGFs seen before it)",
-    )
-    consistency_threshold: float | None = Field(
-        3.0,
-        gt=0.0,
-        description="at the end of the run, accepted loops outside the largest set whose pairwise cycles through "
-        "the odometry (the heading bias the loops measure taken off) agree within this (position error over 1 m + "
-        "5 % of the path between their ends) are listed in metrics.json as loops.consistency and, with "
-        "drop_inconsistent, taken back (null: no test)",
-    )
-    consistency_yaw_bias_sigma_deg_per_m: float = Field(
-        0.5,
-        gt=0.0,
-        description="the test's estimate of the odometry's heading bias, as the back-end's: its prior sigma "
-        "(deg per metre; the config takes backend.odometry_yaw_bias_sigma_deg_per_m)",
-    )
-    consistency_yaw_bias_reading_sigma_deg_per_m: float = Field(
-        0.1,
-        gt=0.0,
-        description="...the bias odometry is expected to have, which chooses between readings of the loops' turns "
-        "(the config takes backend.odometry_yaw_bias_reading_sigma_deg_per_m)",
-    )
-    consistency_odometry_sigma_yaw_deg: float = Field(
-        0.5,
-        gt=0.0,
-        description="...the odometry's heading sigma over one metre (the config takes backend.odometry_sigma_yaw_deg)",
-    )
-    consistency_kernel_width: float = Field(
-        3.0,
-        gt=0.0,
-        description="...and its Cauchy kernel width in sigmas (the config takes backend.loop_kernel_width)",
-    )
-    drop_inconsistent: bool = Field(
-        True,
-        description="take the loops outside the largest consistent set back out of the estimate before the "
-        "association's split and merge at the end (and the final pass's, before the last optimisation; "
-        "false: only list them)",
-    )
-    final_pass: bool = Field(
-        True,
-        description="at the end of the run, match once more the members of each final SGF group (after the "
-        "association's split and merge) from two drive-bys that no loop joins yet, against the final estimate; "
-        "a match is closed when ICP passes and the gate alone decides it (gate_support_sigma)",
-    )
-    aliased_support: int = Field(
-        2,
-        ge=0,
-        description="a match into an aliased group (a repeated pattern) needs this many agreeing neighbours that do "
-        "not look like the query, so that no copy of the pattern vouches for another, each within half the pattern's "
-        "period (0 = aliased groups never give loop factors)",
-    )
-    map_anchor_matches: int = Field(
-        2, ge=1, description="consistent map matches (different groups) needed before a run is placed in the map"
-    )
-    map_pending: int = Field(16, ge=1, description="unconfirmed map matches kept while waiting for the anchor")
-    truth_tolerance_xy: float = Field(0.5, gt=0.0, description="a loop off the ground truth by more (m) is false")
-    truth_tolerance_yaw_deg: float = Field(5.0, gt=0.0, description="...or by more than this (deg)")
 
 
 @dataclass(frozen=True)
@@ -391,7 +150,7 @@ class _Candidate:
 
 @dataclass(frozen=True)
 class _Waiting:
-    """A match that passed ICP and the gate and waits for agreeing neighbours (``consensus_wait``).
+    """A match that passed ICP and the gate and waits for agreeing neighbours (``consensus.wait``).
 
     ``options`` are the candidates of the match (one, or the look-alikes of a tie that passed);
     the one with ``need`` agreeing neighbours wins. ``refused`` names the count of a match that
@@ -407,7 +166,7 @@ class _Waiting:
 
 
 def drift_covariance(
-    distance: float, p: IcpLoopParams, yaw_bias: float = EXPECTED_YAW_BIAS, bias_distance: float | None = None
+    distance: float, p: GateParams, yaw_bias: float = EXPECTED_YAW_BIAS, bias_distance: float | None = None
 ) -> np.ndarray:
     """Covariance (x, y, yaw) of a relative pose predicted across ``distance`` metres since the last anchor.
 
@@ -415,17 +174,13 @@ def drift_covariance(
     ``bias_distance``: the part of ``distance`` the heading bias acts on (default: all of it).
     """
     d = max(distance, 0.0)
-    s_yaw = math.radians(p.gate_sigma_yaw_deg)
+    s_yaw = math.radians(p.sigma_yaw_deg)
     bias = abs(yaw_bias)
     b = d if bias_distance is None else min(max(bias_distance, 0.0), d)
     var_xy = (
-        p.gate_floor_xy**2
-        + (p.gate_scale_error * d) ** 2
-        + p.gate_sigma_xy**2 * d
-        + s_yaw**2 * d**3 / 3.0
-        + (0.5 * bias * b**2) ** 2
+        p.floor_xy**2 + (p.scale_error * d) ** 2 + p.sigma_xy**2 * d + s_yaw**2 * d**3 / 3.0 + (0.5 * bias * b**2) ** 2
     )
-    var_yaw = math.radians(p.gate_floor_yaw_deg) ** 2 + s_yaw**2 * d + (bias * b) ** 2
+    var_yaw = math.radians(p.floor_yaw_deg) ** 2 + s_yaw**2 * d + (bias * b) ** 2
     return np.diag([var_xy, var_xy, var_yaw])
 
 
@@ -452,16 +207,16 @@ class IcpLoopClosing(Stage):
         super().__init__(params)
         self.p = params
         self.settings = IcpSettings(
-            metric=params.metric,
-            max_iterations=params.max_iterations,
-            max_correspondence_distance=params.max_correspondence_distance,
-            inlier_distance=params.inlier_distance,
-            tolerance=params.tolerance,
-            normal_neighbours=params.normal_neighbours,
+            metric=params.icp.metric,
+            max_iterations=params.icp.max_iterations,
+            max_correspondence_distance=params.icp.max_correspondence_distance,
+            inlier_distance=params.icp.inlier_distance,
+            tolerance=params.icp.tolerance,
+            normal_neighbours=params.icp.normal_neighbours,
         )
         from scipy.stats import chi2  # imported here: scipy.stats takes seconds to import
 
-        self.threshold = float(chi2.ppf(params.gate_probability, df=3))
+        self.threshold = float(chi2.ppf(params.gate.probability, df=3))
         self.begin(RunContext(run_dir=None))
 
     def begin(self, context: RunContext) -> None:
@@ -550,7 +305,7 @@ class IcpLoopClosing(Stage):
             return []
         self.counts["candidates"] += 1
         if a.symmetric:
-            if not self.p.symmetric_loops:
+            if not self.p.symmetric.position_only:
                 self._refuse(a, "symmetric")
                 return []
             return self._close_position_only(a, estimate)
@@ -559,14 +314,14 @@ class IcpLoopClosing(Stage):
         a, candidate = self._evaluate_or_earlier(a, estimate)
         if candidate is None:
             return []
-        need, basis = self.p.min_support, ""
+        need, basis = self.p.consensus.min_support, ""
         if (
-            self.p.distinct_support is not None
-            and need > self.p.distinct_support
+            self.p.distinct.support is not None
+            and need > self.p.distinct.support
             and self._gate_bounds_distinct(candidate)
             and self._distinct(a)
         ):
-            need, basis = self.p.distinct_support, "distinct"
+            need, basis = self.p.distinct.support, "distinct"
             self.distinct += 1
         if need > 0 and candidate.map_pose is None and self._gate_decides(a, candidate, estimate):
             need, basis = 0, "the gate decides"
@@ -591,10 +346,10 @@ class IcpLoopClosing(Stage):
         return a, candidate
 
     def _close_position_only(self, a: GroupAssignment, estimate: PoseEstimate | None) -> list[LoopConstraint]:
-        """A match into a symmetric group (``symmetric_loops``): a position-only loop when the gate alone decides.
+        """A match into a symmetric group: a position-only loop when the gate alone decides (``symmetric``).
 
         Round markings are the campus's most repeated design, so no neighbour vouches for one: the
-        gate must predict the match tightly (``gate_support_sigma``) with no look-alike seen within
+        gate must predict the match tightly (``gate.support_sigma``) with no look-alike seen within
         its reach. Such loops are not matched against a prior map, whose anchoring needs a heading.
         """
         if isinstance(a.matched, MapDescriptor):
@@ -614,35 +369,35 @@ class IcpLoopClosing(Stage):
         return self._accept(candidate, estimate, "position only: the gate decides")
 
     def _gate_bounds_distinct(self, candidate: _Candidate) -> bool:
-        """Whether the gate is tight enough for a distinct marking to vouch for itself (``distinct_gate_sigma``).
+        """Whether the gate is tight enough for a distinct marking to vouch for itself (``distinct.gate_sigma``).
 
         "Distinct" means no copy was *seen*; a gate wider than the campus cannot tell a copy never
         seen from the marking itself, so a match there needs its neighbours like any other.
         """
-        limit, gate = self.p.distinct_gate_sigma, candidate.gate
+        limit, gate = self.p.distinct.gate_sigma, candidate.gate
         return limit is None or candidate.map_pose is not None or (gate is not None and gate.sigma_xy <= limit)
 
     def _gate_decides(self, a: GroupAssignment, candidate: _Candidate, estimate: PoseEstimate | None) -> bool:
-        """Whether the gate alone tells this match from every look-alike seen so far (``gate_support_sigma``).
+        """Whether the gate alone tells this match from every look-alike seen so far (``gate.support_sigma``).
 
         The neighbour consensus exists because the drift can be larger than the spacing of a design's
         copies. Once loops have anchored the estimate, the gate predicts the query's place within
         ``sigma`` metres: a copy farther from the matched SGF than the gate's reach
-        (``sqrt(chi2 threshold) * sigma``, plus ``consensus_exclude`` for the markings' extent) would
+        (``sqrt(chi2 threshold) * sigma``, plus ``consensus.exclude`` for the markings' extent) would
         have failed it. So the match needs no neighbours when
         no SGF of another group that looks like the query lies within that reach of the matched SGF
         (positions in the current estimate). A copy never seen is the risk left, as for a distinct marking.
         """
-        limit, gate = self.p.gate_support_sigma, candidate.gate
-        if not self.p.gate or limit is None or gate is None or not (gate.sigma_xy <= limit):
+        limit, gate = self.p.gate.support_sigma, candidate.gate
+        if not self.p.gate.enabled or limit is None or gate is None or not (gate.sigma_xy <= limit):
             sigma = "none" if gate is None else f"{gate.sigma_xy:.2f} m"
             self._gate_refusal = f"the gate's sigma ({sigma}) above gate_support_sigma ({limit})"
             return False
         assert a.matched is not None
         others, distances = self._other_groups_distances(np.asarray(a.descriptor.matrix), a.group_id)
-        alike = others[distances <= self.p.consensus_distance]
+        alike = others[distances <= self.p.consensus.distance]
         query_frame, query_centroid = a.descriptor.sgf.frame_index, np.asarray(a.descriptor.centroid)[:2]
-        reach = math.sqrt(self.threshold) * gate.sigma_xy + self.p.consensus_exclude
+        reach = math.sqrt(self.threshold) * gate.sigma_xy + self.p.consensus.exclude
         matched = self._estimate_xy(a.matched.sgf.frame_index, np.asarray(a.matched.centroid), estimate)
         for k in alike:
             if self._sgf_frame[k] == query_frame and np.allclose(self._sgf_centroid[k], query_centroid):
@@ -660,16 +415,16 @@ class IcpLoopClosing(Stage):
     def _stands_against(self, a: GroupAssignment, k: int, estimate: PoseEstimate | None) -> bool:
         """Whether remembered SGF ``k``, a look-alike within the gate's reach, could be what the query saw.
 
-        With ``gate_support_round``, a look-alike the association holds in a symmetric group (a round
+        With ``gate.support_round``, a look-alike the association holds in a symmetric group (a round
         manhole, alike to a compact shape by eq. 10) cannot be a shaped marking's. With
-        ``gate_support_alternatives``, the query matched to the look-alike is put through ICP and
+        ``gate.support_alternatives``, the query matched to the look-alike is put through ICP and
         the gate as a loop would be: a look-alike whose shape ICP refuses, or that the gate refuses
         where the estimate puts it, is told apart already. A look-alike it cannot test (seen on the
         query's own pass, too few points) stands against the match.
         """
-        if self.p.gate_support_round and self._sgf_symmetric[k] and not a.symmetric:
+        if self.p.gate.support_round and self._sgf_symmetric[k] and not a.symmetric:
             return False
-        if not self.p.gate_support_alternatives:
+        if not self.p.gate.support_alternatives:
             return True
         other = self._sgf_descriptor[k]
         if other.sgf.frame_index < a.descriptor.sgf.frame_index:
@@ -693,22 +448,22 @@ class IcpLoopClosing(Stage):
         The campus repeats standard markings; a marking whose copies have been seen elsewhere has
         them in other groups (the spatial gate keeps them apart), so its matches need neighbours
         that agree. A marking that looks like nothing else seen (a custom one, painted once) is
-        its own evidence; so, with ``distinct_ratio`` set, is one far more like its match than like
+        its own evidence; so, with ``distinct.ratio`` set, is one far more like its match than like
         any SGF of another group (that many times: a ratio test; false pairs measured at most 1.2).
         The first copy of a repeated design met twice is the risk this takes.
         """
         assert a.matched is not None
         query = np.asarray(a.descriptor.matrix)
         match = float(shifted_distances(query, np.asarray(a.matched.matrix)).min())
-        if match > self.p.consensus_distance:
+        if match > self.p.consensus.distance:
             return False
         _, alike = self._other_groups_distances(query, a.group_id)
         if not len(alike):
             return False
-        nearest, ratio = float(alike.min()), self.p.distinct_ratio
-        if nearest > self.p.distinct_distance:
+        nearest, ratio = float(alike.min()), self.p.distinct.ratio
+        if nearest > self.p.distinct.distance:
             return True
-        return ratio is not None and nearest > self.p.distinct_floor and nearest >= ratio * match
+        return ratio is not None and nearest > self.p.distinct.floor and nearest >= ratio * match
 
     def _other_groups_distances(self, matrix: np.ndarray, group_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Every SGF seen so far outside ``group_id`` (its index), and eq. 10 of ``matrix`` to it (best shift)."""
@@ -727,14 +482,16 @@ class IcpLoopClosing(Stage):
         if any(isinstance(o.matched, MapDescriptor) for o in options):
             self._refuse(a, "ambiguous", detail="tie with a map group")
             return []
-        if a.aliased and not a.alternatives and self.p.aliased_support > 0:
+        if a.aliased and not a.alternatives and self.p.consensus.aliased_support > 0:
             # a repeated pattern: only markings unlike the query may vouch for which copy it is
             candidate = self._evaluate(a, estimate)
             if isinstance(candidate, str):
                 self._refuse(a, "ambiguous", detail=f"aliased: {self._failure(candidate)}")
                 return []
-            return self._consensus(((a, candidate),), self.p.aliased_support, True, "ambiguous", "aliases", estimate)
-        if a.aliased or not a.alternatives or self.p.tie_support == 0:
+            return self._consensus(
+                ((a, candidate),), self.p.consensus.aliased_support, True, "ambiguous", "aliases", estimate
+            )
+        if a.aliased or not a.alternatives or self.p.consensus.tie_support == 0:
             why = "aliased" if a.aliased else "tie with an aliased group" if not a.alternatives else "tie_support 0"
             self._refuse(a, "ambiguous", detail=why)
             return []
@@ -752,7 +509,7 @@ class IcpLoopClosing(Stage):
             self.gate_decided += 1
             self.ties_resolved += 1
             return self._accept(passed[0][1], estimate, "the gate decides the tie")
-        need = max(self.p.tie_support, self.p.min_support)
+        need = max(self.p.consensus.tie_support, self.p.consensus.min_support)
         return self._consensus(tuple(passed), need, False, "ambiguous", "ties", estimate)
 
     # -- waiting for the neighbour consensus --------------------------------------------------
@@ -766,10 +523,10 @@ class IcpLoopClosing(Stage):
         resolved: str | None,
         estimate: PoseEstimate | None,
     ) -> list[LoopConstraint]:
-        """Settle a match by its neighbours now, or let it wait for the SGFs of the next ``consensus_window`` metres."""
+        """Settle a match by its neighbours now, or let it wait for the SGFs of the next ``consensus.window`` metres."""
         distance = self.frames.distance(options[0][0].descriptor.sgf.frame_index)
         waiting = _Waiting(options, need, unlike, refused, resolved, distance)
-        out = self._settle(waiting, estimate, final=not self.p.consensus_wait)
+        out = self._settle(waiting, estimate, final=not self.p.consensus.wait)
         if out is None:
             self.waiting.append(waiting)
             return []
@@ -796,14 +553,14 @@ class IcpLoopClosing(Stage):
     ) -> list[LoopConstraint]:
         """Re-test waiting matches (all, or ``waiting`` taken out of the list) with the SGFs seen since.
 
-        Those the robot has driven ``consensus_window`` past expire; the unsettled go back on the list.
+        Those the robot has driven ``consensus.window`` past expire; the unsettled go back on the list.
         """
         if waiting is None:
             waiting, self.waiting = self.waiting, []
         here = self.frames.travelled
         out: list[LoopConstraint] = []
         for w in waiting:
-            expired = here - w.distance > self.p.consensus_window
+            expired = here - w.distance > self.p.consensus.window
             settled = self._settle(w, estimate, final=expired) if new_sgfs or expired else None
             if settled is None:
                 self.waiting.append(w)
@@ -824,9 +581,9 @@ class IcpLoopClosing(Stage):
             self._known(i)
             if not self._separated(i, j):
                 return "separation"
-        if min(len(query.points), len(matched.points)) < self.p.min_points:
+        if min(len(query.points), len(matched.points)) < self.p.icp.min_points:
             return "too_few_points"
-        position_only = a.symmetric and self.p.symmetric_loops
+        position_only = a.symmetric and self.p.symmetric.position_only
         results, probed = self._align(a, position_only)
         if not results:
             return "icp"
@@ -853,7 +610,7 @@ class IcpLoopClosing(Stage):
         if predicted is not None:
             chi2 = [self._gate_chi2(a, r, from_map, predicted, turn) for r in fits]
             self._reading = _GateReading(distance, math.sqrt(predicted[1][0, 0]), min(chi2))
-        if predicted is None or not self.p.gate:
+        if predicted is None or not self.p.gate.enabled:
             best = self._select(fits, predicted)
         else:
             # several distinct fits (a twofold symmetric shape, a row one period on): the gate must pick one
@@ -866,12 +623,12 @@ class IcpLoopClosing(Stage):
 
     def _separated(self, i: int, j: int) -> bool:
         """Whether frame ``i`` is far enough before frame ``j`` (frames, time, path) to be another pass."""
-        p = self.p
+        p = self.p.separation
         return (
             i < j
-            and j - i >= p.min_separation_frames
-            and self.frames.time(j) - self.frames.time(i) >= p.min_separation_time
-            and self.frames.distance(j) - self.frames.distance(i) >= p.min_separation_distance
+            and j - i >= p.min_frames
+            and self.frames.time(j) - self.frames.time(i) >= p.min_time
+            and self.frames.distance(j) - self.frames.distance(i) >= p.min_distance
         )
 
     def _earlier_member(self, a: GroupAssignment) -> GroupAssignment | None:
@@ -980,26 +737,26 @@ class IcpLoopClosing(Stage):
         """How many other markings near the query agree with the match: seen where it puts them, and alike.
 
         The match says the query's frame sits at ``c.relative`` in the matched frame; odometry is
-        accurate over tens of metres, so it carries the SGFs seen within ``consensus_window`` before
-        the query (and after it so far, with ``consensus_wait``) into the earlier pass's odometry
+        accurate over tens of metres, so it carries the SGFs seen within ``consensus.window`` before
+        the query (and after it so far, with ``consensus.wait``) into the earlier pass's odometry
         frame. A neighbour agrees when an SGF of the earlier pass (within the window around the
-        matched SGF, and at least ``min_separation_distance`` of path before the neighbour) lies
-        within ``consensus_radius + consensus_drift * (path from the two sightings)`` of it (with
-        ``consensus_heading_bias``, plus ``0.5 * bias * L**2`` for each sighting ``L`` m away:
+        matched SGF, and at least ``separation.min_distance`` of path before the neighbour) lies
+        within ``consensus.radius + consensus.drift * (path from the two sightings)`` of it (with
+        ``consensus.heading_bias``, plus ``0.5 * bias * L**2`` for each sighting ``L`` m away:
         a heading bias bends each pass's odometry; the bias the back-end's model holds) and looks
-        like it (eq. 10 distance at most ``consensus_distance``); with ``consensus_heading_deg`` set,
+        like it (eq. 10 distance at most ``consensus.distance``); with ``consensus.heading_deg`` set,
         at the heading the match predicts for it, within that many degrees, and a neighbour that
         looks alike at the opposite heading too (a bar, a disc) confirms the position but not the
-        heading, and counts ``consensus_unoriented_weight``. Agreeing neighbours closer than
-        ``consensus_exclude`` to each other, or to the query, are one marking; the count is of
+        heading, and counts ``consensus.unoriented_weight``. Agreeing neighbours closer than
+        ``consensus.exclude`` to each other, or to the query, are one marking; the count is of
         markings. A look-alike marking elsewhere on campus has other neighbours, so its match finds
         none. With ``unlike``, neighbours that look like the query (eq. 10 distance at most
-        ``consensus_distance``) do not count: in a repeated pattern they are its other copies, which
+        ``consensus.distance``) do not count: in a repeated pattern they are its other copies, which
         agree with a match shifted by a period; and the tolerance is capped at half the pattern's
         period (:meth:`_copy_spacing`), since a neighbour allowed more would agree with the match
         one period off too. A neighbour's weight is scaled by :meth:`_rarity`.
         """
-        p = self.p
+        p = self.p.consensus
         assert a.matched is not None
         query, matched = a.descriptor, a.matched
         odo_j = np.asarray(query.sgf.odometry, dtype=np.float64)
@@ -1011,11 +768,9 @@ class IcpLoopClosing(Stage):
         headings = np.asarray(self._sgf_yaw)
         d_j, d_i = self.frames.distance(query.sgf.frame_index), self.frames.distance(matched.sgf.frame_index)
         q_xy, m_xy = _odometry_xy(query), _odometry_xy(matched)
-        near_query = (dist >= d_j - p.consensus_window) & (
-            dist <= d_j + (p.consensus_window if p.consensus_wait else 0.0)
-        )
-        near_query &= np.hypot(*(xy - q_xy).T) > p.consensus_exclude
-        near_match = (np.abs(dist - d_i) <= p.consensus_window) & (np.hypot(*(xy - m_xy).T) > p.consensus_exclude)
+        near_query = (dist >= d_j - p.window) & (dist <= d_j + (p.window if p.wait else 0.0))
+        near_query &= np.hypot(*(xy - q_xy).T) > p.exclude
+        near_match = (np.abs(dist - d_i) <= p.window) & (np.hypot(*(xy - m_xy).T) > p.exclude)
         earlier = np.flatnonzero(near_match)
         if not len(earlier):
             return 0.0
@@ -1023,33 +778,31 @@ class IcpLoopClosing(Stage):
         neighbours = np.flatnonzero(near_query)
         if unlike and len(neighbours):
             alike = shifted_distances(query.matrix, np.stack([self._sgf_matrix[k] for k in neighbours])).min(axis=1)
-            neighbours = neighbours[alike > p.consensus_distance]
+            neighbours = neighbours[alike > p.distance]
         far = np.abs(dist[earlier] - d_i)  # path from the matched sighting to each earlier SGF
-        bias = uncorrected_yaw_bias(self._estimate) if p.consensus_heading_bias else None
+        bias = uncorrected_yaw_bias(self._estimate) if p.heading_bias else None
         cap = 0.5 * self._copy_spacing(a) if unlike else math.inf
         for k in neighbours:
             here = rot @ xy[k] + (x, y)
             near = abs(d_j - dist[k])
-            tolerance = p.consensus_radius + p.consensus_drift * (near + far)
+            tolerance = p.radius + p.drift * (near + far)
             if bias is not None:  # a heading bias bends each pass by 0.5 b L^2
                 tolerance = tolerance + 0.5 * bias * (near**2 + far**2)
             tolerance = np.minimum(tolerance, cap)
             close = earlier[
                 (np.hypot(*(xy[earlier] - here).T) <= tolerance)
-                & (dist[earlier] <= dist[k] - p.min_separation_distance)
+                & (dist[earlier] <= dist[k] - self.p.separation.min_distance)
             ]
             if not len(close):
                 continue
             profiles = shifted_distances(self._sgf_matrix[k], np.stack([self._sgf_matrix[m] for m in close]))
             # the neighbour's heading in each earlier SGF's frame, as the match predicts it (eq. 10's shift convention)
             predicted = headings[k] + yaw - headings[close]
-            weight = _agreement(
-                profiles, predicted, p.consensus_distance, p.consensus_heading_deg, p.consensus_unoriented_weight
-            )
+            weight = _agreement(profiles, predicted, p.distance, p.heading_deg, p.unoriented_weight)
             if weight <= 0.0:
                 continue
             weight *= self._rarity(int(k))
-            same = [n for n, (g, _) in enumerate(agreeing) if np.hypot(*(xy[k] - g)) <= p.consensus_exclude]
+            same = [n for n, (g, _) in enumerate(agreeing) if np.hypot(*(xy[k] - g)) <= p.exclude]
             if same:
                 agreeing[same[0]] = (agreeing[same[0]][0], max(agreeing[same[0]][1], weight))
             else:
@@ -1060,21 +813,21 @@ class IcpLoopClosing(Stage):
         """The period of a repeated pattern: the nearest copy of the query's design seen around either sighting.
 
         Copies are SGFs of other groups that look like the query (eq. 10 at most
-        ``consensus_distance``), seen within ``consensus_window`` of path of the matched SGF or of
+        ``consensus.distance``), seen within ``consensus.window`` of path of the matched SGF or of
         the query, and farther than ``COPY_MIN_SPACING_M`` from it (nearer is the same marking seen
         again); distances in that pass's odometry frame, exact over such short paths. Infinite when
         no copy was seen.
         """
         assert a.matched is not None
         others, distances = self._other_groups_distances(np.asarray(a.descriptor.matrix), a.group_id)
-        copies = others[distances <= self.p.consensus_distance]
+        copies = others[distances <= self.p.consensus.distance]
         if not len(copies):
             return math.inf
         xy = np.asarray(self._sgf_xy)[copies]
         travelled = np.asarray(self._sgf_distance)[copies]
         spacing = math.inf
         for sighting in (a.matched, a.descriptor):
-            around = np.abs(travelled - self.frames.distance(sighting.sgf.frame_index)) <= self.p.consensus_window
+            around = np.abs(travelled - self.frames.distance(sighting.sgf.frame_index)) <= self.p.consensus.window
             gaps = np.hypot(*(xy[around] - _odometry_xy(sighting)).T)
             gaps = gaps[gaps > COPY_MIN_SPACING_M]
             if len(gaps):
@@ -1082,18 +835,18 @@ class IcpLoopClosing(Stage):
         return spacing
 
     def _rarity(self, k: int) -> float:
-        """How much an agreeing neighbour (SGF ``k``) counts for its design's commonness (``consensus_common_groups``).
+        """How much an agreeing neighbour (SGF ``k``) counts for its design's commonness (``consensus.common_groups``).
 
         A design with copies in many groups (a standard arrow, a crossing) is found near any place a
         wrong match predicts with some chance; a rare one is evidence. Counted by groups, not SGFs,
         since one marking seen from several frames is one group.
         """
-        limit = self.p.consensus_common_groups
+        limit = self.p.consensus.common_groups
         if limit is None:
             return 1.0
         others, distances = self._other_groups_distances(self._sgf_matrix[k], self._sgf_group[k])
         groups = np.asarray(self._sgf_group, dtype=np.int64)[others]
-        common = len(set(groups[distances <= self.p.consensus_distance].tolist()))
+        common = len(set(groups[distances <= self.p.consensus.distance].tolist()))
         return min(1.0, limit / common) if common else 1.0
 
     # -- ICP --------------------------------------------------------------------------------
@@ -1106,9 +859,9 @@ class IcpLoopClosing(Stage):
         assert a.matched is not None
         query, matched = a.descriptor, a.matched
         yaws = [float(a.yaw)]
-        if self.p.seed_both_signs:
+        if self.p.fit.seed_both_signs:
             yaws.append(-float(a.yaw))
-        n = self.p.extra_yaw_seeds
+        n = self.p.fit.extra_yaw_seeds
         yaws += [float(a.yaw) + 2.0 * math.pi * (k + 1) / (n + 1) for k in range(n)]
         seeds = _distinct_yaws(yaws, [])
         icp = Icp2d(np.asarray(matched.points, dtype=np.float64), self.settings)
@@ -1122,7 +875,7 @@ class IcpLoopClosing(Stage):
         if not good:
             self._icp_detail = self._failed_fit(tried)
             return [], []
-        probe = math.radians(self.p.yaw_probe_deg)
+        probe = math.radians(self.p.fit.yaw_probe_deg)
         if probe == 0.0 or position_only:
             return good, []
         # probes only refine the seeds' fits: without one to refine they are not run
@@ -1136,9 +889,9 @@ class IcpLoopClosing(Stage):
         """
         return (
             r.converged
-            and r.fitness <= self.p.max_fitness
-            and r.inlier_ratio >= self.p.min_inlier_ratio
-            and (position_only or _largest_sigma(r) <= self.p.degenerate_sigma)
+            and r.fitness <= self.p.icp.max_fitness
+            and r.inlier_ratio >= self.p.icp.min_inlier_ratio
+            and (position_only or _largest_sigma(r) <= self.p.icp.degenerate_sigma)
         )
 
     def _centred(self, results: list[IcpResult], query: SgfDescriptor) -> list[IcpResult]:
@@ -1150,8 +903,10 @@ class IcpLoopClosing(Stage):
         centre = np.asarray(query.centroid, dtype=np.float64)[:2]
         seen = np.array([r.transform[:2, :2] @ centre + r.transform[:2, 2] for r in results])
         apart = float(np.max(np.linalg.norm(seen - seen.mean(axis=0), axis=1))) * 2.0
-        if apart > self.p.inlier_distance:
-            self._icp_detail = f"fits put the marking's centre {apart:.2f} m apart ({self.p.inlier_distance:g} at most)"
+        if apart > self.p.icp.inlier_distance:
+            self._icp_detail = (
+                f"fits put the marking's centre {apart:.2f} m apart ({self.p.icp.inlier_distance:g} at most)"
+            )
             return []
         return [min(results, key=lambda r: r.fitness)]
 
@@ -1164,13 +919,13 @@ class IcpLoopClosing(Stage):
         r = max(tried, key=lambda r: r.inlier_ratio)
         sigma = _largest_sigma(r)
         return (
-            f"best fit: inliers {r.inlier_ratio:.2f} ({self.p.min_inlier_ratio:g} needed), "
-            f"rms {r.fitness:.3f} m ({self.p.max_fitness:g}), sigma {sigma:.3f} ({self.p.degenerate_sigma:g})"
+            f"best fit: inliers {r.inlier_ratio:.2f} ({self.p.icp.min_inlier_ratio:g} needed), "
+            f"rms {r.fitness:.3f} m ({self.p.icp.max_fitness:g}), sigma {sigma:.3f} ({self.p.icp.degenerate_sigma:g})"
             + ("" if r.converged else ", not converged")
         )
 
     def _fits(self, results: list[IcpResult], points: np.ndarray, probed: Sequence[IcpResult] = ()) -> list[IcpResult]:
-        """The distinct near-equal fits of a match (RMS within ``ambiguity_ratio`` of the best), best first.
+        """The distinct near-equal fits of a match (RMS within ``fit.ambiguity_ratio`` of the best), best first.
 
         Several come from a twofold symmetric shape turned by 180 degrees, or from a row of
         triangles or bars laid on itself one period on. Fits that lay the query's ``points`` within
@@ -1180,12 +935,12 @@ class IcpLoopClosing(Stage):
         on both sides of the truth, so one fit is the middle of their stops (:func:`_merged`), its
         covariance widened by their spread. The ``probed`` fits (from seeds a few degrees either
         side) join the seeds' fits they lie within that tolerance of, and never make a fit of their
-        own; the spread test (``max_fit_spread_deg``) is on the seeds' fits alone.
+        own; the spread test (``fit.max_spread_deg``) is on the seeds' fits alone.
         """
         best = min(r.fitness for r in results)
         clusters: list[list[IcpResult]] = []
         for r in sorted(results, key=lambda r: r.fitness):
-            if r.fitness > best * self.p.ambiguity_ratio:
+            if r.fitness > best * self.p.fit.ambiguity_ratio:
                 break
             for cluster in clusters:
                 if _displacement(r.transform, cluster[0].transform, points) <= FIT_TOLERANCE_M:
@@ -1193,7 +948,7 @@ class IcpLoopClosing(Stage):
                     break
             else:
                 clusters.append([r])
-        limit = self.p.max_fit_spread_deg
+        limit = self.p.fit.max_spread_deg
         if limit is not None:
             apart = math.degrees(max(_yaw_spread(cluster) for cluster in clusters))
             if apart > limit:
@@ -1201,7 +956,7 @@ class IcpLoopClosing(Stage):
                 self._icp_detail = f"fits of one alignment {apart:.1f} degrees apart ({limit:g} at most)"
                 return []
         for r in probed:
-            if r.fitness > best * self.p.ambiguity_ratio:
+            if r.fitness > best * self.p.fit.ambiguity_ratio:
                 continue
             joined = next(
                 (c for c in clusters if _displacement(r.transform, c[0].transform, points) <= FIT_TOLERANCE_M), None
@@ -1229,13 +984,13 @@ class IcpLoopClosing(Stage):
         """
         assert a.matched is not None
         ranges = [float(np.hypot(*np.asarray(d.centroid, dtype=np.float64)[:2])) for d in (a.matched, a.descriptor)]
-        xy2 = self.p.covariance_floor_xy**2 + self.p.covariance_range_xy**2 * sum(d**4 for d in ranges)
-        floor = np.diag([xy2, xy2, math.radians(self.p.covariance_floor_yaw_deg) ** 2])
+        xy2 = self.p.covariance.floor_xy**2 + self.p.covariance.range_xy**2 * sum(d**4 for d in ranges)
+        floor = np.diag([xy2, xy2, math.radians(self.p.covariance.floor_yaw_deg) ** 2])
         relative, covariance, marking = _pose4(r), r.covariance + floor, None
         if turn is not None:
             centre = np.asarray(a.descriptor.centroid, dtype=np.float64)[:2]
             sigma2 = xy2 + r.fitness**2 / max(r.correspondences, 1)
-            free = math.radians(self.p.position_only_yaw_sigma_deg)
+            free = math.radians(self.p.symmetric.yaw_sigma_deg)
             relative, covariance = position_only_loop(relative, centre, turn, sigma2, free)
             marking = (float(centre[0]), float(centre[1]))
         return LoopConstraint(
@@ -1272,8 +1027,8 @@ class IcpLoopClosing(Stage):
         bias left when the back-end corrected the odometry over all of that (the drive from its
         ``since`` frame to ``newest``), else the bias as the back-end's model holds it.
         """
-        if not self.p.gate_bias_from_backend:
-            return drift_covariance(distance, self.p, EXPECTED_YAW_BIAS, bias_distance)
+        if not self.p.gate.bias_from_backend:
+            return drift_covariance(distance, self.p.gate, EXPECTED_YAW_BIAS, bias_distance)
         biased = distance if bias_distance is None else bias_distance
         bias = uncorrected_yaw_bias(estimate)
         corrected = corrected_yaw_bias(estimate)
@@ -1281,17 +1036,17 @@ class IcpLoopClosing(Stage):
             start = self.frames.get_distance(corrected[0])
             if start is not None and self.frames.distance(newest) - start >= biased:
                 bias = corrected[1]
-        return drift_covariance(distance, self.p, bias, bias_distance)
+        return drift_covariance(distance, self.p.gate, bias, bias_distance)
 
     def _bias_distance(self, i: int, j: int, distance: float, estimate: PoseEstimate | None) -> float | None:
         """The part of the path from frame ``i`` to the newer ``j`` that the odometry's heading bias bends.
 
-        With ``loop.gate_bridged_bias``, when a loop the estimate has absorbed joins a frame at or
+        With ``gate.bridged_bias``, when a loop the estimate has absorbed joins a frame at or
         before ``i`` to one at or after it, the pose graph has spread that loop's closure error over
         the drive between them, which takes a constant heading bias off it: only the drive from the
         newest absorbed loop frame to ``j`` keeps the bias. None (all of ``distance``) otherwise.
         """
-        if not self.p.gate_bridged_bias or estimate is None:
+        if not self.p.gate.bridged_bias or estimate is None:
             return None
         bridged = False
         last = -math.inf
@@ -1323,7 +1078,7 @@ class IcpLoopClosing(Stage):
         start = c.map_pose if k.from_map else self._pose(k.frame_from, estimate)
         assert start is not None
         predicted = invert(start) @ self._pose(k.frame_to, estimate)
-        cov = k.covariance + drift_covariance(0.0, self.p)
+        cov = k.covariance + drift_covariance(0.0, self.p.gate)
         return mahalanobis2(pose_error(predicted, k.relative), cov) <= self.threshold
 
     def _map_anchored(self, estimate: PoseEstimate | None) -> bool:
@@ -1353,10 +1108,10 @@ class IcpLoopClosing(Stage):
     def _confirm_map(self, candidate: _Candidate, estimate: PoseEstimate | None) -> list[LoopConstraint]:
         """Hold map matches until enough of them (different groups) agree on where the run is in the map."""
         agreeing = [q for q in self.pending if q.group_id != candidate.group_id and self._agree(q, candidate, estimate)]
-        if len(agreeing) + 1 < self.p.map_anchor_matches:
+        if len(agreeing) + 1 < self.p.map.anchor_matches:
             self.counts["map_unconfirmed"] += 1
             self._decided(candidate.constraint, candidate.group_id, "map_unconfirmed", candidate.gate)
-            self.pending = [*self.pending, candidate][-self.p.map_pending :]
+            self.pending = [*self.pending, candidate][-self.p.map.pending :]
             return []
         confirmed = [*agreeing, candidate]
         self.pending = [q for q in self.pending if all(q is not c for c in confirmed)]
@@ -1402,7 +1157,8 @@ class IcpLoopClosing(Stage):
             return False
         if error is not None:
             return bool(
-                error[0] <= self.p.truth_tolerance_xy and error[1] <= math.radians(self.p.truth_tolerance_yaw_deg)
+                error[0] <= self.p.evaluation.truth_tolerance_xy
+                and error[1] <= math.radians(self.p.evaluation.truth_tolerance_yaw_deg)
             )
         if ids[0] is not None and ids[1] is not None:
             return True
@@ -1435,7 +1191,7 @@ class IcpLoopClosing(Stage):
         estimate = settled if isinstance(settled, PoseEstimate) else self._estimate
         final: list[LoopConstraint] = []
         groups = context.artifacts.get("sgf_groups")
-        if self.p.final_pass and groups is not None and estimate is not None:
+        if self.p.final_pass.enabled and groups is not None and estimate is not None:
             final = self._final_pass(groups, context.artifacts.get("sgf_group_of", {}), estimate)
         context.artifacts["final_loops"] = LoopConstraints(tuple(final))
         context.artifacts["dropped_loops"] = LoopConstraints(())  # those of settle are out of the graph already
@@ -1480,24 +1236,26 @@ class IcpLoopClosing(Stage):
         context.artifacts["group_assignments"] = list(self.assignments)
 
     def _take_back_inconsistent(self, context: RunContext) -> None:
-        """The consistency test over the accepted loops; with ``drop_inconsistent``, those outside are taken back.
+        """The consistency test of the accepted loops; those outside it are taken back (``consistency``).
 
         The loops taken back are published as ``artifacts['dropped_loops']`` for the back-end. A
         second round (after the final pass) adds to the first round's record.
         """
-        threshold = self.p.consistency_threshold
+        threshold = self.p.consistency.threshold
         if threshold is None:
             return
         truths = [self._true(c, self._truth_error(c)) for c in self.accepted]
         entry, outside = self._consistency(threshold, truths)
-        out = set(outside) if self.p.drop_inconsistent else set()
+        out = set(outside) if self.p.consistency.drop_inconsistent else set()
         dropped = [c for k, c in enumerate(self.accepted) if k in out]
         for c in dropped:
             self._taken_back(c, threshold)
         self.accepted = [c for k, c in enumerate(self.accepted) if k not in out]
         context.artifacts["dropped_loops"] = LoopConstraints(tuple(c.constraint for c in dropped))
         before = self._consistency_entry
-        if before is not None and self.p.drop_inconsistent:  # the rounds judged different loops: add them up
+        if (
+            before is not None and self.p.consistency.drop_inconsistent
+        ):  # the rounds judged different loops: add them up
             entry["outside_largest_set"] = before["outside_largest_set"] + entry["outside_largest_set"]
             counts = [n for n in (before["false_outside"], entry["false_outside"]) if n is not None]
             entry["false_outside"] = sum(counts) if counts else None
@@ -1511,7 +1269,7 @@ class IcpLoopClosing(Stage):
         """
         own = [k for k, c in enumerate(self.accepted) if not (c.constraint.from_map or c.constraint.position_only)]
         constraints = [self.accepted[k].constraint for k in own]
-        entry: dict[str, Any] = {"threshold": threshold, "dropped": self.p.drop_inconsistent}
+        entry: dict[str, Any] = {"threshold": threshold, "dropped": self.p.consistency.drop_inconsistent}
         if not constraints:
             return entry | {"heading_bias_deg_per_m": None, "outside_largest_set": [], "false_outside": 0}, []
         frames, odometry, travelled = self.frames.path()
@@ -1521,10 +1279,10 @@ class IcpLoopClosing(Stage):
             frames,
             odometry,
             measured,
-            prior_sigma=r(self.p.consistency_yaw_bias_sigma_deg_per_m),
-            odometry_sigma_yaw=r(self.p.consistency_odometry_sigma_yaw_deg),
-            kernel_width=self.p.consistency_kernel_width,
-            reading_sigma=r(self.p.consistency_yaw_bias_reading_sigma_deg_per_m),
+            prior_sigma=r(self.p.consistency.yaw_bias_sigma_deg_per_m),
+            odometry_sigma_yaw=r(self.p.consistency.odometry_sigma_yaw_deg),
+            kernel_width=self.p.consistency.kernel_width,
+            reading_sigma=r(self.p.consistency.yaw_bias_reading_sigma_deg_per_m),
         )
         path = bias_corrected_path(odometry, travelled, bias)
         row = {int(f): k for k, f in enumerate(frames)}
@@ -1571,7 +1329,7 @@ class IcpLoopClosing(Stage):
         The association's split and merge at the end (with the estimate the loops made) put some
         revisits into their marking's group only then: one seen before any loop, while the gate
         reached several look-alikes, may have joined another's group. For each group, each member
-        and its closest earlier member (eq. 10) of another drive-by (``min_separation_distance``)
+        and its closest earlier member (eq. 10) of another drive-by (``separation.min_distance``)
         are matched once more when no accepted loop between members of the group joins the two
         drive-bys (both ends within that distance of path); the match is closed when it passes
         ICP and the gate, and the gate alone decides it (:meth:`_gate_decides`, with every SGF
@@ -1618,7 +1376,7 @@ class IcpLoopClosing(Stage):
 
     def _joined(self, i: int, j: int, frames: set[int]) -> bool:
         """Whether an accepted loop between two of ``frames`` (a group's) joins the drive-bys of ``i`` and ``j``."""
-        near = self.p.min_separation_distance
+        near = self.p.separation.min_distance
         di, dj = self.frames.distance(i), self.frames.distance(j)
         for c in self.accepted:
             k = c.constraint
