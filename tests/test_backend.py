@@ -17,8 +17,9 @@ from sgf_plugins.backend.stages import (
     LmParams,
     OdometryBackend,
 )
+from sgf_plugins.loop.fitting import position_only_loop
 from sgf_plugins.loop.params import ConsensusParams, ConsistencyParams, GateParams, IcpLoopParams, SymmetricParams
-from sgf_plugins.loop.stage import IcpLoopClosing, position_only_loop
+from sgf_plugins.loop.stage import IcpLoopClosing
 from sgf_testing import conf_node
 
 from sgf_pipeline.context import RunContext

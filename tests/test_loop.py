@@ -23,8 +23,8 @@ from backend_world import (
     make_world,
     run_stages,
 )
-from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS
 from sgf_plugins.backend.stages import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
+from sgf_plugins.loop.fitting import position_only_loop
 from sgf_plugins.loop.icp import Icp2d, IcpResult, IcpSettings, se2
 from sgf_plugins.loop.params import (
     ConsensusParams,
@@ -38,7 +38,8 @@ from sgf_plugins.loop.params import (
     SeparationParams,
     SymmetricParams,
 )
-from sgf_plugins.loop.stage import IcpLoopClosing, drift_covariance, position_only_loop
+from sgf_plugins.loop.stage import IcpLoopClosing
+from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS, drift_covariance
 from sgf_plugins.sgf.association.stage import SgfGroup
 from sgf_plugins.sgf.polar import shifted_distances
 
@@ -356,14 +357,14 @@ def test_anchored_distance_shrinks_once_the_estimate_has_absorbed_a_loop(world) 
     first = min(run.loops, key=lambda c: c.frame_to)
     a, b = first.frame_from + 3, first.frame_to + 4  # next to the loop's two frames
     path = stage.frames.distance(b) - stage.frames.distance(a)
-    assert stage._anchored_distance(a, b, None) == pytest.approx(path)
+    assert stage.anchoring.anchored_distance(a, b, None) == pytest.approx(path)
     assert path > 150.0
-    assert stage._anchored_distance(a, b, estimate) == pytest.approx(7.0, abs=0.5)
+    assert stage.anchoring.anchored_distance(a, b, estimate) == pytest.approx(7.0, abs=0.5)
     # an estimate that ignores the loop (odometry) anchors nothing
     from sgf_pipeline.types import PoseEstimate
 
     odometry = PoseEstimate(world.frames[-1].index, {f.index: f.odometry for f in world.frames})
-    assert stage._anchored_distance(a, b, odometry) == pytest.approx(path)
+    assert stage.anchoring.anchored_distance(a, b, odometry) == pytest.approx(path)
 
 
 def test_the_prediction_covariance_starts_at_the_floors_and_grows_with_distance() -> None:
@@ -392,8 +393,8 @@ def test_the_heading_bias_bends_only_the_drive_after_the_loop_that_bridges_the_m
     tail = stage.frames.distance(j) - last
     inside, before = (first.frame_from + first.frame_to) // 2, first.frame_from - 3
     for i, bridged in ((inside, True), (before, False)):
-        distance = stage._anchored_distance(i, j, estimate)
-        got = stage._bias_distance(i, j, distance, estimate)
+        distance = stage.anchoring.anchored_distance(i, j, estimate)
+        got = stage.anchoring.bias_distance(i, j, distance, estimate)
         if bridged:  # the pose graph spread the loop's closure error over the frames it spans
             assert got == pytest.approx(min(distance, tail))
             full = drift_covariance(distance, stage.p.gate)
@@ -405,9 +406,9 @@ def test_the_heading_bias_bends_only_the_drive_after_the_loop_that_bridges_the_m
     from sgf_pipeline.types import PoseEstimate
 
     odometry = PoseEstimate(world.frames[-1].index, {f.index: f.odometry for f in world.frames})
-    assert stage._bias_distance(inside, j, 100.0, odometry) is None
-    stage.p = IcpLoopParams(gate=GateParams(bridged_bias=False))
-    assert stage._bias_distance(inside, j, 100.0, estimate) is None
+    assert stage.anchoring.bias_distance(inside, j, 100.0, odometry) is None
+    stage.anchoring.p = GateParams(bridged_bias=False)
+    assert stage.anchoring.bias_distance(inside, j, 100.0, estimate) is None
 
 
 def test_the_gate_counts_the_back_ends_bias_uncertainty_over_the_drive_it_corrected() -> None:
@@ -436,15 +437,17 @@ def test_the_gate_counts_the_back_ends_bias_uncertainty_over_the_drive_it_correc
     newest = frames[-1].index
     span = stage.frames.distance(newest) - stage.frames.distance(since)
     assert span == pytest.approx(29.0)
-    assert np.allclose(stage._drift(span, newest, estimate), drift_covariance(span, p.gate, residual))
-    assert np.allclose(stage._drift(span + 1.0, newest, estimate), drift_covariance(span + 1.0, p.gate, measured))
+    assert np.allclose(stage.anchoring.drift(span, newest, estimate), drift_covariance(span, p.gate, residual))
+    assert np.allclose(
+        stage.anchoring.drift(span + 1.0, newest, estimate), drift_covariance(span + 1.0, p.gate, measured)
+    )
     unknown = PoseEstimate(newest, poses)
-    assert np.allclose(stage._drift(span, newest, unknown), drift_covariance(span, p.gate, EXPECTED_YAW_BIAS))
+    assert np.allclose(stage.anchoring.drift(span, newest, unknown), drift_covariance(span, p.gate, EXPECTED_YAW_BIAS))
     # a residual larger than the bias measured elsewhere never widens the gate
     loose = PoseEstimate(newest, poses, YawBiasCorrection(since, math.radians(0.5), measured))
-    assert np.allclose(stage._drift(span, newest, loose), drift_covariance(span, p.gate, measured))
-    stage.p = IcpLoopParams(gate=GateParams(bias_from_backend=False))
-    assert np.allclose(stage._drift(span, newest, estimate), drift_covariance(span, p.gate, EXPECTED_YAW_BIAS))
+    assert np.allclose(stage.anchoring.drift(span, newest, loose), drift_covariance(span, p.gate, measured))
+    stage.anchoring.p = GateParams(bias_from_backend=False)
+    assert np.allclose(stage.anchoring.drift(span, newest, estimate), drift_covariance(span, p.gate, EXPECTED_YAW_BIAS))
     # so a look-alike 150 m from where the estimate puts the robot, 300 m after the last anchor, passes the
     # gate on the measured bias and fails it on the corrected one
     error = np.array([150.0, 0.0, math.radians(5.0)])
@@ -598,7 +601,7 @@ def test_a_tie_between_look_alikes_is_resolved_by_the_neighbouring_markings() ->
     assert np.allclose(xy_yaw(c.relative), (0.0, 0.0, 0.0), atol=0.02)
     # under the wrong hypothesis (B) the L would sit 20 m from anything seen: no support; under A, the L (and B) agree
     a_option = replace(by_frame[68].items[0], group_id=1, matched=seen[28], alternatives=())
-    assert stage._support(a_option, c) == 2
+    assert stage.consensus.support(a_option, c) == 2
     # tie_support = 0: ties never give loop factors, as before
     strict = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(tie_support=0)))
     assert _run_loop(strict, frames, by_frame) == [] and strict.counts["ambiguous"] == 1
@@ -730,9 +733,9 @@ def test_a_neighbour_of_a_common_design_counts_less(copies: int, common_groups: 
     loops = _run_loop(stage, frames, by_frame)
     assert [c.instance_ids for c in loops] == ([(1, 1)] if closed else [])
     assert stage.counts["consensus"] == (0 if closed else 1)
-    second_ell = len(stage._sgf_group) - 2  # the second pass's L, remembered just before the query
+    second_ell = len(stage.memory) - 2  # the second pass's L, remembered just before the query
     expected = 1.0 if common_groups is None or copies + 1 <= common_groups else common_groups / (copies + 1)
-    assert stage._rarity(second_ell) == pytest.approx(expected)
+    assert stage.consensus.rarity(second_ell) == pytest.approx(expected)
 
 
 def test_a_neighbour_agrees_only_at_the_heading_the_match_predicts() -> None:
@@ -781,12 +784,12 @@ def test_a_neighbour_that_fixes_no_heading_counts_half() -> None:
     frames, by_frame = _revisit_with_neighbours(discs, discs)  # two manholes: one marking's worth
     stage = IcpLoopClosing(headed)
     (loop,) = _run_loop(stage, frames, by_frame)
-    assert stage._support(by_frame[68].items[0], loop) == pytest.approx(1.0)
+    assert stage.consensus.support(by_frame[68].items[0], loop) == pytest.approx(1.0)
     stage = IcpLoopClosing(
         IcpLoopParams(gate=GateParams(enabled=False), distinct=DistinctParams(support=None))
     )  # at any heading each manhole is a whole marking
     (loop,) = _run_loop(stage, frames, by_frame)
-    assert stage._support(by_frame[68].items[0], loop) == pytest.approx(2.0)
+    assert stage.consensus.support(by_frame[68].items[0], loop) == pytest.approx(2.0)
 
 
 def test_the_consensus_tolerance_counts_the_odometrys_heading_bias() -> None:
@@ -831,7 +834,7 @@ def test_the_consensus_tolerance_counts_the_odometrys_heading_bias() -> None:
     biased = IcpLoopClosing(params)  # the back-end's model measured 0.25 deg/m on the odometry
     (loop,) = _run_loop(biased, frames, by_frame, _bias_model(frames, 0.25))
     assert loop.instance_ids == (1, 1) and np.allclose(xy_yaw(loop.relative), (0.0, 0.0, 0.0), atol=0.02)
-    assert biased._support(match, loop) == 1.0 and plain._support(match, loop) == 0.0
+    assert biased.consensus.support(match, loop) == 1.0 and plain.consensus.support(match, loop) == 0.0
     # an allowance for a smaller bias (0.02 deg/m: 0.5 * b * (40**2 + 40**2) = 0.56 m more) still refuses it
     small = IcpLoopClosing(params)
     assert _run_loop(small, frames, by_frame, _bias_model(frames, 0.02)) == [] and small.counts["consensus"] == 1
@@ -886,18 +889,18 @@ def test_a_match_into_a_repeated_pattern_needs_neighbours_unlike_it() -> None:
     stage = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=2)))
     assert _run_loop(stage, frames, by_frame) == [] and stage.counts["ambiguous"] == 1
     wrong = replace(by_frame[66].items[0], aliased=False, ambiguous=False)
-    c = stage._evaluate(wrong, None)
+    c = stage.gate.evaluate(wrong, None)
     # frame 66 stands where frame 22 stood, says ICP: truly it stands 4 m further on, where frame 26 stood
     assert not isinstance(c, str) and np.allclose(xy_yaw(c.constraint.relative), (0.0, 0.0, 0.0), atol=0.05)
-    assert stage._support(wrong, c.constraint, unlike=True) == 0
+    assert stage.consensus.support(wrong, c.constraint, unlike=True) == 0
     # the arrows one period on agree (two of them); as a common design (look-alikes in 6 other groups) each counts
     # half with consensus_common_groups = 3 (the default), fully without it
-    assert stage._support(wrong, c.constraint) == pytest.approx(1.0)
+    assert stage.consensus.support(wrong, c.constraint) == pytest.approx(1.0)
     every = IcpLoopClosing(
         IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=2, common_groups=None))
     )
     _run_loop(every, frames, by_frame)
-    assert every._support(wrong, c.constraint) == pytest.approx(2.0)
+    assert every.consensus.support(wrong, c.constraint) == pytest.approx(2.0)
     # aliased_support = 0: a repeated pattern never gives loop factors
     frames, by_frame = _repeated_arrows(28.0)
     strict = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=0)))
@@ -915,15 +918,17 @@ def test_unlike_neighbours_are_held_to_half_the_patterns_period() -> None:
     assert _run_loop(stage, frames, by_frame) == [] and stage.counts["ambiguous"] == 1
     assert stage.decisions[-1]["detail"] == "support 0 of 2 needed when the run ended"
     wrong = by_frame[66].items[0]
-    assert stage._copy_spacing(wrong) == pytest.approx(4.0, abs=0.05)  # the arrows' period, seen on either pass
-    c = stage._evaluate(wrong, None)
+    # the arrows' period, seen on either pass
+    assert stage.consensus.copy_spacing(wrong) == pytest.approx(4.0, abs=0.05)
+    c = stage.gate.evaluate(wrong, None)
     assert not isinstance(c, str)
     uncapped = IcpLoopClosing(
         IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=2, radius=5.0))
     )
     _run_loop(uncapped, frames, by_frame)
-    uncapped._copy_spacing = lambda a: math.inf  # type: ignore[method-assign]
-    assert uncapped._support(wrong, c.constraint, unlike=True) == pytest.approx(2.0)  # the L and the T, 4 m off
+    uncapped.consensus.copy_spacing = lambda a: math.inf  # type: ignore[method-assign]
+    # the L and the T, 4 m off
+    assert uncapped.consensus.support(wrong, c.constraint, unlike=True) == pytest.approx(2.0)
     frames, by_frame = _repeated_arrows(28.0)
     right = IcpLoopClosing(
         IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=2, radius=5.0))
@@ -1001,15 +1006,15 @@ def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
     for f in frames[:50]:
         loose.process(frame=f, assignments=None, estimate=None)
         tight.process(frame=f, assignments=None, estimate=None)
-    fits = loose._fits(loose._align(match)[0], np.asarray(match.descriptor.points))
+    fits = loose.fitting.fits(loose.fitting.align(match)[0], np.asarray(match.descriptor.points))
     assert len(fits) == 2 and abs(abs(wrap_angle(fits[0].pose[2] - fits[1].pose[2])) - math.pi) < 0.02
-    assert loose._evaluate(match, None) == "not_unique"
-    c = tight._evaluate(match, None)
+    assert loose.gate.evaluate(match, None) == "not_unique"
+    c = tight.gate.evaluate(match, None)
     assert not isinstance(c, str) and np.allclose(xy_yaw(c.constraint.relative), (0.0, 0.0, 0.0), atol=0.02)
     # an arrow has one fit
     arrow = Marking(1, "arrow", (12.0, 0.3, 0.2))
     single = GroupAssignment(_view(frames[49], arrow), 1, False, 0.01, 0, 0.0, _view(frames[9], arrow), False)  # type: ignore[arg-type]
-    assert len(tight._fits(tight._align(single)[0], np.asarray(single.descriptor.points))) == 1
+    assert len(tight.fitting.fits(tight.fitting.align(single)[0], np.asarray(single.descriptor.points))) == 1
 
 
 @pytest.mark.parametrize("extra", [None, 0])
@@ -1021,7 +1026,7 @@ def test_a_twofold_marking_whose_shift_came_out_half_a_turn_off_is_still_closed(
     stage = IcpLoopClosing(IcpLoopParams() if extra is None else IcpLoopParams(fit=FitParams(extra_yaw_seeds=extra)))
     for f in frames[:50]:
         stage.process(frame=f, assignments=None, estimate=None)
-    c = stage._evaluate(match, None)
+    c = stage.gate.evaluate(match, None)
     if extra == 0:
         assert c == "gate"
     else:  # the default seeds also try the shift's half-turn alternative
@@ -1045,18 +1050,18 @@ def test_fits_are_told_apart_on_the_marking_not_at_the_robot() -> None:
     loop = IcpLoopClosing(IcpLoopParams())
     best, wobble = result(about_marking(0.0), 0.0096), result(about_marking(math.radians(5.2)), 0.0100)
     assert math.hypot(*(wobble.transform[:2, 2] - best.transform[:2, 2])) > 0.25  # apart at the robot
-    (one,) = loop._fits([wobble, best], points)
+    (one,) = loop.fitting.fits([wobble, best], points)
     # ...whose pose is their mean (ICP stops on either side of a shallow valley) and whose covariance
     # widens by their spread (2.6 degrees each side), far beyond ICP's own
     assert np.allclose(one.transform, about_marking(math.radians(2.6)), atol=0.005)
     assert one.fitness == best.fitness and one.covariance[2, 2] == pytest.approx(1e-4 + math.radians(2.6) ** 2)
     # a period on (0.5 m) and half a turn about the marking: distinct fits of a row, of a twofold shape
     period, turned = result(about_marking(0.0, 0.5), 0.0098), result(about_marking(math.pi), 0.0099)
-    fits = loop._fits([turned, best, period, wobble], points)
+    fits = loop.fitting.fits([turned, best, period, wobble], points)
     assert [f.fitness for f in fits] == [best.fitness, period.fitness, turned.fitness]
     assert fits[1] is period and fits[2] is turned
     # a fit much worse than the best is no alternative
-    assert loop._fits([best, result(about_marking(math.pi), 0.02)], points) == [best]
+    assert loop.fitting.fits([best, result(about_marking(math.pi), 0.02)], points) == [best]
 
 
 @pytest.mark.parametrize(("limit", "kept"), [(10.0, False), (None, True)])
@@ -1072,14 +1077,14 @@ def test_fits_that_agree_on_the_place_but_not_the_heading_give_no_factor(limit: 
 
     a, b = result(math.radians(-17.5), 0.018), result(math.radians(17.5), 0.020)
     loop = IcpLoopClosing(IcpLoopParams(fit=FitParams(max_spread_deg=limit)))
-    fits = loop._fits([a, b], ring)
+    fits = loop.fitting.fits([a, b], ring)
     assert len(fits) == int(kept)
     if kept:
         assert np.allclose(fits[0].transform, np.eye(3), atol=1e-9)  # their mean
     else:
-        assert loop._icp_detail == "fits of one alignment 35.0 degrees apart (10 at most)"
+        assert loop.fitting.detail == "fits of one alignment 35.0 degrees apart (10 at most)"
     # 5 degrees apart (an elongated marking's shallow valley) stay one fit under the default limit
-    (one,) = IcpLoopClosing(IcpLoopParams())._fits([result(0.0, 0.018), result(math.radians(5.0), 0.019)], ring)
+    (one,) = IcpLoopClosing(IcpLoopParams()).fitting.fits([result(0.0, 0.018), result(math.radians(5.0), 0.019)], ring)
     assert math.degrees(math.atan2(one.transform[1, 0], one.transform[0, 0])) == pytest.approx(2.5)
 
 
@@ -1096,14 +1101,14 @@ def test_probed_fits_only_refine_the_seeds_fits() -> None:
     # stops on one wall (4 degrees, and 4.1: the same stop, under a millimetre on the ring) and on the other (-2):
     # the middle of the walls, 1 degree
     probed = [result(4.0, 0.016), result(4.1, 0.0165), result(-2.0, 0.017)]
-    (one,) = loop._fits([seed], ring, probed)
+    (one,) = loop.fitting.fits([seed], ring, probed)
     assert math.degrees(one.pose[2]) == pytest.approx(1.0, abs=1e-6)
     assert math.degrees(math.sqrt(one.covariance[2, 2])) > 2.0  # their spread, not ICP's 0.06 degrees
     # a probe's stop elsewhere (1 m off) makes no fit of its own, one much worse than the seed's refines nothing,
     # and the spread test is the seeds' alone (a probe 15 degrees off is no reason to refuse the match)
-    assert loop._fits([seed], ring, [result(0.0, 0.015, x=1.0)]) == [seed]
-    assert loop._fits([seed], ring, [result(3.0, 0.03)]) == [seed]
-    (wide,) = loop._fits([seed], ring, [result(15.0, 0.016)])
+    assert loop.fitting.fits([seed], ring, [result(0.0, 0.015, x=1.0)]) == [seed]
+    assert loop.fitting.fits([seed], ring, [result(3.0, 0.03)]) == [seed]
+    (wide,) = loop.fitting.fits([seed], ring, [result(15.0, 0.016)])
     assert math.degrees(wide.pose[2]) == pytest.approx(7.5)
 
 
@@ -1126,8 +1131,8 @@ def test_seeds_probed_either_side_find_both_ends_of_a_shallow_valley(
         yaw=0.0, descriptor=sgf(query, data["query_centroid"]), matched=sgf(matched, data["matched_centroid"])
     )
     stage = IcpLoopClosing(IcpLoopParams(fit=FitParams(yaw_probe_deg=probe)))
-    results, probed = stage._align(match)  # type: ignore[arg-type]
-    (fit,) = stage._fits(results, query, probed)
+    results, probed = stage.fitting.align(match)  # type: ignore[arg-type]
+    (fit,) = stage.fitting.fits(results, query, probed)
     yaw_off = math.degrees(abs(wrap_angle(fit.pose[2] - float(data["truth"][2]))))
     # probed 5 degrees either side, ICP stops at both ends (0.2 and 6.1 degrees off): their middle, 3.1 degrees off
     # (within the tolerance), with a yaw sigma as wide as their spread instead of the Hessian's 0.05 degrees
