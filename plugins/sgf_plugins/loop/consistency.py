@@ -164,19 +164,28 @@ def inconsistent_loops(ratios: np.ndarray, threshold: float) -> list[int]:
     return [k for k in range(len(ratios)) if k not in kept]
 
 
+@dataclass(frozen=True)
+class ConsistencyRound:
+    """One round of the end-of-run test: the loops it judged, and those outside the largest consistent set."""
+
+    judged: tuple[Candidate, ...]
+    outside: tuple[Candidate, ...]
+
+
 def consistency_entry(
-    accepted: list[Candidate], frames: FrameLog, p: ConsistencyParams, threshold: float, truths: list[bool | None]
+    accepted: list[Candidate], frames: FrameLog, p: ConsistencyParams, threshold: float
 ) -> tuple[dict[str, Any], list[int]]:
     """Accepted loops outside the largest mutually consistent set (:func:`inconsistent_loops`) and its metrics.
 
-    Returns the metrics entry and those loops' places in ``accepted`` (map loops and position-only
-    loops, whose cycles have no turn to close, are not judged).
+    Returns the metrics entry (``metrics.json`` loops.consistency; the evaluation adds how many of
+    them are false) and those loops' places in ``accepted`` (map loops and position-only loops, whose
+    cycles have no turn to close, are not judged).
     """
     own = [k for k, c in enumerate(accepted) if not (c.constraint.from_map or c.constraint.position_only)]
     constraints = [accepted[k].constraint for k in own]
     entry: dict[str, Any] = {"threshold": threshold, "dropped": p.drop_inconsistent}
     if not constraints:
-        return entry | {"heading_bias_deg_per_m": None, "outside_largest_set": [], "false_outside": 0}, []
+        return entry | {"heading_bias_deg_per_m": None, "outside_largest_set": []}, []
     path_frames, odometry, travelled = frames.path()
     measured = [(c.frame_from, c.frame_to, xy_yaw(c.relative)[2], float(c.covariance[2][2])) for c in constraints]
     r = math.radians
@@ -204,10 +213,8 @@ def consistency_entry(
         for c in constraints
     ]
     outside = [own[k] for k in inconsistent_loops(consistency_ratios(ends), threshold)]
-    judged = any(truths[k] is not None for k in own)  # with ground truth: how many of them are false
     entry |= {
         "heading_bias_deg_per_m": math.degrees(bias),
         "outside_largest_set": [[accepted[k].constraint.frame_from, accepted[k].constraint.frame_to] for k in outside],
-        "false_outside": sum(truths[k] is False for k in outside) if judged else None,
     }
     return entry, outside

@@ -215,3 +215,22 @@ class LoopGate:
         """An SGF's centroid (x, y) in the current estimate (odometry before the first)."""
         pose = self.anchoring.pose(frame_index, estimate)
         return pose[:2, :2] @ np.asarray(centroid, dtype=np.float64)[:2] + pose[:2, 3]
+
+    def earlier_member(self, a: GroupAssignment, assignments: list[GroupAssignment]) -> GroupAssignment | None:
+        """The match redone with the group's closest member (eq. 10) from an earlier pass, when there is one.
+
+        The association matches the query to its group's closest member; when that is a view of
+        the same pass (the marking seen twice on the way), a member seen on an earlier pass may
+        still be in the group (``assignments``: every one so far), and that pair is the loop.
+        """
+        j = a.descriptor.sgf.frame_index
+        members = [
+            m.descriptor
+            for m in assignments
+            if m.group_id == a.group_id
+            and m.descriptor.sgf.frame_index in self.frames
+            and self.separated(m.descriptor.sgf.frame_index, j)
+        ]
+        if not members:
+            return None
+        return match_closest(a, members)

@@ -40,11 +40,11 @@ from sgf_pipeline.types import (
     SequenceTruth,
 )
 from sgf_plugins.loop.anchoring import LoopAnchoring
-from sgf_plugins.loop.candidate import Candidate, match_closest
+from sgf_plugins.loop.candidate import Candidate
 from sgf_plugins.loop.consensus import NeighbourConsensus, Waiting, support_detail
-from sgf_plugins.loop.consistency import consistency_entry
+from sgf_plugins.loop.consistency import ConsistencyRound, consistency_entry
 from sgf_plugins.loop.decisions import DecisionLog
-from sgf_plugins.loop.evaluation import closes, is_true, loop_entry, truth_error
+from sgf_plugins.loop.evaluation import evaluate_loops
 from sgf_plugins.loop.final_pass import FinalPass
 from sgf_plugins.loop.fitting import IcpFitting
 from sgf_plugins.loop.gate import LoopGate
@@ -93,6 +93,7 @@ class IcpLoopClosing(Stage):
         self.earlier_members = 0
         self._estimate: PoseEstimate | None = None  # the newest estimate (for the final pass)
         self._consistency_entry: dict[str, Any] | None = None  # the end-of-run consistency test, both rounds
+        self._rounds: list[ConsistencyRound] = []  # what each round judged (for the evaluation)
         self._settled = False
 
     # -- per frame --------------------------------------------------------------------------
@@ -155,7 +156,7 @@ class IcpLoopClosing(Stage):
         """The gate's evaluation, redone with an earlier pass's member when the match is of one pass; None: refused."""
         candidate = self.gate.evaluate(a, estimate)
         if candidate == "separation":
-            earlier = self._earlier_member(a)
+            earlier = self.gate.earlier_member(a, self.assignments)
             if earlier is not None:
                 a, candidate = earlier, self.gate.evaluate(earlier, estimate)
                 self.earlier_members += 1
@@ -163,25 +164,6 @@ class IcpLoopClosing(Stage):
             self.log.refuse(a, candidate, self.gate.reading, self.fitting.detail if candidate == "icp" else "")
             return a, None
         return a, candidate
-
-    def _earlier_member(self, a: GroupAssignment) -> GroupAssignment | None:
-        """The match redone with the group's closest member (eq. 10) from an earlier pass, when there is one.
-
-        The association matches the query to its group's closest member; when that is a view of
-        the same pass (the marking seen twice on the way), a member seen on an earlier pass may
-        still be in the group, and that pair is the loop.
-        """
-        j = a.descriptor.sgf.frame_index
-        members = [
-            m.descriptor
-            for m in self.assignments
-            if m.group_id == a.group_id
-            and m.descriptor.sgf.frame_index in self.frames
-            and self.gate.separated(m.descriptor.sgf.frame_index, j)
-        ]
-        if not members:
-            return None
-        return match_closest(a, members)
 
     def _close_position_only(self, a: GroupAssignment, estimate: PoseEstimate | None) -> list[LoopConstraint]:
         """A match into a symmetric group: a position-only loop when the gate alone decides (``symmetric``).
@@ -358,14 +340,10 @@ class IcpLoopClosing(Stage):
         if final:
             self._take_back_inconsistent(context)  # the final pass's loops judged with the others
         accepted = self.anchoring.accepted
-        errors = [truth_error(c, self.frames) for c in accepted]
-        truths = [is_true(c, e, self.p.evaluation) for c, e in zip(accepted, errors, strict=True)]
-        known = [t for t in truths if t is not None]
         loops: dict[str, Any] = {
-            "accepted": len(self.anchoring.accepted),
-            "accepted_reverse": sum(bool(c.constraint.reverse) for c in self.anchoring.accepted),
-            "accepted_map": sum(bool(c.constraint.from_map) for c in self.anchoring.accepted),
-            "false_closed": sum(not t for t in known) if known else None,
+            "accepted": len(accepted),
+            "accepted_reverse": sum(bool(c.constraint.reverse) for c in accepted),
+            "accepted_map": sum(bool(c.constraint.from_map) for c in accepted),
             "rejected": {k: v for k, v in self.counts.items() if k != "candidates"},
             "candidates": self.counts["candidates"],
             "ties_resolved": self.ties_resolved,
@@ -377,18 +355,11 @@ class IcpLoopClosing(Stage):
             "final_pass": {"tried": self.final_pass.tried, "accepted": len(final)},
         }
         truth = context.truth if context.truth is not None else self.truth
-        if not self.anchoring.accepted and (truth is not None or self.frames.has_truth()):
-            loops["false_closed"] = 0  # nothing accepted, and the truth to judge it by is known
-        if truth is not None:
-            closed = [r for r in truth.revisits if closes(r, accepted, truths, truth)]
-            loops["closed"] = len(closed)
-            loops["closed_reverse"] = sum(bool(r.reverse) for r in closed)
-        if self._consistency_entry is not None:
-            loops["consistency"] = self._consistency_entry
+        loops, records = evaluate_loops(
+            loops, accepted, self._consistency_entry, self._rounds, self.frames, truth, self.p
+        )
         context.metrics.setdefault("loops", {}).update(loops)
-        context.artifacts["loops"] = [
-            loop_entry(c, e, t, self.frames) for c, e, t in zip(accepted, errors, truths, strict=True)
-        ]
+        context.artifacts["loops"] = records
         context.artifacts["group_assignments"] = list(self.assignments)
         context.artifacts["loop_candidates"] = list(self.decisions)
 
@@ -405,21 +376,19 @@ class IcpLoopClosing(Stage):
         threshold = self.p.consistency.threshold
         if threshold is None:
             return
-        truths = [is_true(c, truth_error(c, self.frames), self.p.evaluation) for c in self.anchoring.accepted]
-        entry, outside = consistency_entry(self.anchoring.accepted, self.frames, self.p.consistency, threshold, truths)
+        accepted = self.anchoring.accepted
+        entry, outside = consistency_entry(accepted, self.frames, self.p.consistency, threshold)
+        judged = tuple(c for c in accepted if not (c.constraint.from_map or c.constraint.position_only))
+        self._rounds.append(ConsistencyRound(judged, tuple(accepted[k] for k in outside)))
         out = set(outside) if self.p.consistency.drop_inconsistent else set()
-        dropped = [c for k, c in enumerate(self.anchoring.accepted) if k in out]
+        dropped = [c for k, c in enumerate(accepted) if k in out]
         for c in dropped:
             self.log.taken_back(c, threshold)
-        self.anchoring.accepted = [c for k, c in enumerate(self.anchoring.accepted) if k not in out]
+        self.anchoring.accepted = [c for k, c in enumerate(accepted) if k not in out]
         context.artifacts["dropped_loops"] = LoopConstraints(tuple(c.constraint for c in dropped))
         before = self._consistency_entry
-        if (
-            before is not None and self.p.consistency.drop_inconsistent
-        ):  # the rounds judged different loops: add them up
+        if before is not None and self.p.consistency.drop_inconsistent:  # the rounds judged different loops
             entry["outside_largest_set"] = before["outside_largest_set"] + entry["outside_largest_set"]
-            counts = [n for n in (before["false_outside"], entry["false_outside"]) if n is not None]
-            entry["false_outside"] = sum(counts) if counts else None
         self._consistency_entry = entry
 
 
