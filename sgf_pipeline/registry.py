@@ -218,14 +218,17 @@ def _observer_options(manager: pluggy.PluginManager, registry: StageRegistry) ->
     return nodes
 
 
-def describe_params(model: type[BaseModel]) -> list[tuple[str, str, Any, str]]:
-    """``(name, type, default, description)`` of each parameter of a Params model."""
+def describe_params(model: type[BaseModel], prefix: str = "") -> list[tuple[str, str, Any, str]]:
+    """``(name, type, default, description)`` of each parameter of a Params model (nested models: dotted names)."""
     rows = []
     for field_name, info in model.model_fields.items():
         annotation = info.annotation
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+            rows.extend(describe_params(annotation, f"{prefix}{field_name}."))
+            continue
         type_name = getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
         default = info.get_default(call_default_factory=True)
         if isinstance(default, BaseModel):
             default = default.model_dump()
-        rows.append((field_name, type_name, default, info.description or ""))
+        rows.append((prefix + field_name, type_name, default, info.description or ""))
     return rows

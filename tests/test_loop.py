@@ -1434,3 +1434,11 @@ def test_a_bad_nested_key_is_named_in_full(values: dict[str, object], expected: 
         assert "window, radius, drift" in message  # the keys of loop.consensus, not of loop
     if "min_support: Input" in expected:
         assert "expected int" in message
+
+
+def test_the_plugin_listing_names_every_nested_key() -> None:
+    from sgf_pipeline.registry import describe_params
+
+    rows = {name: default for name, _, default, _ in describe_params(IcpLoopParams)}
+    assert set(rows) == set(_leaves(IcpLoopParams().model_dump()))
+    assert rows["consensus.min_support"] == 1 and rows["gate.enabled"] is True
