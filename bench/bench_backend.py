@@ -218,7 +218,7 @@ def bench_lm(n: int, seed: int, every: float) -> dict[str, float]:
 def bench_taken_back(
     backend: GtsamLmBackend, found: dict[int, list[LoopConstraint]], gt: np.ndarray
 ) -> dict[str, float]:
-    """A look-alike loop 20 m off added to the finished graph, then taken back (``loop.drop_inconsistent``).
+    """A look-alike loop 20 m off added to the finished graph, then taken back (``loop.consistency.drop_inconsistent``).
 
     Times the re-solve the back-end does then (``resolve``: LM from its estimate and from dead reckoning).
     """

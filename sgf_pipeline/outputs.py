@@ -220,7 +220,7 @@ def render_candidates_csv(candidates: list[dict[str, Any]]) -> str:
     row when it is confirmed later); an accepted loop taken back at the end, since the other loops
     contradict it, is ``inconsistent``. A match that reached the gate also has what the gate saw:
     the travel since a loop last anchored its two frames (m), the predicted position's sigma (m)
-    and the best fit's chi-square (3 dof; the gate passes up to ``chi2(loop.gate_probability)``).
+    and the best fit's chi-square (3 dof; the gate passes up to ``chi2(loop.gate.probability)``).
     ``detail`` says more where a test has parts: what the best ICP fit missed, why a match was
     ambiguous, or how many agreeing neighbours each option of a consensus had against the number needed.
     """

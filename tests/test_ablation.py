@@ -76,7 +76,11 @@ def test_the_leave_one_out_experiment_sweeps_every_ablation_on_the_evaluation_se
         assert params["dataset.seed"] == "201,202,203"  # the robustness suite's evaluation seeds
         assert params["dataset"] == "campus_large_loop,campus_reverse_slope"
         paper = compose("config", overrides=["+experiment=paper"])
-        assert paper.run.tag == "ablate/paper" and paper.loop.min_support == 0 and not paper.backend.odometry_yaw_bias
+        assert (
+            paper.run.tag == "ablate/paper"
+            and paper.loop.consensus.min_support == 0
+            and not paper.backend.odometry_yaw_bias
+        )
 
 
 def _run(root: Path, name: str, sequence: str, seed: int, ate: float, closed: int = 8, false: int = 0) -> None:

@@ -17,7 +17,9 @@ from sgf_plugins.backend.stages import (
     LmParams,
     OdometryBackend,
 )
-from sgf_plugins.loop.stage import IcpLoopClosing, IcpLoopParams, position_only_loop
+from sgf_plugins.loop.fitting import position_only_loop
+from sgf_plugins.loop.params import ConsensusParams, ConsistencyParams, GateParams, IcpLoopParams, SymmetricParams
+from sgf_plugins.loop.stage import IcpLoopClosing
 from sgf_testing import conf_node
 
 from sgf_pipeline.context import RunContext
@@ -190,12 +192,16 @@ def test_a_loop_taken_back_leaves_the_estimate_of_the_graph_without_it(world, so
 def test_the_gate_alone_keeps_look_alikes_out_of_the_graph() -> None:
     world = make_world(seed=1, odometry_noise=(0.01, math.radians(0.3), 0.01, math.radians(0.05)))
     no_kernel = LmParams(save_map=False, loop_kernel="none")
-    alone = IcpLoopParams(min_support=0)  # no neighbour consensus: the gate alone
+    alone = IcpLoopParams(consensus=ConsensusParams(min_support=0))  # no neighbour consensus: the gate alone
     reference = run_stages(
         world, IcpLoopClosing(alone), GtsamLmBackend(no_kernel), OracleAssociation(world, by="instance")
     )
     gated = run_stages(world, IcpLoopClosing(alone), GtsamLmBackend(no_kernel))
-    no_gate = IcpLoopParams(gate=False, min_support=0, drop_inconsistent=False)
+    no_gate = IcpLoopParams(
+        gate=GateParams(enabled=False),
+        consensus=ConsensusParams(min_support=0),
+        consistency=ConsistencyParams(drop_inconsistent=False),
+    )
     ungated = run_stages(world, IcpLoopClosing(no_gate), GtsamLmBackend(no_kernel))
     ate_of = {
         name: ate(run.context.trajectories["sgf"].poses, world.gt)  # type: ignore[attr-defined]
@@ -218,12 +224,18 @@ def test_loops_the_others_contradict_are_taken_back_before_the_last_optimisation
     no_kernel = {"save_map": False, "loop_kernel": "none"}
     reference = run_stages(
         world,
-        IcpLoopClosing(IcpLoopParams(min_support=0, symmetric_loops=False)),  # the same loops, true ones only
+        IcpLoopClosing(
+            IcpLoopParams(consensus=ConsensusParams(min_support=0), symmetric=SymmetricParams(position_only=False))
+        ),  # the same loops, true ones only
         GtsamLmBackend(LmParams(**no_kernel)),  # type: ignore[arg-type]
         OracleAssociation(world, by="instance"),
     )
     solver = GtsamLmBackend(LmParams(**no_kernel)) if backend == "gtsam_lm" else Isam2Backend(Isam2Params(**no_kernel))  # type: ignore[arg-type]
-    run = run_stages(world, IcpLoopClosing(IcpLoopParams(gate=False, min_support=0)), solver)
+    run = run_stages(
+        world,
+        IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(min_support=0))),
+        solver,
+    )
     loops = run.context.metrics["loops"]  # type: ignore[attr-defined]
     # the ungated run accepted 9 loops, 4 of them false (test above); the 4 are taken back at the end. On this
     # small route two false loops also agree with three true ones: that set of five ties with the five true

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from backend_world import _fill, arrow_points, ell_points, tee_points
 from sgf_plugins.loop.icp import Icp2d, IcpSettings, apply, centroid_seed, se2
-from sgf_plugins.loop.stage import IcpLoopParams
+from sgf_plugins.loop.params import IcpLoopParams
 
 COLUMN = 2 * math.pi / 90  # one column of the N_s = 90 polar descriptor
 
@@ -103,7 +103,7 @@ def test_two_different_shapes_fail_the_acceptance_tests_from_every_seed(other) -
     accepted = []
     for yaw in np.linspace(-math.pi, math.pi, 24, endpoint=False):
         r = icp.align(source, centroid_seed(source.mean(0), target.mean(0), float(yaw)))
-        if r.converged and r.fitness <= loop.max_fitness and r.inlier_ratio >= loop.min_inlier_ratio:
+        if r.converged and r.fitness <= loop.icp.max_fitness and r.inlier_ratio >= loop.icp.min_inlier_ratio:
             accepted.append(r)
     assert accepted == []
 

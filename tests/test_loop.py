@@ -23,10 +23,23 @@ from backend_world import (
     make_world,
     run_stages,
 )
-from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS
 from sgf_plugins.backend.stages import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
+from sgf_plugins.loop.fitting import position_only_loop
 from sgf_plugins.loop.icp import Icp2d, IcpResult, IcpSettings, se2
-from sgf_plugins.loop.stage import IcpLoopClosing, IcpLoopParams, drift_covariance, position_only_loop
+from sgf_plugins.loop.params import (
+    ConsensusParams,
+    ConsistencyParams,
+    CovarianceParams,
+    DistinctParams,
+    FinalPassParams,
+    FitParams,
+    GateParams,
+    IcpLoopParams,
+    SeparationParams,
+    SymmetricParams,
+)
+from sgf_plugins.loop.stage import IcpLoopClosing
+from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS, drift_covariance
 from sgf_plugins.sgf.association.stage import SgfGroup
 from sgf_plugins.sgf.polar import shifted_distances
 
@@ -42,7 +55,9 @@ def world():  # type: ignore[no-untyped-def]
 
 def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> None:  # type: ignore[no-untyped-def]
     # ICP and the gate only (the consensus is tested below); round markings give no loop (position-only loops below)
-    stage = IcpLoopClosing(IcpLoopParams(min_support=0, symmetric_loops=False))
+    stage = IcpLoopClosing(
+        IcpLoopParams(consensus=ConsensusParams(min_support=0), symmetric=SymmetricParams(position_only=False))
+    )
     run = run_stages(world, loop=stage, association=OracleAssociation(world, by="instance"))
     asymmetric = [r for r in world.truth.revisits if not world.truth.markings[r.instance_id].symmetric]
     assert len(run.loops) == len(asymmetric) == 8
@@ -94,7 +109,9 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
     ]
     for wait, distinct, bias, expected in cases:
         params = IcpLoopParams(
-            consensus_wait=wait, distinct_support=distinct, consensus_heading_bias=bias, symmetric_loops=False
+            consensus=ConsensusParams(wait=wait, heading_bias=bias),
+            distinct=DistinctParams(support=distinct),
+            symmetric=SymmetricParams(position_only=False),
         )
         consensus = run_stages(world, loop=IcpLoopClosing(params), association=OracleAssociation(world, by="instance"))
         metrics = consensus.context.metrics["loops"]
@@ -104,7 +121,7 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
 
 def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> None:  # type: ignore[no-untyped-def]
     # Grouped by design, the two arrows (30 m and 40 m apart in the world) share a group.
-    gated = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(min_support=0)))
+    gated = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(consensus=ConsensusParams(min_support=0))))
     assert all(c.instance_ids[0] == c.instance_ids[1] for c in gated.loops)
     assert gated.context.metrics["loops"]["false_closed"] == 0
     assert gated.context.metrics["loops"]["rejected"]["gate"] == 4
@@ -117,10 +134,14 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     assert accepted and all(d["gate_chi2"] <= threshold for d in accepted)
     for d in refused + accepted:  # the prediction's sigma: the 0.5 m floor, grown with the travel since an anchor
         assert d["anchored_distance"] >= 0.0
-        expected = math.sqrt(drift_covariance(d["anchored_distance"], IcpLoopParams())[0, 0])
+        expected = math.sqrt(drift_covariance(d["anchored_distance"], IcpLoopParams().gate)[0, 0])
         assert d["gate_sigma_xy"] == pytest.approx(expected, abs=0.01)  # distance rounded to cm
     assert all(d["gate_chi2"] is None for d in decisions if d["outcome"] in ("symmetric", "separation"))
-    ungated_params = IcpLoopParams(gate=False, min_support=0, drop_inconsistent=False)
+    ungated_params = IcpLoopParams(
+        gate=GateParams(enabled=False),
+        consensus=ConsensusParams(min_support=0),
+        consistency=ConsistencyParams(drop_inconsistent=False),
+    )
     ungated = run_stages(world, loop=IcpLoopClosing(ungated_params))
     look_alikes = [c for c in ungated.loops if c.instance_ids[0] != c.instance_ids[1]]
     assert len(look_alikes) == 4
@@ -128,7 +149,11 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     # look-alikes take the place of true loops in the arrow group: fewer pairs closed
     assert ungated.context.metrics["loops"]["closed"] < 8
     # the neighbour consensus alone (min_support = 1, asked of every match) also keeps the look-alikes out
-    params = IcpLoopParams(gate=False, distinct_support=None, symmetric_loops=False)
+    params = IcpLoopParams(
+        gate=GateParams(enabled=False),
+        distinct=DistinctParams(support=None),
+        symmetric=SymmetricParams(position_only=False),
+    )
     consensus = run_stages(world, loop=IcpLoopClosing(params))
     assert consensus.context.metrics["loops"]["false_closed"] == 0
     assert consensus.context.metrics["loops"]["rejected"]["consensus"] == 4
@@ -140,18 +165,29 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     assert consensus.context.metrics["loops"]["closed"] == 5
     # ...but not when a distinct marking vouches for itself: the two arrows share their group, so nothing in
     # another group looks like them; that default leans on the gate, which keeps them out (above)
-    lenient = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False, drop_inconsistent=False)))
+    lenient = run_stages(
+        world,
+        loop=IcpLoopClosing(
+            IcpLoopParams(gate=GateParams(enabled=False), consistency=ConsistencyParams(drop_inconsistent=False))
+        ),
+    )
     assert lenient.context.metrics["loops"]["false_closed"] == 3
     # the loops' consistency through the odometry takes those three back at the end
-    taken_back = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False))).context.metrics["loops"]
+    taken_back = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False)))).context.metrics[
+        "loops"
+    ]
     # a caller that ends the run with finalize alone gets the same (finalize settles first)
-    unsettled = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=False)), settle=False).context.metrics
+    unsettled = run_stages(
+        world, loop=IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False))), settle=False
+    ).context.metrics
     assert unsettled["loops"] == taken_back
     assert taken_back["false_closed"] == 0 and taken_back["consistency"]["false_outside"] == 3
     assert taken_back["accepted"] == lenient.context.metrics["loops"]["accepted"] - 3
     # taken back when the run settles: the back-end re-solves without them before any stage finalizes
     with_backend = run_stages(
-        world, loop=IcpLoopClosing(IcpLoopParams(gate=False)), backend=Isam2Backend(Isam2Params(save_map=False))
+        world,
+        loop=IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False))),
+        backend=Isam2Backend(Isam2Params(save_map=False)),
     ).context
     settled = with_backend.artifacts["settled_estimate"]
     assert (
@@ -169,11 +205,10 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
         world,
         loop=IcpLoopClosing(
             IcpLoopParams(
-                gate=False,
-                consensus_heading_deg=15.0,
-                distinct_support=None,
-                consensus_wait=False,
-                symmetric_loops=False,
+                gate=GateParams(enabled=False),
+                consensus=ConsensusParams(heading_deg=15.0, wait=False),
+                distinct=DistinctParams(support=None),
+                symmetric=SymmetricParams(position_only=False),
             )
         ),
     )
@@ -187,14 +222,17 @@ def test_the_consistency_test_estimates_the_heading_bias_with_its_configured_sig
     biased = make_world(seed=1, odometry_noise=(0.01, math.radians(0.3), 0.01, math.radians(0.2)))
 
     def consistency(**sigmas: float) -> dict:  # type: ignore[type-arg]
-        params = IcpLoopParams(gate=False, drop_inconsistent=False, **sigmas)  # type: ignore[arg-type]
+        params = IcpLoopParams(
+            gate=GateParams(enabled=False),
+            consistency=ConsistencyParams(drop_inconsistent=False, **sigmas),  # type: ignore[arg-type]
+        )
         return run_stages(biased, loop=IcpLoopClosing(params)).context.metrics["loops"]["consistency"]
 
     default = consistency()
     assert default["heading_bias_deg_per_m"] == pytest.approx(0.2, abs=0.03)
     assert default["outside_largest_set"] == [[22, 103], [214, 295], [466, 547]]  # the three look-alikes
     # a prior that allows no bias: nothing is taken off (conf/loop/icp.yaml takes the back-end's sigmas)
-    assert consistency(consistency_yaw_bias_sigma_deg_per_m=1e-3)["heading_bias_deg_per_m"] == 0.0
+    assert consistency(yaw_bias_sigma_deg_per_m=1e-3)["heading_bias_deg_per_m"] == 0.0
 
 
 def _straight_run(n: int, yaw_at_end: float) -> list[Frame]:
@@ -216,7 +254,11 @@ def test_the_column_shift_yaw_is_tried_with_both_signs(both_signs: bool, expecte
     # the association's shift convention is the opposite of ours: it reports -100 degrees
     assignment = GroupAssignment(last, 0, False, 0.1, -25, math.radians(-100), first, False)  # type: ignore[arg-type]
     stage = IcpLoopClosing(
-        IcpLoopParams(seed_both_signs=both_signs, extra_yaw_seeds=0, min_separation_distance=5.0, min_support=0)
+        IcpLoopParams(
+            fit=FitParams(seed_both_signs=both_signs, extra_yaw_seeds=0),
+            separation=SeparationParams(min_distance=5.0),
+            consensus=ConsensusParams(min_support=0),
+        )
     )
     out = [stage.process(frame=f, assignments=None, estimate=None) for f in frames[:-1]]
     out.append(stage.process(frame=frames[-1], assignments=GroupAssignments((assignment,)), estimate=None))
@@ -233,7 +275,11 @@ def test_an_sgf_matched_within_the_same_pass_is_not_a_loop() -> None:
     a, b = _view(frames[1], marking), _view(frames[3], marking)
     assignment = GroupAssignment(b, 0, False, 0.1, 0, 0.0, a, False)  # type: ignore[arg-type]
     for min_distance, expected in ((10.0, 0), (1.0, 1)):
-        stage = IcpLoopClosing(IcpLoopParams(min_separation_distance=min_distance, min_support=0))
+        stage = IcpLoopClosing(
+            IcpLoopParams(
+                separation=SeparationParams(min_distance=min_distance), consensus=ConsensusParams(min_support=0)
+            )
+        )
         found = []
         for f in frames[:4]:
             items = GroupAssignments((assignment,)) if f.index == 3 else None
@@ -248,7 +294,9 @@ def test_sgfs_with_fewer_points_than_icp_needs_are_counted_and_give_no_factor() 
     a, b = _view(frames[0], marking), _view(frames[-1], marking)
     two = replace(b, points=b.points[:2])  # type: ignore[type-var]
     for query, expected in ((two, 0), (b, 1)):
-        stage = IcpLoopClosing(IcpLoopParams(min_separation_distance=5.0, min_support=0))
+        stage = IcpLoopClosing(
+            IcpLoopParams(separation=SeparationParams(min_distance=5.0), consensus=ConsensusParams(min_support=0))
+        )
         for f in frames[:-1]:
             stage.process(frame=f, assignments=None, estimate=None)
         assignment = GroupAssignment(query, 0, False, 0.1, 0, 0.0, a, False)  # type: ignore[arg-type]
@@ -266,7 +314,7 @@ def test_without_symmetric_loops_symmetric_groups_give_no_loop_factors() -> None
     frames = _straight_run(20, 0.0)
     marking = Marking(1, "arrow", (2.5, 0.0, 0.0))
     a, b = _view(frames[0], marking), _view(frames[-1], marking)
-    stage = IcpLoopClosing(IcpLoopParams(symmetric_loops=False))
+    stage = IcpLoopClosing(IcpLoopParams(symmetric=SymmetricParams(position_only=False)))
     found = [c for f in frames[:-1] for c in stage.process(frame=f, assignments=None, estimate=None).items]
     symmetric = GroupAssignment(b, 0, False, 0.1, 0, 0.0, a, True)  # type: ignore[arg-type]
     found += stage.process(frame=frames[-1], assignments=GroupAssignments((symmetric,)), estimate=None).items
@@ -283,7 +331,13 @@ def test_a_loops_translation_sigma_grows_as_the_square_of_its_views_range(ahead:
     assert ranges[0] == pytest.approx(ahead, abs=0.1)
     covariances = []
     for per_m2 in (0.0, 0.0052):
-        stage = IcpLoopClosing(IcpLoopParams(min_separation_distance=5.0, min_support=0, covariance_range_xy=per_m2))
+        stage = IcpLoopClosing(
+            IcpLoopParams(
+                separation=SeparationParams(min_distance=5.0),
+                consensus=ConsensusParams(min_support=0),
+                covariance=CovarianceParams(range_xy=per_m2),
+            )
+        )
         for f in frames[:-1]:
             stage.process(frame=f, assignments=None, estimate=None)
         assignment = GroupAssignment(b, 0, False, 0.1, 0, 0.0, a, False)  # type: ignore[arg-type]
@@ -303,27 +357,27 @@ def test_anchored_distance_shrinks_once_the_estimate_has_absorbed_a_loop(world) 
     first = min(run.loops, key=lambda c: c.frame_to)
     a, b = first.frame_from + 3, first.frame_to + 4  # next to the loop's two frames
     path = stage.frames.distance(b) - stage.frames.distance(a)
-    assert stage._anchored_distance(a, b, None) == pytest.approx(path)
+    assert stage.anchoring.anchored_distance(a, b, None) == pytest.approx(path)
     assert path > 150.0
-    assert stage._anchored_distance(a, b, estimate) == pytest.approx(7.0, abs=0.5)
+    assert stage.anchoring.anchored_distance(a, b, estimate) == pytest.approx(7.0, abs=0.5)
     # an estimate that ignores the loop (odometry) anchors nothing
     from sgf_pipeline.types import PoseEstimate
 
     odometry = PoseEstimate(world.frames[-1].index, {f.index: f.odometry for f in world.frames})
-    assert stage._anchored_distance(a, b, odometry) == pytest.approx(path)
+    assert stage.anchoring.anchored_distance(a, b, odometry) == pytest.approx(path)
 
 
 def test_the_prediction_covariance_starts_at_the_floors_and_grows_with_distance() -> None:
-    p = IcpLoopParams(gate_sigma_yaw_deg=0.5)
-    zero = drift_covariance(0.0, p, 0.0)
+    p = IcpLoopParams(gate=GateParams(sigma_yaw_deg=0.5))
+    zero = drift_covariance(0.0, p.gate, 0.0)
     assert np.allclose(np.sqrt(np.diag(zero)), [0.5, 0.5, math.radians(3.0)])
-    sigmas = [np.sqrt(np.diag(drift_covariance(d, p, 0.0))) for d in (10.0, 100.0, 1000.0)]
+    sigmas = [np.sqrt(np.diag(drift_covariance(d, p.gate, 0.0))) for d in (10.0, 100.0, 1000.0)]
     assert all(np.all(b > a) for a, b in itertools.pairwise(sigmas))
     # after 1 km without an anchor, the heading is known to about 16 degrees, the position to ~160 m
     assert math.degrees(sigmas[2][2]) == pytest.approx(15.9, abs=0.2)
     assert sigmas[2][0] == pytest.approx(161.0, abs=2.0)
     # a heading bias of 0.07 deg/m adds 70 degrees of heading and 0.5 * bias * d^2 = 611 m after 1 km
-    biased = np.sqrt(np.diag(drift_covariance(1000.0, p, math.radians(0.07))))
+    biased = np.sqrt(np.diag(drift_covariance(1000.0, p.gate, math.radians(0.07))))
     assert math.degrees(biased[2]) == pytest.approx(math.hypot(15.9, 70.0), abs=0.3)
     assert biased[0] == pytest.approx(math.hypot(161.0, 0.5 * math.radians(0.07) * 1000.0**2), abs=3.0)
 
@@ -339,12 +393,12 @@ def test_the_heading_bias_bends_only_the_drive_after_the_loop_that_bridges_the_m
     tail = stage.frames.distance(j) - last
     inside, before = (first.frame_from + first.frame_to) // 2, first.frame_from - 3
     for i, bridged in ((inside, True), (before, False)):
-        distance = stage._anchored_distance(i, j, estimate)
-        got = stage._bias_distance(i, j, distance, estimate)
+        distance = stage.anchoring.anchored_distance(i, j, estimate)
+        got = stage.anchoring.bias_distance(i, j, distance, estimate)
         if bridged:  # the pose graph spread the loop's closure error over the frames it spans
             assert got == pytest.approx(min(distance, tail))
-            full = drift_covariance(distance, stage.p)
-            bent = drift_covariance(distance, stage.p, EXPECTED_YAW_BIAS, got)
+            full = drift_covariance(distance, stage.p.gate)
+            bent = drift_covariance(distance, stage.p.gate, EXPECTED_YAW_BIAS, got)
             assert bent[0, 0] < full[0, 0] and bent[2, 2] < full[2, 2]
         else:
             assert got is None
@@ -352,19 +406,19 @@ def test_the_heading_bias_bends_only_the_drive_after_the_loop_that_bridges_the_m
     from sgf_pipeline.types import PoseEstimate
 
     odometry = PoseEstimate(world.frames[-1].index, {f.index: f.odometry for f in world.frames})
-    assert stage._bias_distance(inside, j, 100.0, odometry) is None
-    stage.p = IcpLoopParams(gate_bridged_bias=False)
-    assert stage._bias_distance(inside, j, 100.0, estimate) is None
+    assert stage.anchoring.bias_distance(inside, j, 100.0, odometry) is None
+    stage.anchoring.p = GateParams(bridged_bias=False)
+    assert stage.anchoring.bias_distance(inside, j, 100.0, estimate) is None
 
 
 def test_the_gate_counts_the_back_ends_bias_uncertainty_over_the_drive_it_corrected() -> None:
     p = IcpLoopParams()
     measured = math.radians(0.07)  # the bias the camera measured on the odometry, which nothing was taken off
-    uncorrected = np.sqrt(np.diag(drift_covariance(300.0, p, measured)))
+    uncorrected = np.sqrt(np.diag(drift_covariance(300.0, p.gate, measured)))
     residual = math.radians(0.01)
-    corrected = np.sqrt(np.diag(drift_covariance(300.0, p, residual)))
+    corrected = np.sqrt(np.diag(drift_covariance(300.0, p.gate, residual)))
     # after 300 m the heading bias alone adds 0.5 * 0.07 deg/m * 300^2 m^2 = 55 m; 0.01 deg/m of it only 7.9 m
-    no_bias = np.sqrt(np.diag(drift_covariance(300.0, p, 0.0)))
+    no_bias = np.sqrt(np.diag(drift_covariance(300.0, p.gate, 0.0)))
     assert uncorrected[0] == pytest.approx(math.hypot(no_bias[0], 0.5 * measured * 300.0**2), rel=1e-6)
     assert corrected[0] == pytest.approx(math.hypot(no_bias[0], 0.5 * residual * 300.0**2), rel=1e-6)
     assert corrected[2] == pytest.approx(math.hypot(no_bias[2], residual * 300.0), rel=1e-6)
@@ -383,21 +437,23 @@ def test_the_gate_counts_the_back_ends_bias_uncertainty_over_the_drive_it_correc
     newest = frames[-1].index
     span = stage.frames.distance(newest) - stage.frames.distance(since)
     assert span == pytest.approx(29.0)
-    assert np.allclose(stage._drift(span, newest, estimate), drift_covariance(span, p, residual))
-    assert np.allclose(stage._drift(span + 1.0, newest, estimate), drift_covariance(span + 1.0, p, measured))
+    assert np.allclose(stage.anchoring.drift(span, newest, estimate), drift_covariance(span, p.gate, residual))
+    assert np.allclose(
+        stage.anchoring.drift(span + 1.0, newest, estimate), drift_covariance(span + 1.0, p.gate, measured)
+    )
     unknown = PoseEstimate(newest, poses)
-    assert np.allclose(stage._drift(span, newest, unknown), drift_covariance(span, p, EXPECTED_YAW_BIAS))
+    assert np.allclose(stage.anchoring.drift(span, newest, unknown), drift_covariance(span, p.gate, EXPECTED_YAW_BIAS))
     # a residual larger than the bias measured elsewhere never widens the gate
     loose = PoseEstimate(newest, poses, YawBiasCorrection(since, math.radians(0.5), measured))
-    assert np.allclose(stage._drift(span, newest, loose), drift_covariance(span, p, measured))
-    stage.p = IcpLoopParams(gate_bias_from_backend=False)
-    assert np.allclose(stage._drift(span, newest, estimate), drift_covariance(span, p, EXPECTED_YAW_BIAS))
+    assert np.allclose(stage.anchoring.drift(span, newest, loose), drift_covariance(span, p.gate, measured))
+    stage.anchoring.p = GateParams(bias_from_backend=False)
+    assert np.allclose(stage.anchoring.drift(span, newest, estimate), drift_covariance(span, p.gate, EXPECTED_YAW_BIAS))
     # so a look-alike 150 m from where the estimate puts the robot, 300 m after the last anchor, passes the
     # gate on the measured bias and fails it on the corrected one
     error = np.array([150.0, 0.0, math.radians(5.0)])
     chi2 = stage.threshold
-    assert error @ np.linalg.solve(drift_covariance(300.0, p, measured), error) < chi2
-    assert error @ np.linalg.solve(drift_covariance(300.0, p, residual), error) > chi2
+    assert error @ np.linalg.solve(drift_covariance(300.0, p.gate, measured), error) < chi2
+    assert error @ np.linalg.solve(drift_covariance(300.0, p.gate, residual), error) > chi2
 
 
 def test_an_sgf_of_an_unseen_frame_is_a_clear_error() -> None:
@@ -416,7 +472,7 @@ def test_two_different_shapes_in_one_group_give_no_factor() -> None:
     frames = _straight_run(20, 0.4)
     a = _view(frames[0], Marking(1, "arrow", (2.5, 0.0, 0.0)))
     b = _view(frames[-1], Marking(2, "tee", (2.5, 0.0, 0.0)))
-    stage = IcpLoopClosing(IcpLoopParams(gate=False, extra_yaw_seeds=7))
+    stage = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), fit=FitParams(extra_yaw_seeds=7)))
     found = [c for f in frames[:-1] for c in stage.process(frame=f, assignments=None, estimate=None).items]
     mixed = GroupAssignment(b, 0, False, 0.6, 0, 0.4, a, False)  # type: ignore[arg-type]
     found += stage.process(frame=frames[-1], assignments=GroupAssignments((mixed,)), estimate=None).items
@@ -443,7 +499,11 @@ def test_extra_yaw_seeds_recover_from_a_wrong_column_shift(extra: int, expected:
     wrong = math.radians(100 - 90)  # a shift one quarter turn off
     assignment = GroupAssignment(last, 0, False, 0.3, 2, wrong, first, False)  # type: ignore[arg-type]
     stage = IcpLoopClosing(
-        IcpLoopParams(extra_yaw_seeds=extra, seed_both_signs=False, min_separation_distance=5.0, min_support=0)
+        IcpLoopParams(
+            fit=FitParams(extra_yaw_seeds=extra, seed_both_signs=False),
+            separation=SeparationParams(min_distance=5.0),
+            consensus=ConsensusParams(min_support=0),
+        )
     )
     for f in frames[:-1]:
         stage.process(frame=f, assignments=None, estimate=None)
@@ -532,7 +592,7 @@ def _run_loop(  # type: ignore[type-arg]
 def test_a_tie_between_look_alikes_is_resolved_by_the_neighbouring_markings() -> None:
     frames, by_frame, seen = _tied_arrows()
     # the gate is off: with the odometry exact, it alone would also refuse B; the consensus is under test here
-    stage = IcpLoopClosing(IcpLoopParams(gate=False))
+    stage = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False)))
     loops = _run_loop(stage, frames, by_frame)
     # the L seen 8 m before the query lands on its first-pass view only if the query is A: A wins
     assert len(loops) == 1 and stage.ties_resolved == 1
@@ -541,15 +601,15 @@ def test_a_tie_between_look_alikes_is_resolved_by_the_neighbouring_markings() ->
     assert np.allclose(xy_yaw(c.relative), (0.0, 0.0, 0.0), atol=0.02)
     # under the wrong hypothesis (B) the L would sit 20 m from anything seen: no support; under A, the L (and B) agree
     a_option = replace(by_frame[68].items[0], group_id=1, matched=seen[28], alternatives=())
-    assert stage._support(a_option, c) == 2
+    assert stage.consensus.support(a_option, c) == 2
     # tie_support = 0: ties never give loop factors
-    strict = IcpLoopClosing(IcpLoopParams(gate=False, tie_support=0))
+    strict = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(tie_support=0)))
     assert _run_loop(strict, frames, by_frame) == [] and strict.counts["ambiguous"] == 1
 
 
 def test_a_tie_without_neighbours_stays_ambiguous() -> None:
     frames, by_frame, _ = _tied_arrows(neighbour=False)
-    stage = IcpLoopClosing(IcpLoopParams(gate=False, consensus_window=15.0))
+    stage = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(window=15.0)))
     # within 15 m before the query nothing else was seen (B is 20 m back): both options have no support
     assert _run_loop(stage, frames, by_frame) == []
     assert stage.counts["ambiguous"] == 1 and stage.ties_resolved == 0
@@ -560,14 +620,18 @@ def test_min_support_refuses_a_lone_match_that_no_neighbour_confirms() -> None:
     frames, by_frame, seen = _tied_arrows()
     wrong = replace(by_frame[68].items[0], ambiguous=False, alternatives=())  # A's view matched to B, unambiguous
     by_frame[68] = GroupAssignments((wrong,))
-    plain = IcpLoopClosing(IcpLoopParams(gate=False, min_support=0))
+    plain = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(min_support=0)))
     (false_loop,) = _run_loop(plain, frames, by_frame)
     assert false_loop.instance_ids == (2, 1)  # without the consensus: a false loop
-    confirmed = IcpLoopClosing(IcpLoopParams(gate=False, min_support=1))
+    confirmed = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(min_support=1)))
     assert _run_loop(confirmed, frames, by_frame) == [] and confirmed.counts["consensus"] == 1
     right = replace(wrong, group_id=1, matched=seen[28])
     by_frame[68] = GroupAssignments((right,))
-    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False, min_support=1)), frames, by_frame)
+    (loop,) = _run_loop(
+        IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(min_support=1))),
+        frames,
+        by_frame,
+    )
     assert loop.instance_ids == (1, 1)
 
 
@@ -576,7 +640,7 @@ MEASURED_BIAS = 0.07
 #: the gate's position sigma at the revisit of :func:`_revisit_with_neighbours`: 78 m of travel since frame 28
 #: (11 m to the end of the first pass, 39 m back to its start, 28 m to the arrow), by the drift model with the
 #: measured heading bias (4.14 m)
-REVISIT_GATE_SIGMA = math.sqrt(drift_covariance(78.0, IcpLoopParams(), math.radians(MEASURED_BIAS))[0, 0])
+REVISIT_GATE_SIGMA = math.sqrt(drift_covariance(78.0, IcpLoopParams().gate, math.radians(MEASURED_BIAS))[0, 0])
 
 
 def _measured(frames: list[Frame]) -> Callable[[Frame], PoseEstimate]:
@@ -613,15 +677,17 @@ def test_a_distinct_marking_vouches_for_itself_unless_another_group_looks_like_i
     # one revisit and nothing seen on both passes (campus_delivery's single reverse pair): no neighbour can agree
     ell = Marking(3, "ell", (22.0, -1.0, 0.0))
     frames, by_frame = _revisit_with_neighbours([ell], [])
-    lone = IcpLoopClosing(IcpLoopParams(gate=False))
+    lone = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False)))
     (loop,) = _run_loop(lone, frames, by_frame)  # the arrow looks like its match and like nothing else seen
     assert loop.instance_ids == (1, 1) and lone.distinct == 1 and lone.counts["consensus"] == 0
-    strict = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None))  # min_support for every match
+    strict = IcpLoopClosing(
+        IcpLoopParams(gate=GateParams(enabled=False), distinct=DistinctParams(support=None))
+    )  # min_support for every match
     assert _run_loop(strict, frames, by_frame) == [] and strict.counts["consensus"] == 1 and strict.distinct == 0
     # an arrow in another group (a copy elsewhere): the marking is common, and the consensus decides again
     other = Marking(4, "arrow", (12.0, 1.5, 0.0))
     frames, by_frame = _revisit_with_neighbours([other], [])
-    common = IcpLoopClosing(IcpLoopParams(gate=False))
+    common = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False)))
     assert _run_loop(common, frames, by_frame) == [] and common.counts["consensus"] == 1 and common.distinct == 0
 
 
@@ -644,7 +710,7 @@ def test_a_marking_far_more_like_its_match_than_like_any_other_group_is_distinct
     nearest = shifted_distances(np.asarray(query.descriptor.matrix), np.asarray(other.descriptor.matrix)).min()
     expected = {(0.45, 0.0): (0.0, 0.058), (0.45, 0.02): (0.030, 0.069), (0.35, 0.0): (0.0, 0.032)}[(head, turn)]
     assert (match, nearest) == pytest.approx(expected, abs=0.0015)
-    stage = IcpLoopClosing(IcpLoopParams(gate=False, distinct_ratio=ratio))
+    stage = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), distinct=DistinctParams(ratio=ratio)))
     loops = _run_loop(stage, frames, by_frame)
     assert stage.distinct == int(distinct) and stage.counts["consensus"] == int(not distinct)
     assert [c.instance_ids for c in loops] == ([(1, 1)] if distinct else [])
@@ -657,19 +723,29 @@ def test_a_neighbour_of_a_common_design_counts_less(copies: int, common_groups: 
     ell = Marking(3, "ell", (22.0, -1.0, 0.0))
     elsewhere = [Marking(5 + i, "ell", (5.0 + 4.0 * i, 1.5, 0.4 * i)) for i in range(copies)]
     frames, by_frame = _revisit_with_neighbours([ell, *elsewhere], [ell])
-    stage = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None, consensus_common_groups=common_groups))
+    stage = IcpLoopClosing(
+        IcpLoopParams(
+            gate=GateParams(enabled=False),
+            distinct=DistinctParams(support=None),
+            consensus=ConsensusParams(common_groups=common_groups),
+        )
+    )
     loops = _run_loop(stage, frames, by_frame)
     assert [c.instance_ids for c in loops] == ([(1, 1)] if closed else [])
     assert stage.counts["consensus"] == (0 if closed else 1)
-    second_ell = len(stage._sgf_group) - 2  # the second pass's L, remembered just before the query
+    second_ell = len(stage.memory) - 2  # the second pass's L, remembered just before the query
     expected = 1.0 if common_groups is None or copies + 1 <= common_groups else common_groups / (copies + 1)
-    assert stage._rarity(second_ell) == pytest.approx(expected)
+    assert stage.consensus.rarity(second_ell) == pytest.approx(expected)
 
 
 def test_a_neighbour_agrees_only_at_the_heading_the_match_predicts() -> None:
     ell = Marking(3, "ell", (22.0, -1.0, 0.0))
     turned = Marking(3, "ell", (22.0, -1.0, math.pi / 2))  # the same shape, lying a quarter turn round
-    headed = IcpLoopParams(gate=False, distinct_support=None, consensus_heading_deg=15.0)
+    headed = IcpLoopParams(
+        gate=GateParams(enabled=False),
+        distinct=DistinctParams(support=None),
+        consensus=ConsensusParams(heading_deg=15.0),
+    )
     frames, by_frame = _revisit_with_neighbours([ell], [ell])
     (loop,) = _run_loop(IcpLoopClosing(headed), frames, by_frame)
     assert loop.instance_ids == (1, 1)
@@ -678,7 +754,11 @@ def test_a_neighbour_agrees_only_at_the_heading_the_match_predicts() -> None:
     frames, by_frame = _revisit_with_neighbours([ell], [turned])
     stage = IcpLoopClosing(headed)
     assert _run_loop(stage, frames, by_frame) == [] and stage.counts["consensus"] == 1
-    (loop,) = _run_loop(IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None)), frames, by_frame)
+    (loop,) = _run_loop(
+        IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), distinct=DistinctParams(support=None))),
+        frames,
+        by_frame,
+    )
     assert loop.instance_ids == (1, 1)
 
 
@@ -687,25 +767,29 @@ def test_a_neighbour_that_fixes_no_heading_counts_half() -> None:
         Marking(3, "disc", (22.0, -1.0, 0.0), symmetric=True),
         Marking(4, "disc", (16.0, 1.0, 0.0), symmetric=True),
     ]
-    headed = IcpLoopParams(gate=False, distinct_support=None, consensus_heading_deg=15.0)
+    headed = IcpLoopParams(
+        gate=GateParams(enabled=False),
+        distinct=DistinctParams(support=None),
+        consensus=ConsensusParams(heading_deg=15.0),
+    )
     frames, by_frame = _revisit_with_neighbours(discs[:1], discs[:1])
     stage = IcpLoopClosing(headed)
     assert _run_loop(stage, frames, by_frame) == [] and stage.counts["consensus"] == 1
     for params in (
-        headed.model_copy(update={"consensus_unoriented_weight": 1.0}),
-        IcpLoopParams(gate=False, distinct_support=None),
+        headed.model_copy(update={"consensus": ConsensusParams(heading_deg=15.0, unoriented_weight=1.0)}),
+        IcpLoopParams(gate=GateParams(enabled=False), distinct=DistinctParams(support=None)),
     ):
         (loop,) = _run_loop(IcpLoopClosing(params), frames, by_frame)
         assert loop.instance_ids == (1, 1)
     frames, by_frame = _revisit_with_neighbours(discs, discs)  # two manholes: one marking's worth
     stage = IcpLoopClosing(headed)
     (loop,) = _run_loop(stage, frames, by_frame)
-    assert stage._support(by_frame[68].items[0], loop) == pytest.approx(1.0)
+    assert stage.consensus.support(by_frame[68].items[0], loop) == pytest.approx(1.0)
     stage = IcpLoopClosing(
-        IcpLoopParams(gate=False, distinct_support=None)
+        IcpLoopParams(gate=GateParams(enabled=False), distinct=DistinctParams(support=None))
     )  # at any heading each manhole is a whole marking
     (loop,) = _run_loop(stage, frames, by_frame)
-    assert stage._support(by_frame[68].items[0], loop) == pytest.approx(2.0)
+    assert stage.consensus.support(by_frame[68].items[0], loop) == pytest.approx(2.0)
 
 
 def test_the_consensus_tolerance_counts_the_odometrys_heading_bias() -> None:
@@ -738,13 +822,19 @@ def test_the_consensus_tolerance_counts_the_odometrys_heading_bias() -> None:
     by_frame[n + 8] = GroupAssignments((again,))
     match = GroupAssignment(seen(n + 48, arrow), 1, False, 0.01, 0, 0.0, first[1], False)  # type: ignore[arg-type]
     by_frame[n + 48] = GroupAssignments((match,))
-    plain = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None, consensus_heading_bias=False))
+    plain = IcpLoopClosing(
+        IcpLoopParams(
+            gate=GateParams(enabled=False),
+            distinct=DistinctParams(support=None),
+            consensus=ConsensusParams(heading_bias=False),
+        )
+    )
     assert _run_loop(plain, frames, by_frame) == [] and plain.counts["consensus"] == 1
-    params = IcpLoopParams(gate=False, distinct_support=None)
+    params = IcpLoopParams(gate=GateParams(enabled=False), distinct=DistinctParams(support=None))
     biased = IcpLoopClosing(params)  # the back-end's model measured 0.25 deg/m on the odometry
     (loop,) = _run_loop(biased, frames, by_frame, _bias_model(frames, 0.25))
     assert loop.instance_ids == (1, 1) and np.allclose(xy_yaw(loop.relative), (0.0, 0.0, 0.0), atol=0.02)
-    assert biased._support(match, loop) == 1.0 and plain._support(match, loop) == 0.0
+    assert biased.consensus.support(match, loop) == 1.0 and plain.consensus.support(match, loop) == 0.0
     # an allowance for a smaller bias (0.02 deg/m: 0.5 * b * (40**2 + 40**2) = 0.56 m more) still refuses it
     small = IcpLoopClosing(params)
     assert _run_loop(small, frames, by_frame, _bias_model(frames, 0.02)) == [] and small.counts["consensus"] == 1
@@ -789,29 +879,31 @@ def _repeated_arrows(matched_x: float):  # type: ignore[no-untyped-def]
 def test_a_match_into_a_repeated_pattern_needs_neighbours_unlike_it() -> None:
     # the right copy: the L and the T (unlike an arrow) land on their first-pass views
     frames, by_frame = _repeated_arrows(28.0)
-    stage = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2))
+    stage = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=2)))
     (loop,) = _run_loop(stage, frames, by_frame)
     assert stage.aliases_resolved == 1 and (loop.frame_from, loop.frame_to) == (26, 66)
     assert np.allclose(xy_yaw(loop.relative), (0.0, 0.0, 0.0), atol=0.02)
     # the copy one period back: ICP puts the robot 4 m off, where the other arrows agree with it (the pattern
     # repeats) but the L and the T do not; counted without them, the false loop would pass
     frames, by_frame = _repeated_arrows(24.0)
-    stage = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2))
+    stage = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=2)))
     assert _run_loop(stage, frames, by_frame) == [] and stage.counts["ambiguous"] == 1
     wrong = replace(by_frame[66].items[0], aliased=False, ambiguous=False)
-    c = stage._evaluate(wrong, None)
+    c = stage.gate.evaluate(wrong, None)
     # frame 66 stands where frame 22 stood, says ICP: truly it stands 4 m further on, where frame 26 stood
     assert not isinstance(c, str) and np.allclose(xy_yaw(c.constraint.relative), (0.0, 0.0, 0.0), atol=0.05)
-    assert stage._support(wrong, c.constraint, unlike=True) == 0
+    assert stage.consensus.support(wrong, c.constraint, unlike=True) == 0
     # the arrows one period on agree (two of them); as a common design (look-alikes in 6 other groups) each counts
     # half with consensus_common_groups = 3 (the default), fully without it
-    assert stage._support(wrong, c.constraint) == pytest.approx(1.0)
-    every = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2, consensus_common_groups=None))
+    assert stage.consensus.support(wrong, c.constraint) == pytest.approx(1.0)
+    every = IcpLoopClosing(
+        IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=2, common_groups=None))
+    )
     _run_loop(every, frames, by_frame)
-    assert every._support(wrong, c.constraint) == pytest.approx(2.0)
+    assert every.consensus.support(wrong, c.constraint) == pytest.approx(2.0)
     # aliased_support = 0: a repeated pattern never gives loop factors
     frames, by_frame = _repeated_arrows(28.0)
-    strict = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=0))
+    strict = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=0)))
     assert _run_loop(strict, frames, by_frame) == [] and strict.counts["ambiguous"] == 1
     assert strict.decisions[-1]["detail"] == "aliased"
 
@@ -820,19 +912,27 @@ def test_unlike_neighbours_are_held_to_half_the_patterns_period() -> None:
     # with a 5 m consensus radius the L and the T would agree with the copy one period (4 m) back as well;
     # held to half the period (2 m), they vouch for the right copy only
     frames, by_frame = _repeated_arrows(24.0)
-    stage = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2, consensus_radius=5.0))
+    stage = IcpLoopClosing(
+        IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=2, radius=5.0))
+    )
     assert _run_loop(stage, frames, by_frame) == [] and stage.counts["ambiguous"] == 1
     assert stage.decisions[-1]["detail"] == "support 0 of 2 needed when the run ended"
     wrong = by_frame[66].items[0]
-    assert stage._copy_spacing(wrong) == pytest.approx(4.0, abs=0.05)  # the arrows' period, seen on either pass
-    c = stage._evaluate(wrong, None)
+    # the arrows' period, seen on either pass
+    assert stage.consensus.copy_spacing(wrong) == pytest.approx(4.0, abs=0.05)
+    c = stage.gate.evaluate(wrong, None)
     assert not isinstance(c, str)
-    uncapped = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2, consensus_radius=5.0))
+    uncapped = IcpLoopClosing(
+        IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=2, radius=5.0))
+    )
     _run_loop(uncapped, frames, by_frame)
-    uncapped._copy_spacing = lambda a: math.inf  # type: ignore[method-assign]
-    assert uncapped._support(wrong, c.constraint, unlike=True) == pytest.approx(2.0)  # the L and the T, 4 m off
+    uncapped.consensus.copy_spacing = lambda a: math.inf  # type: ignore[method-assign]
+    # the L and the T, 4 m off
+    assert uncapped.consensus.support(wrong, c.constraint, unlike=True) == pytest.approx(2.0)
     frames, by_frame = _repeated_arrows(28.0)
-    right = IcpLoopClosing(IcpLoopParams(gate=False, aliased_support=2, consensus_radius=5.0))
+    right = IcpLoopClosing(
+        IcpLoopParams(gate=GateParams(enabled=False), consensus=ConsensusParams(aliased_support=2, radius=5.0))
+    )
     (loop,) = _run_loop(right, frames, by_frame)
     assert right.aliases_resolved == 1 and (loop.frame_from, loop.frame_to) == (26, 66)
 
@@ -854,16 +954,28 @@ def test_a_match_waits_for_the_neighbours_seen_after_it() -> None:
     again = _view(frames[n + 22], ell)
     by_frame[n + 22] = GroupAssignments((GroupAssignment(again, 12, True, 1.0, 0, 0.0, None, False),))  # type: ignore[arg-type]
     at_once = IcpLoopClosing(
-        IcpLoopParams(gate=False, distinct_support=None, consensus_wait=False)
+        IcpLoopParams(
+            gate=GateParams(enabled=False), distinct=DistinctParams(support=None), consensus=ConsensusParams(wait=False)
+        )
     )  # decide on the SGFs seen before
     assert _run_loop(at_once, frames, by_frame) == [] and at_once.counts["consensus"] == 1
-    waits = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None, consensus_wait=True))
+    waits = IcpLoopClosing(
+        IcpLoopParams(
+            gate=GateParams(enabled=False), distinct=DistinctParams(support=None), consensus=ConsensusParams(wait=True)
+        )
+    )
     emitted = {f.index: waits.process(frame=f, assignments=by_frame.get(f.index), estimate=None).items for f in frames}
     (loop,) = [c for items in emitted.values() for c in items]
     assert (loop.frame_from, loop.frame_to) == (8, n + 8) and loop.instance_ids == (1, 1)
     assert emitted[n + 22] == (loop,)  # emitted when the L lands on its first-pass view, 14 m later
     # nothing agrees within consensus_window (10 m): the match expires, refused, once the robot has driven past
-    short = IcpLoopClosing(IcpLoopParams(gate=False, distinct_support=None, consensus_window=10.0, consensus_wait=True))
+    short = IcpLoopClosing(
+        IcpLoopParams(
+            gate=GateParams(enabled=False),
+            distinct=DistinctParams(support=None),
+            consensus=ConsensusParams(window=10.0, wait=True),
+        )
+    )
     assert _run_loop(short, frames, by_frame) == [] and short.counts["consensus"] == 1 and short.waiting == []
 
 
@@ -887,20 +999,22 @@ def test_twofold_symmetric_fits_need_a_prediction_that_picks_one() -> None:
     frames = _two_passes(40)
     match = _bar_match(frames, 0, 0.0)
     # a second yaw seed half a turn on (the association's shift of a bar could be either)
-    loose = IcpLoopClosing(IcpLoopParams(extra_yaw_seeds=1, gate_floor_yaw_deg=120.0))  # heading too uncertain
-    tight = IcpLoopClosing(IcpLoopParams(extra_yaw_seeds=1))  # the default floors: 3 degrees
+    loose = IcpLoopClosing(
+        IcpLoopParams(fit=FitParams(extra_yaw_seeds=1), gate=GateParams(floor_yaw_deg=120.0))
+    )  # heading too uncertain
+    tight = IcpLoopClosing(IcpLoopParams(fit=FitParams(extra_yaw_seeds=1)))  # the default floors: 3 degrees
     for f in frames[:50]:
         loose.process(frame=f, assignments=None, estimate=None)
         tight.process(frame=f, assignments=None, estimate=None)
-    fits = loose._fits(loose._align(match)[0], np.asarray(match.descriptor.points))
+    fits = loose.fitting.fits(loose.fitting.align(match)[0], np.asarray(match.descriptor.points))
     assert len(fits) == 2 and abs(abs(wrap_angle(fits[0].pose[2] - fits[1].pose[2])) - math.pi) < 0.02
-    assert loose._evaluate(match, None) == "not_unique"
-    c = tight._evaluate(match, None)
+    assert loose.gate.evaluate(match, None) == "not_unique"
+    c = tight.gate.evaluate(match, None)
     assert not isinstance(c, str) and np.allclose(xy_yaw(c.constraint.relative), (0.0, 0.0, 0.0), atol=0.02)
     # an arrow has one fit
     arrow = Marking(1, "arrow", (12.0, 0.3, 0.2))
     single = GroupAssignment(_view(frames[49], arrow), 1, False, 0.01, 0, 0.0, _view(frames[9], arrow), False)  # type: ignore[arg-type]
-    assert len(tight._fits(tight._align(single)[0], np.asarray(single.descriptor.points))) == 1
+    assert len(tight.fitting.fits(tight.fitting.align(single)[0], np.asarray(single.descriptor.points))) == 1
 
 
 @pytest.mark.parametrize("extra", [None, 0])
@@ -909,10 +1023,10 @@ def test_a_twofold_marking_whose_shift_came_out_half_a_turn_off_is_still_closed(
     # off; both column-shift seeds then lead ICP to the flipped fit, which the gate refuses
     frames = _two_passes(40)
     match = _bar_match(frames, 45, math.pi)
-    stage = IcpLoopClosing(IcpLoopParams() if extra is None else IcpLoopParams(extra_yaw_seeds=extra))
+    stage = IcpLoopClosing(IcpLoopParams() if extra is None else IcpLoopParams(fit=FitParams(extra_yaw_seeds=extra)))
     for f in frames[:50]:
         stage.process(frame=f, assignments=None, estimate=None)
-    c = stage._evaluate(match, None)
+    c = stage.gate.evaluate(match, None)
     if extra == 0:
         assert c == "gate"
     else:  # the default seeds also try the shift's half-turn alternative
@@ -936,18 +1050,18 @@ def test_fits_are_told_apart_on_the_marking_not_at_the_robot() -> None:
     loop = IcpLoopClosing(IcpLoopParams())
     best, wobble = result(about_marking(0.0), 0.0096), result(about_marking(math.radians(5.2)), 0.0100)
     assert math.hypot(*(wobble.transform[:2, 2] - best.transform[:2, 2])) > 0.25  # apart at the robot
-    (one,) = loop._fits([wobble, best], points)
+    (one,) = loop.fitting.fits([wobble, best], points)
     # ...whose pose is their mean (ICP stops on either side of a shallow valley) and whose covariance
     # widens by their spread (2.6 degrees each side), far beyond ICP's own
     assert np.allclose(one.transform, about_marking(math.radians(2.6)), atol=0.005)
     assert one.fitness == best.fitness and one.covariance[2, 2] == pytest.approx(1e-4 + math.radians(2.6) ** 2)
     # a period on (0.5 m) and half a turn about the marking: distinct fits of a row, of a twofold shape
     period, turned = result(about_marking(0.0, 0.5), 0.0098), result(about_marking(math.pi), 0.0099)
-    fits = loop._fits([turned, best, period, wobble], points)
+    fits = loop.fitting.fits([turned, best, period, wobble], points)
     assert [f.fitness for f in fits] == [best.fitness, period.fitness, turned.fitness]
     assert fits[1] is period and fits[2] is turned
     # a fit much worse than the best is no alternative
-    assert loop._fits([best, result(about_marking(math.pi), 0.02)], points) == [best]
+    assert loop.fitting.fits([best, result(about_marking(math.pi), 0.02)], points) == [best]
 
 
 @pytest.mark.parametrize(("limit", "kept"), [(10.0, False), (None, True)])
@@ -962,15 +1076,15 @@ def test_fits_that_agree_on_the_place_but_not_the_heading_give_no_factor(limit: 
         return IcpResult(se2(0.0, 0.0, yaw), True, 10, fitness, 1.0, np.eye(3) * 1e-4, len(ring))
 
     a, b = result(math.radians(-17.5), 0.018), result(math.radians(17.5), 0.020)
-    loop = IcpLoopClosing(IcpLoopParams(max_fit_spread_deg=limit))
-    fits = loop._fits([a, b], ring)
+    loop = IcpLoopClosing(IcpLoopParams(fit=FitParams(max_spread_deg=limit)))
+    fits = loop.fitting.fits([a, b], ring)
     assert len(fits) == int(kept)
     if kept:
         assert np.allclose(fits[0].transform, np.eye(3), atol=1e-9)  # their mean
     else:
-        assert loop._icp_detail == "fits of one alignment 35.0 degrees apart (10 at most)"
+        assert loop.fitting.detail == "fits of one alignment 35.0 degrees apart (10 at most)"
     # 5 degrees apart (an elongated marking's shallow valley) stay one fit under the default limit
-    (one,) = IcpLoopClosing(IcpLoopParams())._fits([result(0.0, 0.018), result(math.radians(5.0), 0.019)], ring)
+    (one,) = IcpLoopClosing(IcpLoopParams()).fitting.fits([result(0.0, 0.018), result(math.radians(5.0), 0.019)], ring)
     assert math.degrees(math.atan2(one.transform[1, 0], one.transform[0, 0])) == pytest.approx(2.5)
 
 
@@ -987,14 +1101,14 @@ def test_probed_fits_only_refine_the_seeds_fits() -> None:
     # stops on one wall (4 degrees, and 4.1: the same stop, under a millimetre on the ring) and on the other (-2):
     # the middle of the walls, 1 degree
     probed = [result(4.0, 0.016), result(4.1, 0.0165), result(-2.0, 0.017)]
-    (one,) = loop._fits([seed], ring, probed)
+    (one,) = loop.fitting.fits([seed], ring, probed)
     assert math.degrees(one.pose[2]) == pytest.approx(1.0, abs=1e-6)
     assert math.degrees(math.sqrt(one.covariance[2, 2])) > 2.0  # their spread, not ICP's 0.06 degrees
     # a probe's stop elsewhere (1 m off) makes no fit of its own, one much worse than the seed's refines nothing,
     # and the spread test is the seeds' alone (a probe 15 degrees off is no reason to refuse the match)
-    assert loop._fits([seed], ring, [result(0.0, 0.015, x=1.0)]) == [seed]
-    assert loop._fits([seed], ring, [result(3.0, 0.03)]) == [seed]
-    (wide,) = loop._fits([seed], ring, [result(15.0, 0.016)])
+    assert loop.fitting.fits([seed], ring, [result(0.0, 0.015, x=1.0)]) == [seed]
+    assert loop.fitting.fits([seed], ring, [result(3.0, 0.03)]) == [seed]
+    (wide,) = loop.fitting.fits([seed], ring, [result(15.0, 0.016)])
     assert math.degrees(wide.pose[2]) == pytest.approx(7.5)
 
 
@@ -1016,9 +1130,9 @@ def test_seeds_probed_either_side_find_both_ends_of_a_shallow_valley(
     match = SimpleNamespace(
         yaw=0.0, descriptor=sgf(query, data["query_centroid"]), matched=sgf(matched, data["matched_centroid"])
     )
-    stage = IcpLoopClosing(IcpLoopParams(yaw_probe_deg=probe))
-    results, probed = stage._align(match)  # type: ignore[arg-type]
-    (fit,) = stage._fits(results, query, probed)
+    stage = IcpLoopClosing(IcpLoopParams(fit=FitParams(yaw_probe_deg=probe)))
+    results, probed = stage.fitting.align(match)  # type: ignore[arg-type]
+    (fit,) = stage.fitting.fits(results, query, probed)
     yaw_off = math.degrees(abs(wrap_angle(fit.pose[2] - float(data["truth"][2]))))
     # probed 5 degrees either side, ICP stops at both ends (0.2 and 6.1 degrees off): their middle, 3.1 degrees off
     # (within the tolerance), with a yaw sigma as wide as their spread instead of the Hessian's 0.05 degrees
@@ -1038,7 +1152,7 @@ def test_a_match_the_gate_predicts_tightly_needs_no_neighbours(
     # matched arrow the gate would have refused it, 4 m from it (within 4.03 sigma + 2 m = 18.7 m) it could pass.
     copy = Marking(4, "arrow", (copy_x, 1.5, 0.0))
     frames, by_frame = _revisit_with_neighbours([copy], [])
-    stage = IcpLoopClosing(IcpLoopParams(gate_support_sigma=sigma_limit))
+    stage = IcpLoopClosing(IcpLoopParams(gate=GateParams(support_sigma=sigma_limit)))
     loops = _run_loop(stage, frames, by_frame, _measured(frames))
     assert [c.instance_ids for c in loops] == ([(1, 1)] if closed else [])
     assert stage.distinct == 0 and stage.gate_decided == int(closed)
@@ -1049,7 +1163,7 @@ def test_a_match_the_gate_predicts_tightly_needs_no_neighbours(
         assert np.allclose(xy_yaw(loops[0].relative), (0.0, 0.0, 0.0), atol=0.02)
     # with the gate off, the gate decides nothing
     if closed:
-        off = IcpLoopClosing(IcpLoopParams(gate=False, gate_support_sigma=sigma_limit))
+        off = IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False, support_sigma=sigma_limit)))
         assert _run_loop(off, frames, by_frame, _measured(frames)) == [] and off.gate_decided == 0
 
 
@@ -1064,7 +1178,7 @@ def test_a_look_alike_of_another_shape_does_not_stand_against_the_gate(
     query, other = by_frame[68].items[0], by_frame[24].items[0]
     alike = shifted_distances(np.asarray(query.descriptor.matrix), np.asarray(other.descriptor.matrix)).min()
     assert alike == pytest.approx(0.122, abs=0.002)
-    stage = IcpLoopClosing(IcpLoopParams(gate_support_sigma=5.0, gate_support_alternatives=alternatives))
+    stage = IcpLoopClosing(IcpLoopParams(gate=GateParams(support_sigma=5.0, support_alternatives=alternatives)))
     loops = _run_loop(stage, frames, by_frame, _measured(frames))
     assert [c.instance_ids for c in loops] == ([(1, 1)] if closed else [])
     assert stage.gate_decided == int(closed) and stage.counts["consensus"] == int(not closed)
@@ -1073,7 +1187,7 @@ def test_a_look_alike_of_another_shape_does_not_stand_against_the_gate(
     # an arrow of the same shape at that place is a copy ICP cannot tell apart: it stands against the gate
     monkeypatch.setitem(SHAPES, "wide_arrow", arrow_points)
     frames, by_frame = _revisit_with_neighbours([Marking(4, "wide_arrow", (26.0, 1.5, 0.0))], [])
-    copy = IcpLoopClosing(IcpLoopParams(gate_support_sigma=5.0, gate_support_alternatives=alternatives))
+    copy = IcpLoopClosing(IcpLoopParams(gate=GateParams(support_sigma=5.0, support_alternatives=alternatives)))
     assert _run_loop(copy, frames, by_frame, _measured(frames)) == [] and copy.gate_decided == 0
 
 
@@ -1085,7 +1199,7 @@ def test_a_look_alike_the_gate_would_refuse_as_the_querys_match_does_not_stand_a
     # shift) calls it the same, but matched to it the query would be 90 degrees off the heading the estimate
     # predicts, which the gate refuses: the gate already tells the two apart
     frames, by_frame = _revisit_with_neighbours([Marking(4, "arrow", (26.0, 1.5, math.pi / 2))], [])
-    stage = IcpLoopClosing(IcpLoopParams(gate_support_sigma=5.0, gate_support_alternatives=alternatives))
+    stage = IcpLoopClosing(IcpLoopParams(gate=GateParams(support_sigma=5.0, support_alternatives=alternatives)))
     loops = _run_loop(stage, frames, by_frame, _measured(frames))
     assert [c.instance_ids for c in loops] == ([(1, 1)] if closed else [])
     assert stage.gate_decided == int(closed)
@@ -1100,7 +1214,7 @@ def test_a_look_alike_in_a_symmetric_group_does_not_stand_against_a_shaped_match
     frames, by_frame = _revisit_with_neighbours([Marking(4, "arrow", (26.0, 1.5, 0.0))], [])
     (copy,) = by_frame[24].items
     by_frame[24] = GroupAssignments((replace(copy, symmetric=True),))
-    params = IcpLoopParams(gate_support_sigma=5.0, gate_support_alternatives=False, gate_support_round=round_rule)
+    params = IcpLoopParams(gate=GateParams(support_sigma=5.0, support_alternatives=False, support_round=round_rule))
     stage = IcpLoopClosing(params)
     loops = _run_loop(stage, frames, by_frame, _measured(frames))
     assert [c.instance_ids for c in loops] == ([(1, 1)] if closed else [])
@@ -1114,7 +1228,9 @@ def test_a_distinct_marking_vouches_for_itself_only_under_a_tight_enough_gate(
     # the arrow's revisit after 78 m of exact odometry: the gate's sigma is 4.14 m. A gate wider than
     # distinct_gate_sigma cannot tell a copy never seen from the marking, so the match needs a neighbour
     frames, by_frame = _revisit_with_neighbours([Marking(3, "ell", (22.0, -1.0, 0.0))], [])
-    stage = IcpLoopClosing(IcpLoopParams(distinct_gate_sigma=limit, gate_support_sigma=None))  # not the gate alone
+    stage = IcpLoopClosing(
+        IcpLoopParams(distinct=DistinctParams(gate_sigma=limit), gate=GateParams(support_sigma=None))
+    )  # not the gate alone
     loops = _run_loop(stage, frames, by_frame, _measured(frames))
     assert [c.instance_ids for c in loops] == ([(1, 1)] if closed else [])
     assert stage.distinct == int(closed) and stage.counts["consensus"] == int(not closed)
@@ -1128,14 +1244,18 @@ def test_a_tie_the_gate_leaves_one_option_of_is_resolved_without_neighbours() ->
     # B is 20 m from A. With the gate at 90 % (chi-square 6.25) only A passes (B: 10.1 at 6.3 m sigma), and B
     # lies beyond the gate's reach from A (2.5 x 4.14 m + 2 m = 12.4 m): the gate alone tells them apart
     frames, by_frame, _ = _tied_arrows(neighbour=False)
-    stage = IcpLoopClosing(IcpLoopParams(gate_probability=0.9, gate_support_sigma=5.0, consensus_window=15.0))
+    stage = IcpLoopClosing(
+        IcpLoopParams(gate=GateParams(probability=0.9, support_sigma=5.0), consensus=ConsensusParams(window=15.0))
+    )
     (loop,) = _run_loop(stage, frames, by_frame, _measured(frames))
     assert loop.instance_ids == (1, 1) and loop.group_id == 1
     assert stage.gate_decided == 1 and stage.ties_resolved == 1 and stage.counts["ambiguous"] == 0
-    strict = IcpLoopClosing(IcpLoopParams(gate_probability=0.9, gate_support_sigma=None, consensus_window=15.0))
+    strict = IcpLoopClosing(
+        IcpLoopParams(gate=GateParams(probability=0.9, support_sigma=None), consensus=ConsensusParams(window=15.0))
+    )
     assert _run_loop(strict, frames, by_frame, _measured(frames)) == [] and strict.counts["ambiguous"] == 1
     # at 99 % B passes the gate too: two options, and no neighbour to choose between them
-    loose = IcpLoopClosing(IcpLoopParams(gate_support_sigma=5.0, consensus_window=15.0))
+    loose = IcpLoopClosing(IcpLoopParams(gate=GateParams(support_sigma=5.0), consensus=ConsensusParams(window=15.0)))
     assert (
         _run_loop(loose, frames, by_frame, _measured(frames)) == []
         and loose.counts["ambiguous"] == 1
@@ -1153,14 +1273,14 @@ def test_a_match_into_a_view_of_the_same_pass_is_redone_with_the_groups_earlier_
         # the association matched the query to the group's closest member: the view 2 m back on this pass
         68: GroupAssignments((GroupAssignment(query, 1, False, 0.01, 0, 0.0, again, False),)),  # type: ignore[arg-type]
     }
-    stage = IcpLoopClosing(IcpLoopParams(min_support=0))
+    stage = IcpLoopClosing(IcpLoopParams(consensus=ConsensusParams(min_support=0)))
     (loop,) = _run_loop(stage, frames, by_frame)
     assert (loop.frame_from, loop.frame_to, loop.instance_ids) == (28, 68, (1, 1))
     assert np.allclose(xy_yaw(loop.relative), xy_yaw(invert(frames[28].odometry) @ frames[68].odometry), atol=0.02)
     assert stage.earlier_members == 1 and stage.counts["separation"] == 0
     # without an earlier pass in the group, the same-pass match is refused
     del by_frame[28]
-    alone = IcpLoopClosing(IcpLoopParams(min_support=0))
+    alone = IcpLoopClosing(IcpLoopParams(consensus=ConsensusParams(min_support=0)))
     assert _run_loop(alone, frames, by_frame) == [] and alone.counts["separation"] == 1 and alone.earlier_members == 0
 
 
@@ -1183,7 +1303,13 @@ def test_a_revisit_the_association_regrouped_at_the_end_is_closed_by_the_final_p
     # 18.7 m), so once the association's merge has put the revisit in A's group, the final pass closes it;
     # left in B's group, ICP against B fails the gate.
     frames, by_frame, seen = _tied_arrows(neighbour=False)
-    stage = IcpLoopClosing(IcpLoopParams(consensus_window=15.0, gate_support_sigma=5.0, final_pass=final_pass))
+    stage = IcpLoopClosing(
+        IcpLoopParams(
+            consensus=ConsensusParams(window=15.0),
+            gate=GateParams(support_sigma=5.0),
+            final_pass=FinalPassParams(enabled=final_pass),
+        )
+    )
     exact = _measured(frames)(frames[-1])
     online = [
         c
@@ -1216,7 +1342,9 @@ def test_a_revisit_the_association_regrouped_at_the_end_is_closed_by_the_final_p
 
 
 def test_symmetric_loops_fix_where_a_round_marking_lies_and_leave_the_turn_to_the_estimate(world) -> None:  # type: ignore[no-untyped-def]
-    stage = IcpLoopClosing(IcpLoopParams(min_support=0, symmetric_loops=True))
+    stage = IcpLoopClosing(
+        IcpLoopParams(consensus=ConsensusParams(min_support=0), symmetric=SymmetricParams(position_only=True))
+    )
     run = run_stages(world, loop=stage, association=OracleAssociation(world, by="instance"))
     loops = run.context.metrics["loops"]
     # the manhole's two revisits are refused as symmetric by default; here the second is closed, position
@@ -1265,3 +1393,52 @@ def test_a_position_only_loop_whitens_its_turn_by_the_free_sigma_and_its_place_b
     assert whitened(turned) == pytest.approx((0.3 / math.radians(90.0)) ** 2, rel=1e-9)
     moved = out @ about @ pose_from_xy_yaw(0.06, 0.0, 0.0) @ invert(about)  # the marking 6 cm off
     assert whitened(moved) == pytest.approx((0.06 / 0.03) ** 2, rel=1e-9)
+
+
+def _leaves(node: object, prefix: str = "") -> dict[str, object]:
+    if isinstance(node, dict):
+        return {k: v for key, value in node.items() for k, v in _leaves(value, f"{prefix}{key}.").items()}
+    return {prefix[:-1]: node}
+
+
+def test_the_config_file_holds_every_nested_key_at_its_default() -> None:
+    from sgf_testing import conf_node
+
+    raw = conf_node("loop/icp.yaml")
+    assert raw.pop("name") == "icp"
+    assert _leaves(raw) == _leaves(IcpLoopParams().model_dump())
+
+
+@pytest.mark.parametrize(
+    ("values", "expected"),
+    [
+        ({"consensus": {"min_support": -1}}, "loop.consensus.min_support: Input should be greater than or equal to 0"),
+        ({"gate": {"enabled": "often"}}, "loop.gate.enabled: Input should be a valid boolean"),
+        (
+            {"consensus": {"min_suport": 1}},
+            "loop.consensus.min_suport: unknown parameter (parameters of this variant: ",
+        ),
+        ({"min_support": 1}, "loop.min_support: unknown parameter (parameters of this variant: icp, fit, "),
+    ],
+)
+def test_a_bad_nested_key_is_named_in_full(values: dict[str, object], expected: str) -> None:
+    from pydantic import ValidationError
+
+    from sgf_pipeline.config import format_validation_error
+
+    with pytest.raises(ValidationError) as err:
+        IcpLoopParams.model_validate(values)
+    message = format_validation_error("loop", IcpLoopParams, err.value)
+    assert expected in message
+    if "unknown" in expected and "consensus." in expected:
+        assert "window, radius, drift" in message  # the keys of loop.consensus, not of loop
+    if "min_support: Input" in expected:
+        assert "expected int" in message
+
+
+def test_the_plugin_listing_names_every_nested_key() -> None:
+    from sgf_pipeline.registry import describe_params
+
+    rows = {name: default for name, _, default, _ in describe_params(IcpLoopParams)}
+    assert set(rows) == set(_leaves(IcpLoopParams().model_dump()))
+    assert rows["consensus.min_support"] == 1 and rows["gate.enabled"] is True

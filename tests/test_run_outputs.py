@@ -99,7 +99,7 @@ def test_the_report_and_the_summary_name_the_loops_taken_back() -> None:
     report = render_report(metrics, [loop(1, 80)])
     assert "(2 of them false by the ground truth): frames 343 -> 3274, 816 -> 3734" in report
     assert "  5 (0), 0; 2 taken back" in summary(metrics, Path("nowhere"))
-    # listed only (loop.drop_inconsistent=false): the loops stayed in, nothing was taken back
+    # listed only (loop.consistency.drop_inconsistent=false): the loops stayed in, nothing was taken back
     loops["consistency"] = consistency | {"dropped": False, "false_outside": None}
     assert "Taken back" not in render_report(metrics, [loop(1, 80)])
     assert "taken back" not in summary(metrics, Path("nowhere"))

@@ -8,7 +8,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
-from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS
+from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS
 from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups, SgfGroup, group_purity, loop_pairs
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams, describe
 from sgf_plugins.sgf.hu import hu_moments

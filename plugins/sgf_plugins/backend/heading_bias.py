@@ -38,14 +38,9 @@ import math
 import numpy as np
 
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, xy_yaw
-from sgf_pipeline.types import PoseEstimate
 
 #: Largest bias the estimate may take (rad per metre: 1 degree per metre turns a robot round in 360 m).
 MAX_YAW_BIAS = math.radians(1.0)
-#: The bias wheel odometry is expected to have (rad per metre): it chooses between readings of the loops'
-#: turns that the loops cannot tell apart, and the gates count it until the back-end knows better
-#: (:func:`uncorrected_yaw_bias`). Wheel odometry drifts by up to a few tenths of a degree per metre.
-EXPECTED_YAW_BIAS = math.radians(0.1)
 #: Biases tried over +-max_bias for the global minimum (a step of 0.002 deg/m at 1 deg/m: a loop over
 #: 2.6 km, the longest here, has a valley about 0.01 deg/m wide).
 GRID = 1001
@@ -225,27 +220,6 @@ class HeadingBias:
             residual = _wrap(raw[None, :] - grid[:, None] * lengths[None, :]) / np.sqrt(variances)[None, :]
             cost = cost + 0.5 * np.minimum(residual**2, self.kernel_width**2).sum(axis=1)
         return float(grid[int(np.argmin(cost))])
-
-
-def uncorrected_yaw_bias(estimate: PoseEstimate | None) -> float:
-    """The heading bias (rad/m, root mean square) a gate counts on odometry nothing was taken off.
-
-    The back-end's model (``PoseEstimate.yaw_bias``) when it publishes one, else ``EXPECTED_YAW_BIAS``.
-    """
-    correction = None if estimate is None else estimate.yaw_bias
-    return EXPECTED_YAW_BIAS if correction is None else correction.uncorrected
-
-
-def corrected_yaw_bias(estimate: PoseEstimate | None) -> tuple[int, float] | None:
-    """The frame after which the back-end takes the heading bias off, and the bias a gate counts there (rad/m).
-
-    The uncertainty of the bias left, never more than the bias on odometry nothing was taken off;
-    None where nothing is taken off.
-    """
-    correction = None if estimate is None else estimate.yaw_bias
-    if correction is None or correction.since is None:
-        return None
-    return correction.since, min(correction.sigma, correction.uncorrected)
 
 
 def with_heading_bias(odometry: np.ndarray, bias: float) -> np.ndarray:

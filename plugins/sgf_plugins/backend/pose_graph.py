@@ -22,7 +22,8 @@ import numpy as np
 
 from sgf_pipeline.geometry import invert, rotation_rpy, xy_yaw
 from sgf_pipeline.types import Frame, LoopConstraint
-from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS, HeadingBias, ScaledOdometry, with_heading_bias
+from sgf_plugins.backend.heading_bias import HeadingBias, ScaledOdometry, with_heading_bias
+from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS
 
 PoseKind = Literal["pose2", "pose3"]
 FREE_ROLL_PITCH = 0.1  # rad, first-pose prior on roll and pitch (observed by the IMU, not a gauge)

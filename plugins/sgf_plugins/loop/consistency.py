@@ -19,10 +19,17 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS, HeadingBias
+from sgf_pipeline.geometry import xy_yaw
+from sgf_plugins.backend.heading_bias import HeadingBias
+from sgf_plugins.loop.candidate import Candidate
+from sgf_plugins.loop.icp import se2
+from sgf_plugins.loop.params import ConsistencyParams
+from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS
+from sgf_plugins.odometry.frame_log import FrameLog
 
 
 @dataclass(frozen=True)
@@ -155,3 +162,59 @@ def inconsistent_loops(ratios: np.ndarray, threshold: float) -> list[int]:
     least = min((_worst(ratios, c) for c in sets), default=0.0)
     kept = {k for c in sets if _worst(ratios, c) == least for k in c}
     return [k for k in range(len(ratios)) if k not in kept]
+
+
+@dataclass(frozen=True)
+class ConsistencyRound:
+    """One round of the end-of-run test: the loops it judged, and those outside the largest consistent set."""
+
+    judged: tuple[Candidate, ...]
+    outside: tuple[Candidate, ...]
+
+
+def consistency_entry(
+    accepted: list[Candidate], frames: FrameLog, p: ConsistencyParams, threshold: float
+) -> tuple[dict[str, Any], list[int]]:
+    """Accepted loops outside the largest mutually consistent set (:func:`inconsistent_loops`) and its metrics.
+
+    Returns the metrics entry (``metrics.json`` loops.consistency; the evaluation adds how many of
+    them are false) and those loops' places in ``accepted`` (map loops and position-only loops, whose
+    cycles have no turn to close, are not judged).
+    """
+    own = [k for k, c in enumerate(accepted) if not (c.constraint.from_map or c.constraint.position_only)]
+    constraints = [accepted[k].constraint for k in own]
+    entry: dict[str, Any] = {"threshold": threshold, "dropped": p.drop_inconsistent}
+    if not constraints:
+        return entry | {"heading_bias_deg_per_m": None, "outside_largest_set": []}, []
+    path_frames, odometry, travelled = frames.path()
+    measured = [(c.frame_from, c.frame_to, xy_yaw(c.relative)[2], float(c.covariance[2][2])) for c in constraints]
+    r = math.radians
+    bias = loop_heading_bias(  # taken off the odometry the cycles run through
+        path_frames,
+        odometry,
+        measured,
+        prior_sigma=r(p.yaw_bias_sigma_deg_per_m),
+        odometry_sigma_yaw=r(p.odometry_sigma_yaw_deg),
+        kernel_width=p.kernel_width,
+        reading_sigma=r(p.yaw_bias_reading_sigma_deg_per_m),
+    )
+    path = bias_corrected_path(odometry, travelled, bias)
+    row = {int(f): k for k, f in enumerate(path_frames)}
+    ends = [
+        LoopEnds(
+            c.frame_from,
+            c.frame_to,
+            se2(*xy_yaw(c.relative)),
+            path[row[c.frame_from]],
+            path[row[c.frame_to]],
+            float(travelled[row[c.frame_from]]),
+            float(travelled[row[c.frame_to]]),
+        )
+        for c in constraints
+    ]
+    outside = [own[k] for k in inconsistent_loops(consistency_ratios(ends), threshold)]
+    entry |= {
+        "heading_bias_deg_per_m": math.degrees(bias),
+        "outside_largest_set": [[accepted[k].constraint.frame_from, accepted[k].constraint.frame_to] for k in outside],
+    }
+    return entry, outside

@@ -25,8 +25,8 @@ from sgf_pipeline.types import (
     SgfDescriptor,
     SgfDescriptors,
 )
-from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS, corrected_yaw_bias, uncorrected_yaw_bias
 from sgf_plugins.odometry.anchoring import anchored_distances
+from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS, corrected_yaw_bias, uncorrected_yaw_bias
 from sgf_plugins.odometry.frame_log import FrameLog
 from sgf_plugins.sgf.polar import (
     ColumnSet,
