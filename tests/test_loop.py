@@ -1416,7 +1416,7 @@ def test_the_config_file_holds_every_nested_key_at_its_default() -> None:
         ({"gate": {"enabled": "often"}}, "loop.gate.enabled: Input should be a valid boolean"),
         (
             {"consensus": {"min_suport": 1}},
-            "loop.consensus.min_suport: unknown parameter (parameters of this variant: ",
+            "loop.consensus.min_suport: unknown parameter (parameters of loop.consensus: ",
         ),
         ({"min_support": 1}, "loop.min_support: unknown parameter (parameters of this variant: icp, fit, "),
     ],
