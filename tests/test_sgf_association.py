@@ -26,6 +26,7 @@ from sgf_synthetic import (
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw
+from sgf_pipeline.stage import Settlement
 from sgf_pipeline.types import (
     Frame,
     LoopConstraint,
@@ -193,9 +194,7 @@ def test_the_loop_stage_keeps_assignments_for_the_map_without_pixels():
         frame = Frame(k, 0.1 * k, np.zeros((2, 2), np.uint8), pose, toy_calibration())
         loop.process(frame, GroupAssignments(tuple(items)), None)
         assert len(items[0].descriptor.sgf.pixels) > 100  # what the frame's stages saw
-    loop.settle(context)
-    loop.finalize(context)
-    kept = context.artifacts["group_assignments"]
+    kept = loop.conclude(context, loop.settle(context, Settlement())).assignments
     assert [a.descriptor.sgf.frame_index for a in kept] == [1, 2]
     assert all(a.descriptor.sgf.pixels.shape == (0, 2) and len(a.descriptor.points) > 100 for a in kept)
 
@@ -362,13 +361,14 @@ def test_a_group_the_final_estimate_spreads_beyond_the_gate_is_split_at_the_end(
     s, first = _a_look_alike_joined_early()
     context = RunContext(None)
     context.truth = SequenceTruth(passes=[], revisits=[])
+    handed = s.conclude(context, Settlement())
     s.finalize(context)
     sgf = context.metrics["sgf"]
     assert sgf["purity_online"] == pytest.approx(2 / 3) and sgf["purity"] == 1.0 and sgf["groups_split"] == 1
     kept, split = s.groups
     assert kept.group_id == first and [m.sgf.frame_index for m in kept.members] == [1, 6]
     assert [m.sgf.frame_index for m in split.members] == [4] and split.group_id == first + 1
-    assert context.artifacts["sgf_group_of"] == {(1, 1): first, (6, 6): first, (4, 4): first + 1}
+    assert handed.group_of == {(1, 1): first, (6, 6): first, (4, 4): first + 1}
     # The kept part's descriptor is the mean of its own members only, aligned to its first.
     assert np.allclose(kept.descriptor, (kept.members[0].matrix + align(kept.members[1].matrix, kept.offsets[1])) / 2)
     # Off: the group stays as it was joined.
@@ -392,8 +392,7 @@ def test_the_split_at_the_end_goes_by_the_estimate_without_the_loops_taken_back(
         s._estimate = PoseEstimate(6, {1: truly.poses[1], 4: pose_from_xy_yaw(-58.0, 0.0, 0.0) @ p4, 6: truly.poses[6]})
         context = RunContext(None)
         context.truth = SequenceTruth(passes=[], revisits=[])
-        if settled:
-            context.artifacts["settled_estimate"] = truly
+        s.conclude(context, Settlement(estimate=truly if settled else None))
         s.finalize(context)
         assert context.metrics["sgf"]["groups_split"] == int(settled)
         assert context.metrics["sgf"]["purity"] == pytest.approx(1.0 if settled else 2 / 3)
@@ -419,11 +418,16 @@ def _a_revisit_joined_a_look_alike(shape_back=ARROW, **params):
 
 
 def _finish(s: OnlineSgfGroups, estimate: PoseEstimate, truth: SequenceTruth) -> RunContext:
+    return _finish_handed(s, estimate, truth)[0]
+
+
+def _finish_handed(s: OnlineSgfGroups, estimate: PoseEstimate, truth: SequenceTruth) -> tuple[RunContext, Settlement]:
     s._estimate = estimate
     context = RunContext(None)
     context.truth = truth
+    handed = s.conclude(context, Settlement())
     s.finalize(context)
-    return context
+    return context, handed
 
 
 def _revisit_of(instance: int) -> SequenceTruth:
@@ -436,7 +440,7 @@ def test_a_revisit_that_joined_a_look_alike_is_merged_into_its_own_group_at_the_
     assert not c.new_group and c.group_id == b.group_id  # the premise: the revisit joined B's group
     # The loops put every frame where it truly was: the split takes the revisit out of B's group,
     # the merge puts it into A's, turned into A's orientation (a reverse revisit: half a turn).
-    context = _finish(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: p6}), _revisit_of(1))
+    context, handed = _finish_handed(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: p6}), _revisit_of(1))
     sgf, loops = context.metrics["sgf"], context.metrics["loops"]
     assert sgf["groups_split"] == 1 and sgf["groups_merged"] == 1
     assert sgf["purity_online"] == pytest.approx(2 / 3) and sgf["purity"] == 1.0
@@ -444,7 +448,7 @@ def test_a_revisit_that_joined_a_look_alike_is_merged_into_its_own_group_at_the_
     own, other = s.groups
     assert own.group_id == a.group_id and [m.sgf.frame_index for m in own.members] == [1, 6]
     assert other.group_id == b.group_id and [m.sgf.frame_index for m in other.members] == [4]
-    assert context.artifacts["sgf_group_of"] == {(1, 1): a.group_id, (6, 6): a.group_id, (4, 4): b.group_id}
+    assert handed.group_of == {(1, 1): a.group_id, (6, 6): a.group_id, (4, 4): b.group_id}
     assert abs(own.offsets[1] - 45) <= 2  # 90 sectors: half a turn
     turned = align(own.members[1].matrix, own.offsets[1])
     assert shifted_distances(turned, own.members[0].matrix[None])[0, 0] < 0.05

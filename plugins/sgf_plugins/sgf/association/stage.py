@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
@@ -13,6 +13,7 @@ from pydantic import Field
 
 from sgf_pipeline import Previous, RunContext, Stage, StageParams, StageRegistry, hookimpl
 from sgf_pipeline.geometry import invert, xy_yaw
+from sgf_pipeline.stage import SettledGroup, Settlement
 from sgf_pipeline.types import (
     Frame,
     GroupAssignment,
@@ -346,6 +347,7 @@ class OnlineSgfGroups(Stage):
         self._ranked = [0, 0]  # labelled decisions between the own marking's group and others; own ranked first
         self._estimate: PoseEstimate | None = None  # the newest estimate seen (for the split at the end)
         self._bias_began: tuple[int, float] | None = None  # frame and travelled distance the bias correction began
+        self._end: tuple[tuple[SettledGroup, ...], int | None, int | None] | None = None  # online groups, split, merged
 
     # -- groups ---------------------------------------------------------------------------
 
@@ -390,6 +392,7 @@ class OnlineSgfGroups(Stage):
         self._ranked = [0, 0]
         self._estimate = None
         self._bias_began = None
+        self._end = None
         for k, group in enumerate(self._groups):
             for member, anchor in zip(group.members, group.anchors, strict=True):
                 self._index.add(k, member, None, anchor)
@@ -1006,31 +1009,49 @@ class OnlineSgfGroups(Stage):
 
     # -- evaluation ---------------------------------------------------------------------------
 
-    def finalize(self, context: RunContext) -> None:
-        """Publish the groups (``artifacts['sgf_groups']``) and write purity and loop-pair metrics.
+    def conclude(self, context: RunContext, settlement: Settlement) -> Settlement:
+        """Regroup at the end of the run; hands on the final groups (``settlement.groups``, ``settlement.group_of``).
 
-        With ``split_at_end`` the groups are first split by the newest estimate (:meth:`split_groups`:
-        the back-end's ``artifacts['settled_estimate']``, re-solved without the loops taken back, when set),
-        and with ``merge_at_end`` look-alikes it puts at one place merged (:meth:`merge_groups`);
-        ``artifacts['sgf_group_of']`` maps each run member's ``(frame_index, track_id)`` to its final
-        group, for the SGF map. ``purity_online`` and ``pairs_found_online`` are from before both.
+        With ``split_at_end`` the groups are split by the newest estimate (:meth:`split_groups`: the
+        back-end's ``settlement.estimate``, re-solved without the loops taken back, when it re-solved
+        one), and with ``merge_at_end`` look-alikes it puts at one place merged (:meth:`merge_groups`).
+        ``group_of`` maps each run member's ``(frame_index, track_id)`` to its final group, for the
+        loop stage's final pass and the SGF map.
         """
-        sgf: dict[str, Any] = context.metrics.setdefault("sgf", {})
-        online = group_purity(self._groups) if context.truth is not None else None
-        online_pairs = loop_pairs(self._groups, context.truth) if context.truth is not None else None
-        settled = context.artifacts.get("settled_estimate")  # without the loops the loop stage took back
-        estimate = settled if isinstance(settled, PoseEstimate) else self._estimate
+        online = _settled(self._groups)
+        estimate = settlement.estimate if settlement.estimate is not None else self._estimate
+        split = merged = None
         if self.params.split_at_end and self.params.spatial_gate:
-            sgf["groups_split"] = self.split_groups(estimate)
+            split = self.split_groups(estimate)
         if self.params.merge_at_end:
-            sgf["groups_merged"] = self.merge_groups(estimate)
-        context.artifacts["sgf_groups"] = list(self._groups)
-        context.artifacts["sgf_group_of"] = {
+            merged = self.merge_groups(estimate)
+        self._end = (online, split, merged)
+        group_of = {
             (m.sgf.frame_index, m.sgf.track_id): g.group_id
             for g in self._groups
             for m, a in zip(g.members, g.anchors, strict=True)
             if a is None
         }
+        return replace(settlement, groups=_settled(self._groups), group_of=group_of)
+
+    def finalize(self, context: RunContext) -> None:
+        """Publish the groups (``artifacts['sgf_groups']``) and write purity and loop-pair metrics.
+
+        ``purity_online`` and ``pairs_found_online`` are from before the split and merge at the end
+        (:meth:`conclude`, run here first when the run ended without it).
+        """
+        if self._end is None:
+            self.conclude(context, Settlement())
+        assert self._end is not None
+        online_groups, split, merged = self._end
+        sgf: dict[str, Any] = context.metrics.setdefault("sgf", {})
+        online = group_purity(online_groups) if context.truth is not None else None
+        online_pairs = loop_pairs(online_groups, context.truth) if context.truth is not None else None
+        if split is not None:
+            sgf["groups_split"] = split
+        if merged is not None:
+            sgf["groups_merged"] = merged
+        context.artifacts["sgf_groups"] = list(self._groups)
         sgf["groups"] = len(self._groups)
         sgf["symmetric_groups"] = sum(1 for g in self._groups if g.symmetric)
         sgf["aliased_groups"] = sum(1 for g in self._groups if g.aliased)
@@ -1050,15 +1071,20 @@ class OnlineSgfGroups(Stage):
             loops["pairs_found_online"] = online_pairs["pairs_found"]
 
 
+def _settled(groups: Iterable[SgfGroup]) -> tuple[SettledGroup, ...]:
+    """The groups as the end of the run hands them on (members frozen as they are now)."""
+    return tuple(SettledGroup(g.group_id, tuple(g.members), g.symmetric) for g in groups)
+
+
 def _odometry_position(member: SgfDescriptor) -> np.ndarray:
     """Map position of a member's centroid under its own odometry pose (the frame of the session that saw it)."""
     pose = np.asarray(member.sgf.odometry, dtype=np.float64)
     return pose[:2, :2] @ np.asarray(member.centroid[:2], dtype=np.float64) + pose[:2, 3]
 
 
-def _instance_counts(group: SgfGroup) -> tuple[np.ndarray, np.ndarray]:
+def _instance_counts(group: SgfGroup | SettledGroup) -> tuple[np.ndarray, np.ndarray]:
     """The ground-truth instances of a group's labelled members (sorted) and how many members show each."""
-    return np.unique([i for i in group.instance_ids if i is not None], return_counts=True)
+    return np.unique([m.sgf.instance_id for m in group.members if m.sgf.instance_id is not None], return_counts=True)
 
 
 def _majority_instance(group: SgfGroup) -> int | None:
@@ -1067,7 +1093,7 @@ def _majority_instance(group: SgfGroup) -> int | None:
     return int(values[np.argmax(counts)]) if len(values) else None
 
 
-def group_purity(groups: Iterable[SgfGroup]) -> float | None:
+def group_purity(groups: Iterable[SgfGroup | SettledGroup]) -> float | None:
     """Share of ground-truth-labelled members that carry their group's majority instance (None if no labels)."""
     majority = total = 0
     for group in groups:
@@ -1078,7 +1104,7 @@ def group_purity(groups: Iterable[SgfGroup]) -> float | None:
     return majority / total if total else None
 
 
-def loop_pairs(groups: Iterable[SgfGroup], truth: SequenceTruth) -> dict[str, int]:
+def loop_pairs(groups: Iterable[SgfGroup | SettledGroup], truth: SequenceTruth) -> dict[str, int]:
     """Revisit pairs found (Table 3): SGFs of the pair's instance from both passes share a group."""
     together: set[tuple[int, int, int]] = set()
     for group in groups:
