@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 from sgf_plugins.backend.heading_bias import EXPECTED_YAW_BIAS
-from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups, SgfGroup, group_purity, loop_pairs
+from sgf_plugins.sgf.association.evaluation import group_purity, loop_pairs, score_groups
+from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups, SgfGroup
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams, describe
 from sgf_plugins.sgf.hu import hu_moments
 from sgf_plugins.sgf.polar import align, shifted_distances
@@ -44,6 +45,13 @@ from sgf_pipeline.types import (
 ARROW = GroundShape(arrow_shape(), (5.0, 0.0, 0.3), 1)
 DISC = GroundShape((Annulus(0.3),), (5.0, 0.0, 0.0), 2)
 ELL = GroundShape(ell_shape(), (5.0, 0.0, 1.1), 3)
+
+
+def finalize(s: OnlineSgfGroups, context: RunContext) -> None:
+    """End the run as the runner does: the stage's metrics, then the evaluation's scores of its groups."""
+    s.finalize(context)
+    for key, entries in (score_groups(context) or {}).items():
+        context.metrics.setdefault(key, {}).update(entries)
 
 
 def sgf_at(shape: GroundShape, pose: np.ndarray, frame: int, odometry: np.ndarray | None = None):
@@ -111,7 +119,7 @@ def test_descriptor_lifts_pixels_with_eq9():
     frame = Frame(1, 0.1, np.zeros((2, 2), np.uint8), np.eye(4), toy_calibration())
     out = stage_.process(frame, SgfDetections((one, sgf)))
     assert [x.sgf for x in out.items] == [sgf]
-    stage_.finalize(context)
+    finalize(stage_, context)
     assert context.metrics["sgf"]["too_few_points"] == 1
 
 
@@ -362,7 +370,7 @@ def test_a_group_the_final_estimate_spreads_beyond_the_gate_is_split_at_the_end(
     context = RunContext(None)
     context.truth = SequenceTruth(passes=[], revisits=[])
     handed = s.conclude(context, Settlement())
-    s.finalize(context)
+    finalize(s, context)
     sgf = context.metrics["sgf"]
     assert sgf["purity_online"] == pytest.approx(2 / 3) and sgf["purity"] == 1.0 and sgf["groups_split"] == 1
     kept, split = s.groups
@@ -375,7 +383,7 @@ def test_a_group_the_final_estimate_spreads_beyond_the_gate_is_split_at_the_end(
     s, _ = _a_look_alike_joined_early(split_at_end=False)
     context = RunContext(None)
     context.truth = SequenceTruth(passes=[], revisits=[])
-    s.finalize(context)
+    finalize(s, context)
     assert context.metrics["sgf"]["purity"] == pytest.approx(2 / 3) and len(s.groups) == 1
     assert "groups_split" not in context.metrics["sgf"]
 
@@ -393,7 +401,7 @@ def test_the_split_at_the_end_goes_by_the_estimate_without_the_loops_taken_back(
         context = RunContext(None)
         context.truth = SequenceTruth(passes=[], revisits=[])
         s.conclude(context, Settlement(estimate=truly if settled else None))
-        s.finalize(context)
+        finalize(s, context)
         assert context.metrics["sgf"]["groups_split"] == int(settled)
         assert context.metrics["sgf"]["purity"] == pytest.approx(1.0 if settled else 2 / 3)
         assert [[m.sgf.frame_index for m in g.members] for g in s.groups] == ([[1, 6], [4]] if settled else [[1, 4, 6]])
@@ -426,7 +434,7 @@ def _finish_handed(s: OnlineSgfGroups, estimate: PoseEstimate, truth: SequenceTr
     context = RunContext(None)
     context.truth = truth
     handed = s.conclude(context, Settlement())
-    s.finalize(context)
+    finalize(s, context)
     return context, handed
 
 
@@ -543,7 +551,7 @@ def test_seeded_groups_start_every_sequence():
     pose = seen_from(ARROW, 3.0, 0.2)
     feed(first, 1, pose, desc(ARROW, pose, 1))
     context = RunContext(None)
-    first.finalize(context)
+    finalize(first, context)
     saved: list[SgfGroup] = context.artifacts["sgf_groups"]
     assert len(saved) == 1
     # A new session: its odometry frame is unrelated to the map's; with no prior gate the group is found.
@@ -605,7 +613,7 @@ def test_metrics_purity_and_loop_pairs():
         "pairs_total_reverse": 2,
     }
     context.truth = truth
-    s.finalize(context)
+    finalize(s, context)
     assert context.metrics["sgf"]["purity"] == 1.0 and context.metrics["sgf"]["groups"] == 2
     assert context.metrics["sgf"]["symmetric_groups"] == 1
     assert context.metrics["loops"]["pairs_found"] == 1
@@ -615,7 +623,7 @@ def test_metrics_purity_and_loop_pairs():
         mixed.add(m, 0)
     assert group_purity([mixed]) == pytest.approx(2 / 3)
     none = RunContext(None)
-    s.finalize(none)
+    finalize(s, none)
     assert none.metrics["sgf"]["purity"] is None and none.metrics["loops"]["pairs_found"] is None
 
 
@@ -673,7 +681,7 @@ def test_metrics_share_of_decisions_where_eq10_ranks_the_own_marking_first():
     unlabelled = desc(ELL, pose, 13)
     feed(s, 13, pose, replace(unlabelled, sgf=replace(unlabelled.sgf, instance_id=None)))
     context.truth = SequenceTruth(passes=[], revisits=[])
-    s.finalize(context)
+    finalize(s, context)
     assert context.metrics["sgf"]["own_group_ranked_first"] == {"decisions": 2, "share": 0.5}
 
 
@@ -687,7 +695,7 @@ def test_a_repeated_pattern_is_aliased_and_never_joins_its_neighbour():
     assert r2.new_group and r2.group_id != r1.group_id and r2.ambiguous
     assert all(g.aliased for g in s.groups)
     context = RunContext(None)
-    s.finalize(context)
+    finalize(s, context)
     assert context.metrics["sgf"]["aliased_groups"] == 2
     assert context.metrics["sgf"]["groups_merged"] == 0  # 1 m apart and alike, but copies seen on one drive-by
     # without the repeat test the neighbouring copy joins the first arrow's group (a false loop)

@@ -61,6 +61,19 @@ class SgfGroup:
 
 
 @dataclass(frozen=True)
+class Ranking:
+    """How eq. 10 (plus the position weight) ranked the gated groups for one query, before it joined one.
+
+    ``groups`` holds each gated group's id and how many members it had then (its first members in
+    the groups of the run); ``score`` their ranking scores, lowest first.
+    """
+
+    query: SgfDescriptor
+    groups: tuple[tuple[int, int], ...]
+    score: np.ndarray
+
+
+@dataclass(frozen=True)
 class GatedGroup:
     """A group inside the query's spatial gate: its nearest member's map distance, and whether it repeats."""
 

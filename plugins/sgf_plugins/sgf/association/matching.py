@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 
 from sgf_pipeline.types import LookAlike, PoseEstimate, SgfDescriptor
-from sgf_plugins.sgf.association.evaluation import majority_instance
 from sgf_plugins.sgf.association.gate import SpatialGate
 from sgf_plugins.sgf.association.groups import GatedGroup, SgfGroup
 from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, symmetry_spread
@@ -39,21 +38,6 @@ class Eq10Matching(SpatialGate):
             return False
         m, _ = self._nearest_member(query, gated.group, gated.members)
         return symmetry_spread(gated.group.members[m].matrix, self.params.columns) < self.params.symmetry_threshold
-
-    def _rank_own_group(self, query: SgfDescriptor, candidates: list[GatedGroup], score: np.ndarray) -> None:
-        """Count whether the ranking ranks the group of the query's own marking (its members' majority) first.
-
-        The ranking is eq. 10, plus ``position_weight`` times the gate ratio when that is set. Only
-        labelled queries whose own group and another one are both gated count: the share ranked
-        first measures how well the association tells markings apart on this run.
-        """
-        instance = query.sgf.instance_id
-        if instance is None:
-            return
-        own = np.array([majority_instance(c.group) == instance for c in candidates])
-        if own.any() and not own.all():
-            self._ranked[0] += 1
-            self._ranked[1] += int(score[own].min() < score[~own].min())
 
     def _nearest_member_distances(
         self, query: SgfDescriptor, groups: list[SgfGroup], members: list[np.ndarray | None] | None = None

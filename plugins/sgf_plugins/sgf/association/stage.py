@@ -22,13 +22,14 @@ from sgf_pipeline.types import (
     SgfDescriptors,
 )
 from sgf_plugins.odometry.frame_log import FrameLog
+from sgf_plugins.sgf.association import evaluation
 from sgf_plugins.sgf.association.end_of_run import EndOfRun
-from sgf_plugins.sgf.association.evaluation import group_purity, instance_counts, loop_pairs
 from sgf_plugins.sgf.association.groups import (
     HISTORY_FRAMES,
     NO_ESTIMATE,
     GatedGroup,
     MemberIndex,
+    Ranking,
     SgfGroup,
     groups_from_map,
     odometry_position,
@@ -103,7 +104,7 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
         self._slot: dict[int, int] = {}
         self._closures: list[Closure] = []
         self._shortcuts: tuple[object, list[tuple[float, float]]] = (NO_ESTIMATE, [])
-        self._ranked = [0, 0]  # labelled decisions between the own marking's group and others; own ranked first
+        self._rankings: list[Ranking] = []  # every query's ranking of the gated groups (for the evaluation)
         self._estimate: PoseEstimate | None = None  # the newest estimate seen (for the split at the end)
         self._bias_began: tuple[int, float] | None = None  # frame and travelled distance the bias correction began
         self._end: tuple[tuple[SettledGroup, ...], int | None, int | None] | None = None  # online groups, split, merged
@@ -148,7 +149,7 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
         self._slot = {g.group_id: k for k, g in enumerate(self._groups)}
         self._closures = []
         self._shortcuts = (NO_ESTIMATE, [])
-        self._ranked = [0, 0]
+        self._rankings = []
         self._estimate = None
         self._bias_began = None
         self._end = None
@@ -202,7 +203,9 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
                 )
             # Where the estimate puts the query counts too: a group at the gate's edge pays position_weight.
             score = eq10 + p.position_weight * np.array([c.ratio for c in candidates])
-            self._rank_own_group(query, candidates, score)
+            self._rankings.append(
+                Ranking(query, tuple((c.group.group_id, len(c.group.members)) for c in candidates), score)
+            )
             # A look-alike group just seen elsewhere is a neighbouring copy of a repeated pattern
             # (give-way triangles, dashes): the query may not join it, and neither gives loop factors.
             copy = np.array([c.repeated for c in candidates]) & (
@@ -317,40 +320,31 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
         return replace(settlement, groups=settled(self._groups), group_of=group_of)
 
     def finalize(self, context: RunContext) -> None:
-        """Publish the groups (``artifacts['sgf_groups']``) and write purity and loop-pair metrics.
+        """Publish the groups and the group metrics (:meth:`conclude` runs here first when the run ended without it).
 
-        ``purity_online`` and ``pairs_found_online`` are from before the split and merge at the end
-        (:meth:`conclude`, run here first when the run ended without it).
+        Artifacts, for observers and the evaluation (:mod:`sgf_plugins.sgf.association.evaluation`):
+        ``sgf_groups`` (the final groups), ``sgf_groups_online`` (the groups before the split and merge
+        at the end) and ``sgf_rankings`` (every query's ranking of the gated groups).
         """
         if self._end is None:
             self.conclude(context, Settlement())
         assert self._end is not None
-        online_groups, split, merged = self._end
+        online, split, merged = self._end
         sgf: dict[str, Any] = context.metrics.setdefault("sgf", {})
-        online = group_purity(online_groups) if context.truth is not None else None
-        online_pairs = loop_pairs(online_groups, context.truth) if context.truth is not None else None
         if split is not None:
             sgf["groups_split"] = split
         if merged is not None:
             sgf["groups_merged"] = merged
         context.artifacts["sgf_groups"] = list(self._groups)
+        context.artifacts["sgf_groups_online"] = online
+        context.artifacts["sgf_rankings"] = list(self._rankings)
         sgf["groups"] = len(self._groups)
         sgf["symmetric_groups"] = sum(1 for g in self._groups if g.symmetric)
         sgf["aliased_groups"] = sum(1 for g in self._groups if g.aliased)
-        sgf["purity"] = None
-        loops: dict[str, Any] = context.metrics.setdefault("loops", {})
-        loops.update(
-            {"pairs_found": None, "pairs_total": None, "pairs_found_reverse": None, "pairs_total_reverse": None}
-        )
-        if context.truth is not None:
-            sgf["purity"] = group_purity(self._groups)
-            sgf["purity_online"] = online
-            decisions, first = self._ranked
-            sgf["own_group_ranked_first"] = {"decisions": decisions, "share": first / decisions if decisions else None}
-            sgf["mixed_groups"] = sum(1 for g in self._groups if len(instance_counts(g)[0]) > 1)
-            loops.update(loop_pairs(self._groups, context.truth))
-            assert online_pairs is not None
-            loops["pairs_found_online"] = online_pairs["pairs_found"]
+
+
+# The ground-truth scores of the groups, from what the stage publishes, when a run ends.
+sgf_report_metrics = evaluation.sgf_report_metrics
 
 
 @hookimpl

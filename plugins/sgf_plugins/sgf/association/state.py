@@ -9,7 +9,7 @@ import numpy as np
 from sgf_pipeline.geometry import invert, xy_yaw
 from sgf_pipeline.types import Frame, PoseEstimate, SgfDescriptor
 from sgf_plugins.odometry.frame_log import FrameLog
-from sgf_plugins.sgf.association.groups import MemberIndex, SgfGroup
+from sgf_plugins.sgf.association.groups import MemberIndex, Ranking, SgfGroup
 from sgf_plugins.sgf.association.params import OnlineGroupsParams
 from sgf_plugins.sgf.polar import yaw_to_shift
 
@@ -40,7 +40,7 @@ class AssociationState:
     _slot: dict[int, int]
     _closures: list[Closure]
     _shortcuts: tuple[object, list[tuple[float, float]]]
-    _ranked: list[int]
+    _rankings: list[Ranking]
     _estimate: PoseEstimate | None
     _bias_began: tuple[int, float] | None
 
