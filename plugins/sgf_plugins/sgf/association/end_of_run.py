@@ -31,7 +31,7 @@ class EndOfRun(SpatialGate):
         if not self._groups or index.size == 0:
             return 0
         positions = self._member_positions(estimate)
-        shortcuts = self._anchoring(estimate) if self.params.anchored_gate else []
+        shortcuts = self._anchoring(estimate) if self.params.gate.anchored else []
         rows = np.arange(index.size)
         made = 0
         for slot, group in enumerate(list(self._groups)):
@@ -49,7 +49,7 @@ class EndOfRun(SpatialGate):
                 base = group.offsets[taken[0]]
                 for k in taken:
                     new.add(group.members[k], group.offsets[k] - base)
-                new.refresh(self.params.columns, self.params.symmetry_threshold)
+                new.refresh(self.params.match.columns, self.params.match.symmetry_threshold)
                 self._slot[new.group_id] = len(self._groups)
                 index.group[mine[taken]] = len(self._groups)
                 self._groups.append(new)
@@ -57,7 +57,7 @@ class EndOfRun(SpatialGate):
             group.members = [m for m, k in zip(group.members, keep, strict=True) if k]
             group.offsets = [o for o, k in zip(group.offsets, keep, strict=True) if k]
             group.anchors = [a for a, k in zip(group.anchors, keep, strict=True) if k]
-            group.refresh(self.params.columns, self.params.symmetry_threshold)
+            group.refresh(self.params.match.columns, self.params.match.symmetry_threshold)
         return made
 
     def merge_groups(self, estimate: PoseEstimate | None) -> int:
@@ -66,11 +66,11 @@ class EndOfRun(SpatialGate):
         The counterpart of :meth:`split_groups`: a revisit seen before any loop, while the gate
         reached several look-alike markings (a dash, a tactile bar), may have joined the wrong one's
         group and been split off at the end. Candidates are member pairs of two groups within
-        ``merge_radius`` on the map whose eq. 10 distance, at the column shift the estimate
-        predicts (within ``merge_yaw_deg``; any shift when both groups are symmetric), is at most
-        ``merge_distance``. The closest pairs merge first, and only when every member of the
+        ``end.merge_radius`` on the map whose eq. 10 distance, at the column shift the estimate
+        predicts (within ``end.merge_yaw_deg``; any shift when both groups are symmetric), is at most
+        ``end.merge_distance``. The closest pairs merge first, and only when every member of the
         merged group stays within the spatial gate of every other (the split would not undo it)
-        and no two of the groups' members were seen within ``repeat_window`` of travel (one
+        and no two of the groups' members were seen within ``repeats.window`` of travel (one
         drive-by: two copies of a repeated pattern, kept apart online).
         Groups seeded from a map are left alone.
         """
@@ -86,7 +86,7 @@ class EndOfRun(SpatialGate):
         rows = np.flatnonzero(free[slots] & ~np.isnan(index.travelled[:n]))
         if len(rows) < 2:
             return 0
-        near = cKDTree(positions[rows]).query_pairs(p.merge_radius, output_type="ndarray")
+        near = cKDTree(positions[rows]).query_pairs(p.end.merge_radius, output_type="ndarray")
         first, second = rows[near[:, 0]], rows[near[:, 1]]
         apart = slots[first] != slots[second]
         member_at = np.zeros(n, dtype=np.int64)  # a row's index among its group's members (rows keep member order)
@@ -94,14 +94,14 @@ class EndOfRun(SpatialGate):
             member_at[slots == slot] = np.arange(int((slots == slot).sum()))
         candidates: list[tuple[float, int, int, int]] = []
         n_s = index.members[0].matrix.shape[1]
-        window = round(math.radians(p.merge_yaw_deg) * n_s / (2.0 * math.pi))
+        window = round(math.radians(p.end.merge_yaw_deg) * n_s / (2.0 * math.pi))
         for a, b in zip(first[apart].tolist(), second[apart].tolist(), strict=True):
             if index.frame[b] < index.frame[a]:
                 a, b = b, a
             ga, gb = self._groups[slots[a]], self._groups[slots[b]]
             if ga.symmetric != gb.symmetric:
                 continue
-            profile = shifted_distances(index.members[b].matrix, index.members[a].matrix[None], p.columns)[0]
+            profile = shifted_distances(index.members[b].matrix, index.members[a].matrix[None], p.match.columns)[0]
             if not ga.symmetric:
                 predicted = round(self._predicted_shift(index.members[b], index.members[a], estimate))
                 allowed = np.full(n_s, np.inf)
@@ -109,9 +109,9 @@ class EndOfRun(SpatialGate):
                 allowed[shifts] = profile[shifts]
                 profile = allowed
             shift = int(np.argmin(profile))
-            if profile[shift] <= p.merge_distance:
+            if profile[shift] <= p.end.merge_distance:
                 candidates.append((float(profile[shift]), a, b, shift))
-        shortcuts = self._anchoring(estimate) if p.anchored_gate else []
+        shortcuts = self._anchoring(estimate) if p.gate.anchored else []
         made = 0
         for _, a, b, shift in sorted(candidates):
             sa, sb = int(slots[a]), int(slots[b])
@@ -120,7 +120,7 @@ class EndOfRun(SpatialGate):
             in_a, in_b = slots == sa, slots == sb
             both = np.flatnonzero(in_a | in_b)
             seen_a, seen_b = index.travelled[:n][in_a], index.travelled[:n][in_b]
-            if np.abs(seen_a[:, None] - seen_b[None, :]).min() < p.repeat_window:
+            if np.abs(seen_a[:, None] - seen_b[None, :]).min() < p.repeats.window:
                 continue  # seen on one drive-by: two markings (a repeated pattern's copies), not a revisit
             if self._parts(positions[both], index.travelled[both], shortcuts, estimate).max() > 0:
                 continue
@@ -136,7 +136,7 @@ class EndOfRun(SpatialGate):
             gb.members, gb.offsets, gb.anchors = [], [], []
             slots[both] = sa
             member_at[both] = np.arange(len(both))
-            ga.refresh(p.columns, p.symmetry_threshold)
+            ga.refresh(p.match.columns, p.match.symmetry_threshold)
             made += 1
         if made:
             kept = [k for k, g in enumerate(self._groups) if g.members]

@@ -21,18 +21,18 @@ ANCHOR_YAW_TOLERANCE = 0.05
 class SpatialGate(RepeatedPattern):
     """The spatial gate: the groups with a member near the query on the map, its radius growing with drift.
 
-    The radius between two sightings is ``gate_radius + drift_rate * d + q * d^2`` for the
+    The radius between two sightings is ``gate.radius + gate.drift_rate * d + q * d^2`` for the
     distance ``d`` travelled between them (:meth:`_gate_radius`), with the heading-bias term ``q``
-    (:meth:`_quadratic`, :meth:`_per_bias`); with ``anchored_gate``, ``d`` restarts at the loop
+    (:meth:`_quadratic`, :meth:`_per_bias`); with ``gate.anchored``, ``d`` restarts at the loop
     closures the estimate satisfies (:meth:`_anchoring`).
     """
 
     def gated(self, query: SgfDescriptor, estimate: PoseEstimate | None) -> list[GatedGroup]:
         """The groups the spatial gate lets the query meet, with their nearest member's map distance (m).
 
-        ``repeated`` marks a group holding a member seen moments ago (within ``repeat_window`` of
-        travel) at another place (beyond ``repeat_radius``, and with a ground footprint that
-        overlaps the query's by less than ``repeat_overlap``): if it also looks like the query, the
+        ``repeated`` marks a group holding a member seen moments ago (within ``repeats.window`` of
+        travel) at another place (beyond ``repeats.radius``, and with a ground footprint that
+        overlaps the query's by less than ``repeats.overlap``): if it also looks like the query, the
         two are neighbouring copies of a repeated pattern (see :meth:`assign`). A partial view of
         the same marking moves its centroid by up to a metre or two but covers the same paint.
         """
@@ -51,26 +51,26 @@ class SpatialGate(RepeatedPattern):
             odometry = np.asarray(query.sgf.odometry, dtype=np.float64)[:3, 3]
             travelled[unknown] = np.linalg.norm(index.odometry[:n][unknown, :3, 3] - odometry, axis=1)
         repeated = self._repeated(query, estimate, travelled, distance, anchored)
-        if p.anchored_gate and since is not None:
+        if p.gate.anchored and since is not None:
             shortcuts = self._anchoring(estimate)
             if shortcuts:
                 known = ~unknown
                 travelled[known] = anchored_distances(since, index.travelled[:n][known], shortcuts)
         quadratic = self._quadratic(index.travelled[:n], self._anchoring(estimate), estimate)
         radius = self._gate_radius(travelled, quadratic)
-        radius[anchored] = math.inf if p.prior_gate_radius is None else p.prior_gate_radius
+        radius[anchored] = math.inf if p.gate.prior_radius is None else p.gate.prior_radius
         groups = index.group[:n]
         count = len(self._groups)
-        member_inside = (distance <= radius) | (not p.spatial_gate)
+        member_inside = (distance <= radius) | (not p.gate.enabled)
         nearest = np.full(count, math.inf)
-        np.minimum.at(nearest, groups, np.where(member_inside | (not p.member_gate), distance, math.inf))
+        np.minimum.at(nearest, groups, np.where(member_inside | (not p.gate.member_gate), distance, math.inf))
         ratio = np.full(count, math.inf)
         np.minimum.at(ratio, groups, distance / radius)
         inside = np.bincount(groups, weights=member_inside, minlength=count) > 0
         repeats = np.bincount(groups, weights=repeated, minlength=count) > 0
         members: list[np.ndarray | None] = [None] * count
         repeating: list[np.ndarray | None] = [None] * count
-        if inside.any() and ((p.member_gate and p.spatial_gate) or (repeats & inside).any()):
+        if inside.any() and ((p.gate.member_gate and p.gate.enabled) or (repeats & inside).any()):
             # members sit in the index in the order they joined their group: rank within the group = member index
             order = np.argsort(groups, kind="stable")
             starts = np.concatenate([[0], np.cumsum(np.bincount(groups, minlength=count))[:-1]])
@@ -80,7 +80,7 @@ class SpatialGate(RepeatedPattern):
                 kept = flags[order]
                 return np.split(rank[kept], np.cumsum(np.bincount(groups[order][kept], minlength=count))[:-1])
 
-            if p.member_gate and p.spatial_gate:
+            if p.gate.member_gate and p.gate.enabled:
                 members = [m if inside[k] else None for k, m in enumerate(per_group(member_inside))]
             repeating = [r if repeats[k] else None for k, r in enumerate(per_group(repeated))]
         return [
@@ -119,7 +119,7 @@ class SpatialGate(RepeatedPattern):
             return []
         if self._shortcuts[0] is estimate:
             return self._shortcuts[1]
-        tolerance = self.params.anchor_tolerance
+        tolerance = self.params.gate.anchor_tolerance
         shortcuts = []
         for c in self._closures:
             start, end = estimate.poses.get(c.frame_from), estimate.poses.get(c.frame_to)
@@ -132,8 +132,8 @@ class SpatialGate(RepeatedPattern):
         return shortcuts
 
     def _per_bias(self, bias: float) -> float:
-        """The gate's growth per squared metre for a heading bias (rad/m): ``drift_bias_share`` of 0.5 b."""
-        return self.params.drift_bias_share * 0.5 * abs(bias)
+        """The gate's growth per squared metre for a heading bias (rad/m): ``gate.drift_bias_share`` of 0.5 b."""
+        return self.params.gate.drift_bias_share * 0.5 * abs(bias)
 
     def _gate_radius(self, travelled: np.ndarray, quadratic: np.ndarray | float) -> np.ndarray:
         """The spatial gate's radius (m) for the distances travelled between two sightings.
@@ -141,12 +141,12 @@ class SpatialGate(RepeatedPattern):
         ``quadratic``: the heading bias term per pair (:meth:`_quadratic`).
         """
         p = self.params
-        return p.gate_radius + p.drift_rate * travelled + quadratic * travelled**2
+        return p.gate.radius + p.gate.drift_rate * travelled + quadratic * travelled**2
 
     def _quadratic(
         self, travelled: np.ndarray, shortcuts: list[tuple[float, float]], estimate: PoseEstimate | None
     ) -> np.ndarray:
-        """The gate's heading bias term for members seen at ``travelled`` metres (``gate_bias_from_backend``).
+        """The gate's heading bias term for members seen at ``travelled`` metres (``gate.bias_from_backend``).
 
         The bias is the back-end's model of it (``PoseEstimate.yaw_bias``): as measured so far on
         odometry nothing was taken off. Once the back-end takes its estimate off, the estimate keeps
@@ -156,7 +156,7 @@ class SpatialGate(RepeatedPattern):
         one member elsewhere it stays.
         """
         p = self.params
-        if not p.gate_bias_from_backend:
+        if not p.gate.bias_from_backend:
             return np.full(np.shape(travelled), self._per_bias(EXPECTED_YAW_BIAS))
         q = np.full(np.shape(travelled), self._per_bias(uncorrected_yaw_bias(estimate)))
         corrected = corrected_yaw_bias(estimate)

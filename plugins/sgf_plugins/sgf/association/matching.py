@@ -15,7 +15,7 @@ class Eq10Matching(SpatialGate):
 
     def _prior_shift(self, query: SgfDescriptor, member: SgfDescriptor, estimate: PoseEstimate | None) -> float | None:
         """The column shift that the pose estimate predicts between two sightings (None for map members)."""
-        if self.params.yaw_tolerance <= 0.0:
+        if self.params.match.yaw_tolerance <= 0.0:
             return None
         return self._predicted_shift(query, member, estimate)
 
@@ -27,7 +27,7 @@ class Eq10Matching(SpatialGate):
         close with (its own marking, ranked level by the position weight), that group takes it.
         """
         p = self.params
-        if len(ties) < 2 or symmetry_spread(query.matrix, p.columns) < p.symmetry_threshold:
+        if len(ties) < 2 or symmetry_spread(query.matrix, p.match.columns) < p.match.symmetry_threshold:
             return ties
         closable = [t for t in ties if not self._symmetric_match(query, candidates[t])]
         return np.asarray(closable, dtype=np.int64) if closable else ties
@@ -37,7 +37,10 @@ class Eq10Matching(SpatialGate):
         if not gated.group.symmetric:
             return False
         m, _ = self._nearest_member(query, gated.group, gated.members)
-        return symmetry_spread(gated.group.members[m].matrix, self.params.columns) < self.params.symmetry_threshold
+        return (
+            symmetry_spread(gated.group.members[m].matrix, self.params.match.columns)
+            < self.params.match.symmetry_threshold
+        )
 
     def _nearest_member_distances(
         self, query: SgfDescriptor, groups: list[SgfGroup], members: list[np.ndarray | None] | None = None
@@ -46,7 +49,9 @@ class Eq10Matching(SpatialGate):
         members = [None] * len(groups) if members is None else members
         chosen = [g.matrices if m is None else g.matrices[m] for g, m in zip(groups, members, strict=True)]
         p = self.params
-        per_member = shifted_distances(query.matrix, np.concatenate(chosen), p.columns, p.min_overlap).min(axis=1)
+        per_member = shifted_distances(query.matrix, np.concatenate(chosen), p.match.columns, p.match.min_overlap).min(
+            axis=1
+        )
         starts = np.cumsum([0] + [len(c) for c in chosen[:-1]])
         return np.minimum.reduceat(per_member, starts)
 
@@ -57,7 +62,7 @@ class Eq10Matching(SpatialGate):
         m, profile = self._nearest_member(query, group, members)
         matched = group.members[m]
         prior = None if group.anchors[m] is not None else self._prior_shift(query, matched, estimate)
-        return m, matched, best_shift(profile, prior, self.params.yaw_tolerance)
+        return m, matched, best_shift(profile, prior, self.params.match.yaw_tolerance)
 
     def _nearest_member(
         self, query: SgfDescriptor, group: SgfGroup, members: np.ndarray | None = None
@@ -65,7 +70,7 @@ class Eq10Matching(SpatialGate):
         """The index of the group member (of ``members``, when given) closest by eq. 10, and its shift profile."""
         p = self.params
         candidates = np.arange(len(group.members)) if members is None else members
-        profiles = shifted_distances(query.matrix, group.matrices[candidates], p.columns, p.min_overlap)
+        profiles = shifted_distances(query.matrix, group.matrices[candidates], p.match.columns, p.match.min_overlap)
         k = int(np.argmin(profiles.min(axis=1)))
         return int(candidates[k]), profiles[k]
 

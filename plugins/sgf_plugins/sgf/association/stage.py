@@ -44,30 +44,30 @@ from sgf_plugins.sgf.polar import shift_to_yaw, shifted_distances, symmetry_spre
 class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
     """Assign each SGF descriptor to the nearest SGF group by the column-shifted cosine distance (eq. 10).
 
-    Candidates: with ``spatial_gate``, only groups with a member whose map position lies within
-    ``gate_radius + drift_rate * (distance travelled between the two sightings)`` of the query's;
-    with ``member_gate`` a group is compared through those members only (a sighting from long ago
+    Candidates: with ``gate.enabled``, only groups with a member whose map position lies within
+    ``gate.radius + gate.drift_rate * (distance travelled between the two sightings)`` of the query's;
+    with ``gate.member_gate`` a group is compared through those members only (a sighting from long ago
     has a wide gate, and must not let a recent member of its group far from the query match it).
     Map positions apply the back-end's previous estimate of the member's frame to its centroid,
     or the odometry pose when no back-end runs; the gate keeps identical standard markings at
     different places (perceptual aliasing) in different groups while allowing for drift. With
-    ``anchored_gate``, the distance travelled is counted as the loop stage counts it
+    ``gate.anchored``, the distance travelled is counted as the loop stage counts it
     (:mod:`sgf_plugins.odometry.anchoring`): a loop closure that the estimate meets (within
-    ``anchor_tolerance``) joins its two frames at no cost, so once a revisit is anchored the gate
+    ``gate.anchor_tolerance``) joins its two frames at no cost, so once a revisit is anchored the gate
     shrinks back to what the odometry drifts since the loop, not since the first sighting.
 
-    Groups are ranked by eq. 10 distance, plus ``position_weight`` times the ratio of their nearest
+    Groups are ranked by eq. 10 distance, plus ``match.position_weight`` times the ratio of their nearest
     member's map distance to its gate radius (0 where the estimate puts the query, 1 at the
     gate's edge): once the gate is tens of metres wide, a small eq. 10 advantage of a look-alike
     far away no longer outranks the group right where the query lies. The query joins the
     candidate group ranked first if its eq. 10 distance is at most
-    ``new_group_distance`` (0.7), else it opens a group (then ``distance`` is the smallest
+    ``match.new_group_distance`` (0.7), else it opens a group (then ``distance`` is the smallest
     distance to a gated group, 1 when none was gated, and ``shift``/``yaw`` are 0). ``matched`` is
     the closest member of that group (by eq. 10 against each member's own descriptor) and
     ``shift``/``yaw`` are relative to it: the query's frame is turned by ``yaw`` from the matched
     member's frame, so ``R(yaw) @ (points - centroid) + matched.centroid`` approximates
-    ``matched.points``. Shifts within ``yaw_tolerance`` of the best (2- or 4-fold symmetric
-    markings) are resolved by the relative yaw of the two poses, and groups within ``tie_margin``
+    ``matched.points``. Shifts within ``match.yaw_tolerance`` of the best (2- or 4-fold symmetric
+    markings) are resolved by the relative yaw of the two poses, and groups within ``match.tie_margin``
     of the best distance (identical standard markings, which eq. 10 cannot tell apart) are
     resolved by the nearest member on the map; a query whose own profile is not flat leaves the
     symmetric groups among them out (a match into one gives no loop factor).
@@ -75,7 +75,7 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
     The group descriptor is the mean of its members after turning each by its shift into the
     first member's orientation: averaging unaligned descriptors of a feature seen from different
     headings (a reverse loop) would smear it over all sectors. A group whose
-    self-distance profile over the N_s shifts is flat (spread below ``symmetry_threshold``, like a
+    self-distance profile over the N_s shifts is flat (spread below ``match.symmetry_threshold``, like a
     round manhole) is ``symmetric``, and so is a match into it when the query's or the matched
     member's own profile is flat too; symmetric matches give no loop factors. (A group that took
     in members of different markings can have a flat mean of unflat views: its matches still go
@@ -131,7 +131,7 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
             ]
             if not g.members:
                 raise ValueError(f"seeded SGF group {group.group_id} has no members")
-            g.refresh(self.params.columns, self.params.symmetry_threshold)
+            g.refresh(self.params.match.columns, self.params.match.symmetry_threshold)
             prior.append(g)
         ids = [g.group_id for g in prior]
         if len(set(ids)) != len(ids):
@@ -164,7 +164,7 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
             from sgf_pipeline.sgf_map import load_map
 
             sgf_map = load_map(self.params.prior_map, calibration=context.calibration)
-            groups = groups_from_map(sgf_map, self.params.columns)
+            groups = groups_from_map(sgf_map, self.params.match.columns)
             shape = context.artifacts.get("descriptor_shape")
             found = {tuple(m.matrix.shape) for g in groups for m in g.members}
             if shape is not None and found and found != {tuple(shape)}:
@@ -195,31 +195,31 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
                     f"descriptor shape {query.matrix.shape} differs from the groups' {stack.shape[1:]}; "
                     "all SGF descriptors of a run (and of a seeded map) need the same N_r and N_s"
                 )
-            if p.group_distance == "mean":
-                eq10 = shifted_distances(query.matrix, stack, p.columns, p.min_overlap).min(axis=1)
+            if p.match.group_distance == "mean":
+                eq10 = shifted_distances(query.matrix, stack, p.match.columns, p.match.min_overlap).min(axis=1)
             else:
                 eq10 = self._nearest_member_distances(
                     query, [c.group for c in candidates], [c.members for c in candidates]
                 )
             # Where the estimate puts the query counts too: a group at the gate's edge pays position_weight.
-            score = eq10 + p.position_weight * np.array([c.ratio for c in candidates])
+            score = eq10 + p.match.position_weight * np.array([c.ratio for c in candidates])
             self._rankings.append(
                 Ranking(query, tuple((c.group.group_id, len(c.group.members)) for c in candidates), score)
             )
             # A look-alike group just seen elsewhere is a neighbouring copy of a repeated pattern
             # (give-way triangles, dashes): the query may not join it, and neither gives loop factors.
             copy = np.array([c.repeated for c in candidates]) & (
-                self._copy_distances(query, candidates, eq10) <= p.copy_distance
+                self._copy_distances(query, candidates, eq10) <= p.repeats.copy_distance
             )
             for i in np.flatnonzero(copy):
                 candidates[i].group.aliased = True
             copy_nearby = bool(copy.any())
             best_kept = score[~copy].min() if not copy.all() else math.inf
-            if p.copies == "new" and copy_nearby and score[copy].min() <= best_kept + p.tie_margin:
+            if p.repeats.copies == "new" and copy_nearby and score[copy].min() <= best_kept + p.match.tie_margin:
                 # The query is one more copy of the pattern here, not a revisit elsewhere: a group of its own.
                 opened_distance = float(eq10.min())
             elif not copy.all():
-                ties = np.flatnonzero(~copy & (score <= best_kept + p.tie_margin))
+                ties = np.flatnonzero(~copy & (score <= best_kept + p.match.tie_margin))
                 ties = self._closable_ties(query, candidates, ties)
                 i = int(min(ties, key=lambda t: candidates[t].nearest))
                 best = (candidates[i].group, float(eq10[i]))
@@ -228,12 +228,12 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
                 # handed on as alternatives (a loop stage may tell them apart by their neighbours).
                 tied = [candidates[t] for t in ties if t != i]
                 gated_members = candidates[i].members
-        if best is None or best[1] > p.new_group_distance:
+        if best is None or best[1] > p.match.new_group_distance:
             group = SgfGroup(self._next_id, aliased=copy_nearby)
             self._next_id += 1
             group.add(query, 0)
             self._index.add(len(self._groups), query, self._frames.get_distance(query.sgf.frame_index), None)
-            group.refresh(p.columns, p.symmetry_threshold)
+            group.refresh(p.match.columns, p.match.symmetry_threshold)
             self._slot[group.group_id] = len(self._groups)
             self._groups.append(group)
             distance = opened_distance if best is None else best[1]
@@ -258,12 +258,14 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
         )
         group.add(query, shift + group.offsets[m])
         self._index.add(self._slot[group.group_id], query, self._frames.get_distance(query.sgf.frame_index), None)
-        group.refresh(p.columns, p.symmetry_threshold)
+        group.refresh(p.match.columns, p.match.symmetry_threshold)
         # A flat group mean may only be a smear of members from different markings: the match is
         # symmetric when one of its two own views is flat too. Two flat views are symmetric whatever
         # the group's mean (a round manhole in a group that also took a shaped view): no yaw to fit.
-        spreads = (symmetry_spread(query.matrix, p.columns), symmetry_spread(matched.matrix, p.columns))
-        symmetric = (group.symmetric and min(spreads) < p.symmetry_threshold) or max(spreads) < p.symmetry_threshold
+        spreads = (symmetry_spread(query.matrix, p.match.columns), symmetry_spread(matched.matrix, p.match.columns))
+        symmetric = (group.symmetric and min(spreads) < p.match.symmetry_threshold) or max(
+            spreads
+        ) < p.match.symmetry_threshold
         return GroupAssignment(
             descriptor=query,
             group_id=group.group_id,
@@ -297,18 +299,18 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
     def conclude(self, context: RunContext, settlement: Settlement) -> Settlement:
         """Regroup at the end of the run; hands on the final groups (``settlement.groups``, ``settlement.group_of``).
 
-        With ``split_at_end`` the groups are split by the newest estimate (:meth:`split_groups`: the
+        With ``end.split`` the groups are split by the newest estimate (:meth:`split_groups`: the
         back-end's ``settlement.estimate``, re-solved without the loops taken back, when it re-solved
-        one), and with ``merge_at_end`` look-alikes it puts at one place merged (:meth:`merge_groups`).
+        one), and with ``end.merge`` look-alikes it puts at one place merged (:meth:`merge_groups`).
         ``group_of`` maps each run member's ``(frame_index, track_id)`` to its final group, for the
         loop stage's final pass and the SGF map.
         """
         online = settled(self._groups)
         estimate = settlement.estimate if settlement.estimate is not None else self._estimate
         split = merged = None
-        if self.params.split_at_end and self.params.spatial_gate:
+        if self.params.end.split and self.params.gate.enabled:
             split = self.split_groups(estimate)
-        if self.params.merge_at_end:
+        if self.params.end.merge:
             merged = self.merge_groups(estimate)
         self._end = (online, split, merged)
         group_of = {
