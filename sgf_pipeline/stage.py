@@ -84,7 +84,7 @@ class Stage(ABC):
     The end of a run has two passes over the stages in DAG order. First every stage's ``settle``;
     then, stage by stage, ``conclude`` and ``finalize``. ``settle`` and ``conclude`` take the
     :class:`Settlement` the stages before handed on and return it, with their own decisions in it;
-    ``finalize`` writes the stage's results (metrics, trajectories, files). A stage that hands
+    ``finalize`` finishes the stage's results (metrics, trajectories, files). A stage that hands
     nothing on overrides ``finalize`` alone: the defaults of ``settle`` and ``conclude`` pass the
     settlement through.
     """
@@ -127,12 +127,13 @@ class Stage(ABC):
         """Make the last end-of-run decisions, on what every stage settled; the settlement handed on.
 
         Called in DAG order, each stage's right before its ``finalize`` (the association's final
-        groups, then the loop stage's final pass over them, then the back-end's final solve).
+        groups, then the loop stage's final pass over them, whose loops the back-end's ``finalize``
+        adds to its final optimisation).
         """
         return settlement
 
     def finalize(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
-        """Finish the sequence: metrics, trajectories, files."""
+        """Finish the sequence: final optimisation, metrics, trajectories, files."""
 
     def partial(self, context: RunContext, settlement: Settlement) -> Settlement:
         """Keep what the run has so far when it stops early (SIGINT, SIGTERM, a failure).

@@ -54,11 +54,6 @@ class SgfGroup:
         """The members' own (unaligned) descriptors, (M, N_r, N_s)."""
         return np.stack([m.matrix for m in self.members])
 
-    @property
-    def instance_ids(self) -> list[int | None]:
-        """The ground-truth instance of each member (None when unknown)."""
-        return [m.sgf.instance_id for m in self.members]
-
 
 @dataclass(frozen=True)
 class Ranking:
