@@ -33,7 +33,7 @@ from sgf_pipeline.context import RunContext
 from sgf_pipeline.errors import ConfigError, PipelineGraphError, SgfError, StageError
 from sgf_pipeline.registry import LoadedPlugins, load_plugins
 from sgf_pipeline.run_info import RunInfo, RunView, StageNode
-from sgf_pipeline.stage import Dataset, Stage
+from sgf_pipeline.stage import Dataset, Settlement, Stage
 from sgf_pipeline.trajectory import Trajectory
 from sgf_pipeline.types import Frame, PathAhead, PoseEstimate
 
@@ -491,20 +491,30 @@ class Pipeline:
         self.begin()
         self._finished = True
         failures: list[tuple[StageError, str]] = []
-        # Every stage settles, then every stage finalizes, even after another failed (files, resources).
-        for phase in ("settle", "finalize"):
-            for node in self.order:
-                if phase == "settle" and not isinstance(node.stage, Stage):
-                    continue  # a dataset has nothing to settle
-                try:
-                    getattr(node.stage, phase)(self.context)
-                except Exception as exc:
-                    self.plugins.manager.hook.sgf_on_error(run=self.info, stage=node, frame=None, error=exc)
-                    error = StageError(
-                        f"stage {node.label} failed in {phase}: {type(exc).__name__}: {exc}", node.kind, node.name, None
-                    )
-                    error.__cause__ = exc
-                    failures.append((error, phase))
+        settlement = Settlement()
+
+        def end(node: StageNode, phase: str, *args: Any) -> Any:
+            """One stage's end-of-run call, its result; a failure is recorded (result ``None``)."""
+            try:
+                return getattr(node.stage, phase)(self.context, *args)
+            except Exception as exc:
+                self.plugins.manager.hook.sgf_on_error(run=self.info, stage=node, frame=None, error=exc)
+                error = StageError(
+                    f"stage {node.label} failed in {phase}: {type(exc).__name__}: {exc}", node.kind, node.name, None
+                )
+                error.__cause__ = exc
+                failures.append((error, phase))
+                return None
+
+        # Every stage settles, then stage by stage concludes and finalizes, even after another failed: the
+        # settlement goes on along the DAG (as it was when a stage failed).
+        for node in self.order:
+            if isinstance(node.stage, Stage):  # a dataset has nothing to settle
+                settlement = end(node, "settle", settlement) or settlement
+        for node in self.order:
+            if isinstance(node.stage, Stage):
+                settlement = end(node, "conclude", settlement) or settlement
+            end(node, "finalize")
         if failures:
             first = failures[0][0]
             if len(failures) > 1:
@@ -533,10 +543,11 @@ class Pipeline:
             log.error("the run in %s finished writing before it failed: %s: %s", self.run_dir, type(exc).__name__, exc)
             return
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        settlement = Settlement()
         for node in self.order:  # what each stage has so far (the pose estimate, the SGF map)
             if isinstance(node.stage, Stage):
                 try:
-                    node.stage.partial(self.context)
+                    settlement = node.stage.partial(self.context, settlement)
                 except KeyboardInterrupt:  # a second Ctrl-C: record the run with what is kept so far
                     break
                 except Exception as error:  # a stage broken by the stop itself: the others still keep theirs

@@ -5,14 +5,14 @@ from __future__ import annotations
 import inspect
 import typing
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
 from typing import Annotated, Any, ClassVar, Optional, TypeVar
 
 from pydantic import BaseModel, ConfigDict
 
 from sgf_pipeline.context import RunContext
-from sgf_pipeline.types import Frame
+from sgf_pipeline.types import Frame, GroupAssignment, LoopConstraints, PoseEstimate, SgfDescriptor
 
 T = TypeVar("T")
 
@@ -38,12 +38,55 @@ class StageParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+@dataclass(frozen=True)
+class SettledGroup:
+    """An SGF group as the association leaves it at the end of a run."""
+
+    group_id: int
+    members: tuple[SgfDescriptor, ...]
+    symmetric: bool
+
+
+@dataclass(frozen=True)
+class Settlement:
+    """What stages hand each other at the end of a run, passed along the stage graph in DAG order.
+
+    The runner starts from an empty ``Settlement()`` and gives it to every stage's ``settle`` in DAG
+    order, then to every stage's ``conclude``; each stage returns it with what it decided replaced
+    (``dataclasses.replace``). The fields, and who fills them in the default pipeline:
+
+    - ``taken_back``: loops the loop stage took back (outside the largest consistent set) that the
+      back-end still holds;
+    - ``estimate``: the back-end's estimate re-solved without the loops taken back at ``settle``,
+      or ``None`` when it re-solved none;
+    - ``groups`` and ``group_of``: the association's final SGF groups (after its split and merge at
+      the end; ``None`` without an association) and each SGF's ``(frame_index, track_id)`` -> its
+      final group;
+    - ``final_loops``: loops the loop stage closed at the end (its final pass);
+    - ``assignments``: every group assignment the loop stage received, for the SGF map.
+    """
+
+    taken_back: LoopConstraints = field(default_factory=lambda: LoopConstraints(()))
+    estimate: PoseEstimate | None = None
+    groups: tuple[SettledGroup, ...] | None = None
+    group_of: Mapping[tuple[int, int], int] = field(default_factory=dict)
+    final_loops: LoopConstraints = field(default_factory=lambda: LoopConstraints(()))
+    assignments: tuple[GroupAssignment, ...] = ()
+
+
 class Stage(ABC):
     """One variant of a pipeline stage.
 
     Subclasses set ``kind`` (the config group), ``name`` (the variant), ``output`` (the name of
     the value they produce) and ``Params``; ``process`` takes its inputs as keyword parameters
     named like the outputs of other stages, and its annotations are the types checked on edges.
+
+    The end of a run has two passes over the stages in DAG order. First every stage's ``settle``;
+    then, stage by stage, ``conclude`` and ``finalize``. ``settle`` and ``conclude`` take the
+    :class:`Settlement` the stages before handed on and return it, with their own decisions in it;
+    ``finalize`` finishes the stage's results (metrics, trajectories, files). A stage that hands
+    nothing on overrides ``finalize`` alone: the defaults of ``settle`` and ``conclude`` pass the
+    settlement through.
     """
 
     kind: ClassVar[str]
@@ -70,26 +113,39 @@ class Stage(ABC):
     def process(self, *args: Any, **kwargs: Any) -> Any:
         """Compute this stage's output for one frame."""
 
-    def settle(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
-        """Make the end-of-run decisions other stages' ``finalize`` builds on.
+    def settle(self, context: RunContext, settlement: Settlement) -> Settlement:
+        """Make the end-of-run decisions that every stage's ``conclude`` builds on; the settlement handed on.
 
-        After the last frame the runner calls ``settle`` on every stage in DAG order, then
-        ``finalize`` on every stage: a later stage can settle what an earlier one finalizes with
-        (the back-end re-solves without the loops taken back before the association regroups).
+        Called on every stage in DAG order before any ``conclude``: a later stage can settle what
+        an earlier one concludes with (the loop stage takes back the loops outside the largest
+        consistent set, the back-end re-solves without them, and the association regroups by that
+        estimate in its ``conclude``).
         """
+        return settlement
+
+    def conclude(self, context: RunContext, settlement: Settlement) -> Settlement:
+        """Make the last end-of-run decisions, on what every stage settled; the settlement handed on.
+
+        Called in DAG order, each stage's right before its ``finalize`` (the association's final
+        groups, then the loop stage's final pass over them, whose loops the back-end's ``finalize``
+        adds to its final optimisation).
+        """
+        return settlement
 
     def finalize(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
-        """Finish the sequence: final optimisation, metrics, files."""
+        """Finish the sequence: final optimisation, metrics, trajectories, files."""
 
-    def partial(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
+    def partial(self, context: RunContext, settlement: Settlement) -> Settlement:
         """Keep what the run has so far when it stops early (SIGINT, SIGTERM, a failure).
 
-        Instead of ``settle`` and ``finalize``, the runner calls ``partial`` on every stage in DAG
-        order before it records the stopped run: a stage publishes its results so far into
-        ``context`` (the back-end its trajectory, written as ``trajectory_<name>.partial.tum``) or
-        writes them as ``*.partial.*`` files (the SGF map). Best effort: the stop may have come in
-        the middle of the stage's own ``process``.
+        Instead of the end-of-run passes, the runner calls ``partial`` on every stage in DAG order
+        before it records the stopped run, handing on the settlement as ``settle`` does (the loop
+        stage's group assignments so far, for the back-end's SGF map): a stage publishes its results
+        so far into ``context`` (the back-end its trajectory, written as
+        ``trajectory_<name>.partial.tum``) or writes them as ``*.partial.*`` files (the SGF map).
+        Best effort: the stop may have come in the middle of the stage's own ``process``.
         """
+        return settlement
 
 
 class Dataset(ABC):

@@ -337,14 +337,17 @@ class Run:
     context: object
     loops: list
     estimates: list
+    settlement: object = None
 
 
 def run_stages(world: World, loop=None, backend=None, association=None, run_dir=None, frames=None, settle=True) -> Run:  # type: ignore[no-untyped-def]
     """Stream a world's frames through an association, the loop stage and a back-end, as the runner would.
 
-    ``settle=False`` ends the run with ``finalize`` alone, as a caller that does not know ``settle`` would.
+    ``settle=False`` ends the run with ``conclude`` and ``finalize`` alone, as a caller that does not know
+    ``settle`` would.
     """
     from sgf_pipeline.context import RunContext
+    from sgf_pipeline.stage import Settlement
 
     context = RunContext(run_dir=run_dir, sequence="toy", calibration=CALIBRATION, truth=world.truth)
     association = association or OracleAssociation(world)
@@ -362,8 +365,10 @@ def run_stages(world: World, loop=None, backend=None, association=None, run_dir=
             estimate = backend.process(frame=frame, loops=found)
             estimates.append(estimate)
     stages = [s for s in (loop, backend) if s is not None]
-    for stage in stages if settle else []:  # as the runner ends a run: every stage settles, then every stage finalizes
-        stage.settle(context)
+    settlement = Settlement()
+    for stage in stages if settle else []:  # as the runner ends a run: every stage settles, then each concludes
+        settlement = stage.settle(context, settlement)
     for stage in stages:
+        settlement = stage.conclude(context, settlement)
         stage.finalize(context)
-    return Run(context, loops, estimates)
+    return Run(context, loops, estimates, settlement)

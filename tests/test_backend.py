@@ -25,6 +25,7 @@ from sgf_testing import conf_node
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, rpy_from_rotation, wrap_angle, xy_yaw
 from sgf_pipeline.sgf_map import load_map
+from sgf_pipeline.stage import Settlement
 from sgf_pipeline.types import Frame, LoopConstraint, LoopConstraints
 
 DRIFT = (0.02, math.radians(0.4), 0.015, math.radians(0.15))  # xy/sqrt(m), yaw/sqrt(m), scale, yaw bias/m
@@ -51,17 +52,23 @@ def true_loops(world, delay: int = 2, noise: float = 0.02) -> dict[int, list[Loo
     return out
 
 
-def feed(world, backend, loops: dict[int, list[LoopConstraint]], context: RunContext | None = None, between=None):  # type: ignore[no-untyped-def]
-    """Stream the world's frames through the back-end and end the run (``between``: called after settle)."""
+def feed(
+    world,
+    backend,
+    loops: dict[int, list[LoopConstraint]],
+    context: RunContext | None = None,
+    settlement=None,
+    between=None,
+):  # type: ignore[no-untyped-def]
+    """Stream the world's frames through the back-end and end the run (``between``: the settlement after settle)."""
     context = context or RunContext(run_dir=None, calibration=CALIBRATION)
     backend.begin(context)
     estimates = []
     for frame in world.frames:
         found = loops.get(frame.index)
         estimates.append(backend.process(frame=frame, loops=LoopConstraints(tuple(found)) if found else None))
-    backend.settle(context)
-    if between is not None:
-        between(context)
+    settled = backend.settle(context, settlement or Settlement())
+    backend.conclude(context, between(settled) if between is not None else settled)
     backend.finalize(context)
     return context, estimates
 
@@ -166,14 +173,15 @@ def test_a_loop_taken_back_leaves_the_estimate_of_the_graph_without_it(world, so
     dirty, _ = feed(world, backend(), polluted)
     context = RunContext(run_dir=None, calibration=CALIBRATION)
     dropped = LoopConstraints((false,))
+    handed: list[Settlement] = []
 
-    def drop(c: RunContext) -> None:
-        c.artifacts["dropped_loops"] = dropped
+    def drop(settlement: Settlement) -> Settlement:
+        handed.append(settlement)
+        return replace(settlement, taken_back=dropped) if when == "finalize" else settlement
 
-    if when == "settle":
-        drop(context)
-    taken_back, _ = feed(world, backend(), polluted, context, between=drop if when == "finalize" else None)
-    settled = taken_back.artifacts.get("settled_estimate")
+    start = Settlement(taken_back=dropped) if when == "settle" else None
+    taken_back, _ = feed(world, backend(), polluted, context, start, between=drop)
+    settled = handed[0].estimate
     if when == "settle":  # settle re-solved without it, for the association's and loop stage's finalize
         assert settled is not None and len(settled.poses) == len(world.frames)
         gap = np.linalg.norm(settled.poses.array()[:, :2, 3] - clean.trajectories["sgf"].positions[:, :2], axis=1)
@@ -594,8 +602,9 @@ def test_false_loops_taken_back_take_the_heading_bias_they_claimed_with_them(sol
 
     clean, _ = feed(biased, backend(), loops)
     context = RunContext(run_dir=None, calibration=CALIBRATION)
-    context.artifacts["dropped_loops"] = LoopConstraints(tuple(false))
-    taken_back, estimates = feed(biased, backend(), polluted, context)
+    taken_back, estimates = feed(
+        biased, backend(), polluted, context, Settlement(taken_back=LoopConstraints(tuple(false)))
+    )
     # while they were in, the two agreed: the odometry after them was turned by the bias they claimed (0.37 deg/m)
     assert [e.yaw_bias.since for e in estimates[first - 45 : first]] == [first - 48] * 45
     bias = {name: c.metrics["backend"]["odometry_yaw_bias"] for name, c in (("clean", clean), ("back", taken_back))}
@@ -642,8 +651,7 @@ def rmse_xy(poses: np.ndarray, gt: np.ndarray) -> float:
 def test_loops_closed_at_the_end_of_the_run_enter_the_final_optimisation(world, backend) -> None:  # type: ignore[no-untyped-def]
     context = RunContext(run_dir=None, calibration=CALIBRATION)
     final = [loop for loops in true_loops(world).values() for loop in loops]
-    context.artifacts["final_loops"] = LoopConstraints(tuple(final))
-    context, _ = feed(world, backend, {}, context)
+    context, _ = feed(world, backend, {}, context, Settlement(final_loops=LoopConstraints(tuple(final))))
     assert context.metrics["backend"]["loop_factors"] == len(world.truth.revisits) == backend.loops_received
     assert ate(context.trajectories["sgf"].poses, world.gt) < 0.15 * ate(world.odometry, world.gt)
 

@@ -45,6 +45,7 @@ from sgf_plugins.sgf.polar import shifted_distances
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, wrap_angle, xy_yaw
+from sgf_pipeline.stage import Settlement
 from sgf_pipeline.types import Frame, GroupAssignment, GroupAssignments, LookAlike, LoopConstraint, PoseEstimate
 
 
@@ -94,7 +95,7 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
     assert accepted == [(c.frame_from, c.frame_to) for c in run.loops]
     assert len(run.context.artifacts["loops"]) == 8
     assert all(entry["true"] is True for entry in run.context.artifacts["loops"])
-    assert len(run.context.artifacts["group_assignments"]) == sum(len(v) for v in world.sgfs.values())
+    assert len(run.settlement.assignments) == sum(len(v) for v in world.sgfs.values())
     # a loop also needs a neighbouring marking that agrees: the toy world's first two revisits of a stretch
     # have none behind them, and lose their loops when only earlier SGFs may vouch for them, but keep them
     # when they wait for the markings seen after them (the default); a distinct marking (like nothing else
@@ -176,7 +177,7 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
     taken_back = run_stages(world, loop=IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False)))).context.metrics[
         "loops"
     ]
-    # a caller that ends the run with finalize alone gets the same (finalize settles first)
+    # a caller that ends the run without settle gets the same (conclude settles first)
     unsettled = run_stages(
         world, loop=IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False))), settle=False
     ).context.metrics
@@ -188,13 +189,11 @@ def test_the_gate_rejects_look_alike_markings_and_can_be_turned_off(world) -> No
         world,
         loop=IcpLoopClosing(IcpLoopParams(gate=GateParams(enabled=False))),
         backend=Isam2Backend(Isam2Params(save_map=False)),
-    ).context
-    settled = with_backend.artifacts["settled_estimate"]
-    assert (
-        with_backend.metrics["backend"]["loops_dropped"] == 3
-        and len(with_backend.artifacts["dropped_loops"].items) == 0
     )
-    final = with_backend.trajectories["sgf"].positions
+    settlement = with_backend.settlement
+    settled = settlement.estimate
+    assert with_backend.context.metrics["backend"]["loops_dropped"] == 3 and len(settlement.taken_back.items) == 0
+    final = with_backend.context.trajectories["sgf"].positions
     assert np.abs(settled.poses.array()[:, :3, 3] - final).max() < 0.05  # finalize only polishes it in batch
     default = run_stages(world, loop=IcpLoopClosing(IcpLoopParams()))  # five, and one manhole's, position only
     assert default.context.metrics["loops"]["false_closed"] == 0 and default.context.metrics["loops"]["closed"] == 6
@@ -584,7 +583,7 @@ def _run_loop(  # type: ignore[type-arg]
         out.extend(stage.process(frame=f, assignments=by_frame.get(f.index), estimate=estimate).items)
         previous = f
     context = RunContext(None)
-    stage.settle(context)
+    stage.conclude(context, stage.settle(context, Settlement()))
     stage.finalize(context)
     return out
 
@@ -1321,14 +1320,13 @@ def test_a_revisit_the_association_regrouped_at_the_end_is_closed_by_the_final_p
     assert online == []
     query = by_frame[68].items[0].descriptor
     context = RunContext(None)
-    context.artifacts["sgf_groups"] = _final_groups(seen, query, merged)
     tracks = {k: v.sgf.track_id for k, v in seen.items()} | {68: query.sgf.track_id}
     group_of = {(8, tracks[8]): 2, (28, tracks[28]): 1, (68, tracks[68]): 1 if merged else 2}
-    context.artifacts["sgf_group_of"] = group_of
-    stage.settle(context)
+    groups = tuple(_final_groups(seen, query, merged))
+    settlement = stage.conclude(context, stage.settle(context, Settlement(groups=groups, group_of=group_of)))  # type: ignore[arg-type]
     stage.finalize(context)
     assert stage.counts["ambiguous"] == 1  # the online match, refused when the run ended
-    final = context.artifacts["final_loops"].items
+    final = settlement.final_loops.items
     assert len(final) == closed and context.metrics["loops"]["final_pass"]["accepted"] == closed
     assert context.metrics["loops"]["accepted"] == closed
     if closed:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -13,8 +14,9 @@ from toy_stages import CALIBRATION, ToyPlugin
 from sgf_pipeline import Pipeline, StageError, load_plugins
 from sgf_pipeline.geometry import pose_from_xy_yaw
 from sgf_pipeline.runner import read_ahead
+from sgf_pipeline.stage import Settlement
 from sgf_pipeline.trajectory import read_tum
-from sgf_pipeline.types import Frame
+from sgf_pipeline.types import Frame, LoopConstraints, PoseEstimate
 
 
 @pytest.fixture(scope="module")
@@ -127,7 +129,7 @@ def test_stage_error_names_stage_and_frame_and_keeps_the_run_dir(plugins, tmp_pa
 
 
 def test_every_stage_settles_before_any_stage_finalizes(plugins):
-    """A later stage's settle is seen by an earlier stage's finalize (as the back-end's by the association's)."""
+    """A later stage's settle is seen by an earlier stage's conclude (as the back-end's by the association's)."""
     cfg = config(enhance={"name": "none"}, measure={"name": "brightness"}, backend={"name": "trust_odometry"})
     pipeline = Pipeline.from_config(cfg, plugins=plugins)
     calls: list[str] = []
@@ -135,24 +137,49 @@ def test_every_stage_settles_before_any_stage_finalizes(plugins):
     for node in pipeline.order[1:]:
         stage, kind = node.stage, node.kind
 
-        def settle(context, kind=kind):
+        def settle(context, settlement, kind=kind):
             calls.append(f"settle {kind}")
-            context.artifacts[f"settled by {kind}"] = True
+            return replace(settlement, group_of={**settlement.group_of, (len(calls), 0): kind})
+
+        def conclude(context, settlement, kind=kind):
+            calls.append(f"conclude {kind}")
+            seen[kind] = sorted(settlement.group_of.values())
+            return settlement
 
         def finalize(context, kind=kind, original=stage.finalize):
             calls.append(f"finalize {kind}")
-            seen[kind] = sorted(context.artifacts)
             original(context)
 
-        stage.settle, stage.finalize = settle, finalize  # type: ignore[method-assign]
+        stage.settle, stage.conclude, stage.finalize = settle, conclude, finalize  # type: ignore[method-assign]
     for frame in pipeline.dataset.frames():
         pipeline.process(frame)
     metrics = pipeline.finish()
     kinds = [n.kind for n in pipeline.order[1:]]
-    assert calls == [f"settle {k}" for k in kinds] + [f"finalize {k}" for k in kinds]
+    ends = [call for k in kinds for call in (f"conclude {k}", f"finalize {k}")]
+    assert calls == [f"settle {k}" for k in kinds] + ends  # in DAG order
     assert sorted(kinds) == ["backend", "enhance", "measure"]
-    assert seen[kinds[0]] == ["settled by backend", "settled by enhance", "settled by measure"]
+    assert seen[kinds[0]] == ["backend", "enhance", "measure"]
     assert metrics["backend"] == {"nodes": 30}
+
+
+def test_the_settlement_is_handed_along_the_dag_and_a_stage_that_takes_no_part_passes_it_on(plugins):
+    """The default settle and conclude hand the settlement on unchanged."""
+    cfg = config(enhance={"name": "none"}, measure={"name": "brightness"}, backend={"name": "trust_odometry"})
+    pipeline = Pipeline.from_config(cfg, plugins=plugins)
+    first, last = pipeline.order[1].stage, pipeline.order[-1].stage
+    loops = LoopConstraints(())
+    estimate = PoseEstimate(0, {})
+    first.settle = lambda context, settlement: replace(settlement, estimate=estimate)  # type: ignore[method-assign]
+    received: list[Settlement] = []
+    last.conclude = lambda context, settlement: received.append(settlement) or settlement  # type: ignore[method-assign]
+    middle = pipeline.order[2].stage
+    middle.conclude = lambda context, settlement: replace(settlement, final_loops=loops)  # type: ignore[method-assign]
+    for frame in pipeline.dataset.frames():
+        pipeline.process(frame)
+    pipeline.finish()
+    (settlement,) = received
+    assert settlement.estimate is estimate and settlement.final_loops is loops
+    assert settlement.groups is None and settlement.taken_back.items == ()
 
 
 def test_process_returns_the_pose_estimate_for_embedding(plugins):

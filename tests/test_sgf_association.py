@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS
-from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups, SgfGroup, group_purity, loop_pairs
+from sgf_plugins.sgf.association.evaluation import group_purity, loop_pairs, score_groups
+from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups, SgfGroup
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams, describe
 from sgf_plugins.sgf.hu import hu_moments
 from sgf_plugins.sgf.polar import align, shifted_distances
@@ -26,6 +28,7 @@ from sgf_synthetic import (
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw
+from sgf_pipeline.stage import Settlement
 from sgf_pipeline.types import (
     Frame,
     LoopConstraint,
@@ -43,6 +46,13 @@ from sgf_pipeline.types import (
 ARROW = GroundShape(arrow_shape(), (5.0, 0.0, 0.3), 1)
 DISC = GroundShape((Annulus(0.3),), (5.0, 0.0, 0.0), 2)
 ELL = GroundShape(ell_shape(), (5.0, 0.0, 1.1), 3)
+
+
+def finalize(s: OnlineSgfGroups, context: RunContext) -> None:
+    """End the run as the runner does: the stage's metrics, then the evaluation's scores of its groups."""
+    s.finalize(context)
+    for key, entries in (score_groups(context) or {}).items():
+        context.metrics.setdefault(key, {}).update(entries)
 
 
 def sgf_at(shape: GroundShape, pose: np.ndarray, frame: int, odometry: np.ndarray | None = None):
@@ -70,8 +80,20 @@ def seen_from(shape: GroundShape, distance: float, heading: float, lateral: floa
     return pose_from_xy_yaw(x - distance * c - lateral * s, y - distance * s + lateral * c, heading)
 
 
+def nested(**params: Any) -> OnlineGroupsParams:
+    """The association's parameters, ``group__name=value`` setting ``association.group.name`` (``gate__radius=1.0``)."""
+    tree: dict[str, Any] = {}
+    for key, value in params.items():
+        group, _, name = key.partition("__")
+        if name:
+            tree.setdefault(group, {})[name] = value
+        else:
+            tree[key] = value
+    return OnlineGroupsParams.model_validate(tree)
+
+
 def stage(**params) -> OnlineSgfGroups:
-    s = OnlineSgfGroups(OnlineGroupsParams(**params))
+    s = OnlineSgfGroups(nested(**params))
     s.begin(RunContext(None))
     return s
 
@@ -110,7 +132,7 @@ def test_descriptor_lifts_pixels_with_eq9():
     frame = Frame(1, 0.1, np.zeros((2, 2), np.uint8), np.eye(4), toy_calibration())
     out = stage_.process(frame, SgfDetections((one, sgf)))
     assert [x.sgf for x in out.items] == [sgf]
-    stage_.finalize(context)
+    finalize(stage_, context)
     assert context.metrics["sgf"]["too_few_points"] == 1
 
 
@@ -193,9 +215,7 @@ def test_the_loop_stage_keeps_assignments_for_the_map_without_pixels():
         frame = Frame(k, 0.1 * k, np.zeros((2, 2), np.uint8), pose, toy_calibration())
         loop.process(frame, GroupAssignments(tuple(items)), None)
         assert len(items[0].descriptor.sgf.pixels) > 100  # what the frame's stages saw
-    loop.settle(context)
-    loop.finalize(context)
-    kept = context.artifacts["group_assignments"]
+    kept = loop.conclude(context, loop.settle(context, Settlement())).assignments
     assert [a.descriptor.sgf.frame_index for a in kept] == [1, 2]
     assert all(a.descriptor.sgf.pixels.shape == (0, 2) and len(a.descriptor.points) > 100 for a in kept)
 
@@ -259,11 +279,11 @@ def test_a_match_between_two_flat_views_is_symmetric_whatever_the_group_mean():
 def test_threshold_and_gate_open_new_groups():
     # Different markings at the same place, without the gate: eq. 10 decides (0.7 lets them merge).
     pose = seen_from(ARROW, 3.0, 0.0)
-    loose = stage(spatial_gate=False)
+    loose = stage(gate__enabled=False)
     feed(loose, 0, pose, desc(ARROW, pose, 0))
     (ell,) = feed(loose, 1, pose, desc(ELL, pose, 1))
     assert not ell.new_group and 0.1 < ell.distance < 0.7
-    strict = stage(spatial_gate=False, new_group_distance=0.1)
+    strict = stage(gate__enabled=False, match__new_group_distance=0.1)
     feed(strict, 0, pose, desc(ARROW, pose, 0))
     (ell,) = feed(strict, 1, pose, desc(ELL, pose, 1))
     assert ell.new_group and ell.distance > 0.1 and ell.group_id == 1
@@ -274,7 +294,7 @@ def _mixed_group_and_query(**params):
     mixed = SgfGroup(0)
     for k, shape in enumerate((ARROW, ELL)):
         mixed.add(desc(shape, seen_from(shape, 3.0, 0.0), k), 0, anchor=np.asarray(shape.pose[:2]))
-    s = OnlineSgfGroups(OnlineGroupsParams(**params))
+    s = OnlineSgfGroups(nested(**params))
     s.seed_groups([mixed])
     s.begin(RunContext(None))
     pose = seen_from(ELL, 3.0, 0.6)
@@ -282,7 +302,7 @@ def _mixed_group_and_query(**params):
 
 
 def test_nearest_member_distance_matches_a_view_the_group_mean_blurs():
-    s, pose, query = _mixed_group_and_query(group_distance="mean")
+    s, pose, query = _mixed_group_and_query(match__group_distance="mean")
     group = s.groups[0]
     to_mean = shifted_distances(query.matrix, group.descriptor[None])[0].min()
     to_members = shifted_distances(query.matrix, group.matrices).min(axis=1)
@@ -290,10 +310,10 @@ def test_nearest_member_distance_matches_a_view_the_group_mean_blurs():
     threshold = float((to_mean + to_members[1]) / 2.0)
     (by_mean,) = feed(s, 10, pose, query)
     assert not by_mean.new_group and by_mean.distance == pytest.approx(to_mean)
-    strict, _, _ = _mixed_group_and_query(new_group_distance=threshold, group_distance="mean")
+    strict, _, _ = _mixed_group_and_query(match__new_group_distance=threshold, match__group_distance="mean")
     (opened,) = feed(strict, 10, pose, query)
     assert opened.new_group and opened.distance == pytest.approx(to_mean)
-    nearest, _, _ = _mixed_group_and_query(new_group_distance=threshold, group_distance="nearest_member")
+    nearest, _, _ = _mixed_group_and_query(match__new_group_distance=threshold, match__group_distance="nearest_member")
     (joined,) = feed(nearest, 10, pose, query)
     assert not joined.new_group and joined.distance == pytest.approx(to_members[1])
     assert joined.matched is nearest.groups[0].members[1]
@@ -312,7 +332,7 @@ def test_nearest_member_distances_are_per_group_minima():
         for m in members:
             g.add(views[m], 0)
         groups.append(g)
-    s = stage(group_distance="nearest_member")
+    s = stage(match__group_distance="nearest_member")
     query = desc(ELL, seen_from(ELL, 2.5, 0.3), 20)
     got = s._nearest_member_distances(query, groups)
     want = [min(shifted_distances(query.matrix, m.matrix[None])[0].min() for m in g.members) for g in groups]
@@ -362,20 +382,21 @@ def test_a_group_the_final_estimate_spreads_beyond_the_gate_is_split_at_the_end(
     s, first = _a_look_alike_joined_early()
     context = RunContext(None)
     context.truth = SequenceTruth(passes=[], revisits=[])
-    s.finalize(context)
+    handed = s.conclude(context, Settlement())
+    finalize(s, context)
     sgf = context.metrics["sgf"]
     assert sgf["purity_online"] == pytest.approx(2 / 3) and sgf["purity"] == 1.0 and sgf["groups_split"] == 1
     kept, split = s.groups
     assert kept.group_id == first and [m.sgf.frame_index for m in kept.members] == [1, 6]
     assert [m.sgf.frame_index for m in split.members] == [4] and split.group_id == first + 1
-    assert context.artifacts["sgf_group_of"] == {(1, 1): first, (6, 6): first, (4, 4): first + 1}
+    assert handed.group_of == {(1, 1): first, (6, 6): first, (4, 4): first + 1}
     # The kept part's descriptor is the mean of its own members only, aligned to its first.
     assert np.allclose(kept.descriptor, (kept.members[0].matrix + align(kept.members[1].matrix, kept.offsets[1])) / 2)
     # Off: the group stays as it was joined.
-    s, _ = _a_look_alike_joined_early(split_at_end=False)
+    s, _ = _a_look_alike_joined_early(end__split=False)
     context = RunContext(None)
     context.truth = SequenceTruth(passes=[], revisits=[])
-    s.finalize(context)
+    finalize(s, context)
     assert context.metrics["sgf"]["purity"] == pytest.approx(2 / 3) and len(s.groups) == 1
     assert "groups_split" not in context.metrics["sgf"]
 
@@ -392,9 +413,8 @@ def test_the_split_at_the_end_goes_by_the_estimate_without_the_loops_taken_back(
         s._estimate = PoseEstimate(6, {1: truly.poses[1], 4: pose_from_xy_yaw(-58.0, 0.0, 0.0) @ p4, 6: truly.poses[6]})
         context = RunContext(None)
         context.truth = SequenceTruth(passes=[], revisits=[])
-        if settled:
-            context.artifacts["settled_estimate"] = truly
-        s.finalize(context)
+        s.conclude(context, Settlement(estimate=truly if settled else None))
+        finalize(s, context)
         assert context.metrics["sgf"]["groups_split"] == int(settled)
         assert context.metrics["sgf"]["purity"] == pytest.approx(1.0 if settled else 2 / 3)
         assert [[m.sgf.frame_index for m in g.members] for g in s.groups] == ([[1, 6], [4]] if settled else [[1, 4, 6]])
@@ -419,11 +439,16 @@ def _a_revisit_joined_a_look_alike(shape_back=ARROW, **params):
 
 
 def _finish(s: OnlineSgfGroups, estimate: PoseEstimate, truth: SequenceTruth) -> RunContext:
+    return _finish_handed(s, estimate, truth)[0]
+
+
+def _finish_handed(s: OnlineSgfGroups, estimate: PoseEstimate, truth: SequenceTruth) -> tuple[RunContext, Settlement]:
     s._estimate = estimate
     context = RunContext(None)
     context.truth = truth
-    s.finalize(context)
-    return context
+    handed = s.conclude(context, Settlement())
+    finalize(s, context)
+    return context, handed
 
 
 def _revisit_of(instance: int) -> SequenceTruth:
@@ -436,7 +461,7 @@ def test_a_revisit_that_joined_a_look_alike_is_merged_into_its_own_group_at_the_
     assert not c.new_group and c.group_id == b.group_id  # the premise: the revisit joined B's group
     # The loops put every frame where it truly was: the split takes the revisit out of B's group,
     # the merge puts it into A's, turned into A's orientation (a reverse revisit: half a turn).
-    context = _finish(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: p6}), _revisit_of(1))
+    context, handed = _finish_handed(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: p6}), _revisit_of(1))
     sgf, loops = context.metrics["sgf"], context.metrics["loops"]
     assert sgf["groups_split"] == 1 and sgf["groups_merged"] == 1
     assert sgf["purity_online"] == pytest.approx(2 / 3) and sgf["purity"] == 1.0
@@ -444,7 +469,7 @@ def test_a_revisit_that_joined_a_look_alike_is_merged_into_its_own_group_at_the_
     own, other = s.groups
     assert own.group_id == a.group_id and [m.sgf.frame_index for m in own.members] == [1, 6]
     assert other.group_id == b.group_id and [m.sgf.frame_index for m in other.members] == [4]
-    assert context.artifacts["sgf_group_of"] == {(1, 1): a.group_id, (6, 6): a.group_id, (4, 4): b.group_id}
+    assert handed.group_of == {(1, 1): a.group_id, (6, 6): a.group_id, (4, 4): b.group_id}
     assert abs(own.offsets[1] - 45) <= 2  # 90 sectors: half a turn
     turned = align(own.members[1].matrix, own.offsets[1])
     assert shifted_distances(turned, own.members[0].matrix[None])[0, 0] < 0.05
@@ -457,7 +482,7 @@ def test_a_revisit_that_joined_a_look_alike_is_merged_into_its_own_group_at_the_
 
 def test_the_end_merge_needs_a_look_alike_at_the_predicted_heading():
     # Off: the split leaves the revisit in a group of its own.
-    s, *_, (p1, p4, p6) = _a_revisit_joined_a_look_alike(merge_at_end=False)
+    s, *_, (p1, p4, p6) = _a_revisit_joined_a_look_alike(end__merge=False)
     context = _finish(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: p6}), _revisit_of(1))
     assert context.metrics["loops"]["pairs_found"] == 0 and len(s.groups) == 3
     assert "groups_merged" not in context.metrics["sgf"]
@@ -471,7 +496,7 @@ def test_the_end_merge_needs_a_look_alike_at_the_predicted_heading():
     context = _finish(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: turned}), _revisit_of(1))
     assert context.metrics["sgf"]["groups_merged"] == 0
     # ...unless the heading window is opened to any shift.
-    s, *_, (p1, p4, p6) = _a_revisit_joined_a_look_alike(merge_yaw_deg=180.0)
+    s, *_, (p1, p4, p6) = _a_revisit_joined_a_look_alike(end__merge_yaw_deg=180.0)
     context = _finish(s, PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: turned}), _revisit_of(1))
     assert context.metrics["sgf"]["groups_merged"] == 1
 
@@ -493,7 +518,7 @@ def test_a_group_is_compared_through_its_members_inside_the_gate(member_gate):
     # An arrow seen at the start; 390 m later (a wide gate around it) an L near it joins its group;
     # 30 m on, another L. The arrow's wide gate lets the group in, but its L lies 30 m back with a
     # 3 m gate: with member_gate the query meets the arrow only, else it matches that far L.
-    s = stage(member_gate=member_gate)
+    s = stage(gate__member_gate=member_gate)
     (a,) = feed(s, 1, pose_from_xy_yaw(0, 0, 0), desc(ARROW, seen_from(ARROW, 3.0, 0.0), 1))
     feed(s, 2, pose_from_xy_yaw(195, 0, 0))
     far_ell = pose_from_xy_yaw(10, 0, 0)
@@ -516,7 +541,7 @@ def test_a_group_is_compared_through_its_members_inside_the_gate(member_gate):
 
 
 def test_the_back_end_estimate_moves_members_on_the_map():
-    s = stage(drift_rate=0.0, gate_radius=1.0)
+    s = stage(gate__drift_rate=0.0, gate__radius=1.0)
     p1 = seen_from(ARROW, 3.0, 0.0)
     feed(s, 1, p1, desc(ARROW, p1, 1))
     p2 = seen_from(ARROW, 3.0, math.pi)
@@ -524,7 +549,7 @@ def test_the_back_end_estimate_moves_members_on_the_map():
     (alone,) = feed(s, 2, odo2, desc(ARROW, p2, 2, odometry=odo2))
     assert alone.new_group
     # The same revisit when the back-end knows better: the estimate puts frame 2 where it truly was.
-    s = stage(drift_rate=0.0, gate_radius=1.0)
+    s = stage(gate__drift_rate=0.0, gate__radius=1.0)
     feed(s, 1, p1, desc(ARROW, p1, 1))
     estimate = PoseEstimate(frame_index=2, poses={1: p1, 2: p2})
     (joined,) = feed(s, 2, odo2, desc(ARROW, p2, 2, odometry=odo2), estimate=estimate)
@@ -539,7 +564,7 @@ def test_seeded_groups_start_every_sequence():
     pose = seen_from(ARROW, 3.0, 0.2)
     feed(first, 1, pose, desc(ARROW, pose, 1))
     context = RunContext(None)
-    first.finalize(context)
+    finalize(first, context)
     saved: list[SgfGroup] = context.artifacts["sgf_groups"]
     assert len(saved) == 1
     # A new session: its odometry frame is unrelated to the map's; with no prior gate the group is found.
@@ -553,7 +578,7 @@ def test_seeded_groups_start_every_sequence():
     # begin() restores the seeded groups only; the map itself is not modified.
     later.begin(RunContext(None))
     assert [len(g.members) for g in later.groups] == [1] and len(saved[0].members) == 1
-    gated = OnlineSgfGroups(OnlineGroupsParams(prior_gate_radius=5.0))
+    gated = OnlineSgfGroups(OnlineGroupsParams(gate={"prior_radius": 5.0}))
     gated.seed_groups(saved)
     gated.begin(RunContext(None))
     (far,) = feed(gated, 1, odo, desc(ARROW, seen_from(ARROW, 3.0, math.pi), 1, odometry=odo))
@@ -601,7 +626,7 @@ def test_metrics_purity_and_loop_pairs():
         "pairs_total_reverse": 2,
     }
     context.truth = truth
-    s.finalize(context)
+    finalize(s, context)
     assert context.metrics["sgf"]["purity"] == 1.0 and context.metrics["sgf"]["groups"] == 2
     assert context.metrics["sgf"]["symmetric_groups"] == 1
     assert context.metrics["loops"]["pairs_found"] == 1
@@ -611,7 +636,7 @@ def test_metrics_purity_and_loop_pairs():
         mixed.add(m, 0)
     assert group_purity([mixed]) == pytest.approx(2 / 3)
     none = RunContext(None)
-    s.finalize(none)
+    finalize(s, none)
     assert none.metrics["sgf"]["purity"] is None and none.metrics["loops"]["pairs_found"] is None
 
 
@@ -669,7 +694,7 @@ def test_metrics_share_of_decisions_where_eq10_ranks_the_own_marking_first():
     unlabelled = desc(ELL, pose, 13)
     feed(s, 13, pose, replace(unlabelled, sgf=replace(unlabelled.sgf, instance_id=None)))
     context.truth = SequenceTruth(passes=[], revisits=[])
-    s.finalize(context)
+    finalize(s, context)
     assert context.metrics["sgf"]["own_group_ranked_first"] == {"decisions": 2, "share": 0.5}
 
 
@@ -683,11 +708,11 @@ def test_a_repeated_pattern_is_aliased_and_never_joins_its_neighbour():
     assert r2.new_group and r2.group_id != r1.group_id and r2.ambiguous
     assert all(g.aliased for g in s.groups)
     context = RunContext(None)
-    s.finalize(context)
+    finalize(s, context)
     assert context.metrics["sgf"]["aliased_groups"] == 2
     assert context.metrics["sgf"]["groups_merged"] == 0  # 1 m apart and alike, but copies seen on one drive-by
     # without the repeat test the neighbouring copy joins the first arrow's group (a false loop)
-    naive = stage(repeat_window=0.0)
+    naive = stage(repeats__window=0.0)
     (q1,) = feed(naive, 1, p1, desc(ARROW, p1, 1))
     (q2,) = feed(naive, 2, p2, desc(near, p2, 2))
     assert not q2.new_group and q2.group_id == q1.group_id and not q2.ambiguous
@@ -708,7 +733,7 @@ def test_a_partial_view_of_the_same_marking_is_no_copy():
     (r1,) = feed(s, 1, p1, d1)
     (r2,) = feed(s, 2, p2, d2)
     assert not r2.new_group and r2.group_id == r1.group_id and not r2.aliased and not r2.ambiguous
-    old = stage(repeat_overlap=None)
+    old = stage(repeats__overlap=None)
     feed(old, 1, p1, d1)
     (q2,) = feed(old, 2, p2, d2)
     assert q2.new_group and q2.aliased and all(g.aliased for g in old.groups)
@@ -718,7 +743,7 @@ def _a_painted_row_near_an_earlier_look_alike(**params):
     """Arrow C (x = 5 m), then a row of two arrows 63 and 62 m from it: the second arrow's gate reaches C."""
     c = ARROW
     r1, r2 = ARROW.placed(68.0, 0.0, 0.3, instance_id=10), ARROW.placed(67.0, 0.8, 0.3, instance_id=11)
-    s = stage(gate_radius=62.5, drift_rate=0.0, drift_bias_share=0.0, **params)
+    s = stage(gate__radius=62.5, gate__drift_rate=0.0, gate__drift_bias_share=0.0, **params)
     p1, p3, p4 = seen_from(c, 3.0, 0.0), seen_from(r1, 3.0, 0.0), seen_from(r2, 3.0, 0.0)
     (first,) = feed(s, 1, p1, desc(c, p1, 1))
     feed(s, 2, pose_from_xy_yaw(40.0, 0.0, 0.0))
@@ -729,8 +754,8 @@ def _a_painted_row_near_an_earlier_look_alike(**params):
 
 
 def test_a_copy_whose_best_match_is_its_neighbour_opens_its_own_group():
-    # with copies=apart the second arrow of the row may not join its neighbour, so it joins the earlier look-alike
-    first, a1, a2 = _a_painted_row_near_an_earlier_look_alike(copies="apart")
+    # with repeats.copies=apart the second arrow of the row may not join its neighbour, so it joins the earlier look-alike
+    first, a1, a2 = _a_painted_row_near_an_earlier_look_alike(repeats__copies="apart")
     assert not a2.new_group and a2.group_id == first.group_id and a2.aliased
     # by default (new) it opens a group of its own (aliased: no loop factors), and C's group keeps its own marking
     first, a1, a2 = _a_painted_row_near_an_earlier_look_alike()
@@ -756,7 +781,7 @@ def _back_to_a_differently_seen_arrow(**params):
 
 
 def test_the_position_weight_lets_the_map_position_outrank_a_small_eq10_difference():
-    own, other, back = _back_to_a_differently_seen_arrow(position_weight=0.0)
+    own, other, back = _back_to_a_differently_seen_arrow(match__position_weight=0.0)
     assert back.group_id == other.group_id  # eq. 10 alone: the look-alike 30 m away
     # the look-alike lies halfway out in the 60 m gate: 0.3 x 0.5 outweighs eq. 10's 0.09 (the default weight)
     own, other, back = _back_to_a_differently_seen_arrow()
@@ -766,10 +791,10 @@ def test_the_position_weight_lets_the_map_position_outrank_a_small_eq10_differen
 def _two_arrows_then_back(**params):
     """Arrows at x = 5 and x = 25 m (identical design), then 400 m of travel and back to the first.
 
-    Ranked by eq. 10 alone (``position_weight=0``), as a tie of look-alikes in a wide gate needs.
+    Ranked by eq. 10 alone (``match.position_weight=0``), as a tie of look-alikes in a wide gate needs.
     """
     far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
-    s = stage(**{"position_weight": 0.0, **params})
+    s = stage(**{"match__position_weight": 0.0, **params})
     p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(far, 3.0, 0.0)
     (r1,) = feed(s, 1, p1, desc(ARROW, p1, 1))
     (r2,) = feed(s, 2, p2, desc(far, p2, 2))
@@ -790,7 +815,7 @@ def test_look_alike_groups_inside_the_gate_tie_and_the_match_is_ambiguous():
     assert alt.group_id != r1.group_id and alt.matched.sgf.instance_id == 9
     assert abs(abs(alt.yaw) - math.pi) < math.radians(8.0) and abs(abs(r4.yaw) - math.pi) < math.radians(8.0)
     # a tighter gate (1.5 + 0.02 d = 10.1 m) holds only the first arrow (the second is 17 m away): unambiguous
-    r1, r4 = _two_arrows_then_back(drift_rate=0.02, drift_bias_share=0.0)
+    r1, r4 = _two_arrows_then_back(gate__drift_rate=0.02, gate__drift_bias_share=0.0)
     assert not r4.new_group and r4.group_id == r1.group_id and not r4.ambiguous and r4.alternatives == ()
 
 
@@ -801,7 +826,7 @@ def _back_after_a_loop(estimate_error: float, **params):
     meets it (``estimate_error`` = 0) or is ``estimate_error`` metres off it.
     """
     far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
-    s = stage(**{"position_weight": 0.0, **params})  # the gate alone decides
+    s = stage(**{"match__position_weight": 0.0, **params})  # the gate alone decides
     p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(far, 3.0, 0.0)
     feed(s, 1, p1, desc(ARROW, p1, 1))
     (first_b,) = feed(s, 2, p2, desc(far, p2, 2))
@@ -828,7 +853,7 @@ def test_a_closed_loop_the_estimate_meets_narrows_the_gate():
     first_b, back = _back_after_a_loop(2.0)
     assert back.group_id == first_b.group_id and back.ambiguous and len(back.alternatives) == 1
     # and the gate can be told to ignore loops
-    first_b, back = _back_after_a_loop(0.0, anchored_gate=False)
+    first_b, back = _back_after_a_loop(0.0, gate__anchored=False)
     assert back.group_id == first_b.group_id and back.ambiguous and len(back.alternatives) == 1
 
 
@@ -836,10 +861,10 @@ def _arrow_back_on_a_round_marking(query_shape: GroundShape):
     """An arrow (x = 5 m) and a disc 2 m beyond it, 440 m of travel, then ``query_shape`` seen again.
 
     The revisit's odometry has drifted 2 m: it places the query on the other marking, whose group
-    is nearest on the map. Everything gated ties (``tie_margin`` 1).
+    is nearest on the map. Everything gated ties (``match.tie_margin`` 1).
     """
     disc = DISC.placed(7.0, 0.0, 0.0, instance_id=8)
-    s = stage(position_weight=0.0, tie_margin=1.0)
+    s = stage(match__position_weight=0.0, match__tie_margin=1.0)
     p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(disc, 3.0, 0.0)
     (arrow,) = feed(s, 1, p1, desc(ARROW, p1, 1))
     (round_,) = feed(s, 2, p2, desc(disc, p2, 2))
@@ -869,7 +894,7 @@ def test_a_shaped_query_tied_with_a_round_marking_joins_the_group_it_can_close_w
 
 def test_a_tie_with_an_aliased_group_has_no_alternatives():
     """When a tied look-alike is a repeated pattern, no neighbour test can resolve the tie: nothing is handed on."""
-    s = stage(position_weight=0.0)
+    s = stage(match__position_weight=0.0)
     p1 = seen_from(ARROW, 3.0, 0.0)
     feed(s, 1, p1, desc(ARROW, p1, 1))
     far = ARROW.placed(25.0, 0.0, 0.3, instance_id=9)
@@ -886,7 +911,7 @@ def test_different_markings_side_by_side_are_not_copies_of_a_pattern():
     """An arrow and an L 1 m apart, seen one after the other: two groups, neither aliased."""
     ell = ELL.placed(6.0, 0.0, 1.1, instance_id=4)
     p1, p2 = seen_from(ARROW, 3.0, 0.0), seen_from(ell, 3.0, 0.0)
-    s = stage(new_group_distance=0.1)
+    s = stage(match__new_group_distance=0.1)
     feed(s, 1, p1, desc(ARROW, p1, 1))
     (r2,) = feed(s, 2, p2, desc(ell, p2, 2))
     assert r2.new_group and not r2.ambiguous and not any(g.aliased for g in s.groups)
@@ -901,7 +926,7 @@ def _shared_cells(s: OnlineSgfGroups, a: SgfDescriptor, b: SgfDescriptor, estima
             {
                 (math.floor(x / p), math.floor(y / p))
                 for x, y in (pose[:2, :2] @ d.points.T + pose[:2, 3 : 3 + 1]).T
-                for p in [s.params.footprint_cell]
+                for p in [s.params.repeats.footprint_cell]
             }
         )
     return len(cells[0] & cells[1]) / min(len(c) for c in cells)
@@ -918,14 +943,14 @@ def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[
         for m, (member, anchor) in enumerate(zip(group.members, group.anchors, strict=True)):
             if anchor is not None:
                 distance = float(np.linalg.norm(anchor - here))
-                radius = math.inf if p.prior_gate_radius is None else p.prior_gate_radius
+                radius = math.inf if p.gate.prior_radius is None else p.gate.prior_radius
             else:
                 distance = float(np.linalg.norm(s.position_of(member, estimate) - here))
                 travelled = abs(since - s._frames.distance(member.sgf.frame_index))
-                radius = p.gate_radius + p.drift_rate * travelled + s._per_bias(EXPECTED_YAW_BIAS) * travelled**2
-                if travelled < p.repeat_window and distance > p.repeat_radius:
-                    repeated |= _shared_cells(s, query, member, estimate) < p.repeat_overlap
-            if distance <= radius or not p.spatial_gate:
+                radius = p.gate.radius + p.gate.drift_rate * travelled + s._per_bias(EXPECTED_YAW_BIAS) * travelled**2
+                if travelled < p.repeats.window and distance > p.repeats.radius:
+                    repeated |= _shared_cells(s, query, member, estimate) < p.repeats.overlap
+            if distance <= radius or not p.gate.enabled:
                 nearest = min(nearest, distance)
                 members.append(m)
         if members:
@@ -945,7 +970,7 @@ def test_the_vectorised_gate_is_the_member_by_member_gate():
     seeded = SgfGroup(500)
     seeded.add(template, 0, np.array([30.0, 0.0]))
     s = OnlineSgfGroups(
-        OnlineGroupsParams(gate_radius=2.0, drift_rate=0.01, drift_bias_share=0.0, prior_gate_radius=8.0)
+        OnlineGroupsParams(gate={"radius": 2.0, "drift_rate": 0.01, "drift_bias_share": 0.0, "prior_radius": 8.0})
     )
     s.seed_groups([seeded])
     s.begin(RunContext(None))
@@ -994,7 +1019,7 @@ def _back_to_an_arrow_whose_group_took_in_an_unlike_sgf(**params):
     """Arrow A; 74 m later an L 3 m from it joins A's group (the gate is 6 m wide, eq. 10 under 0.7); then A again."""
     ell = ELL.placed(7.0, 3.0, 1.1, instance_id=4)
     p1, p3, p4 = seen_from(ARROW, 3.0, 0.0), seen_from(ell, 3.0, 0.0), seen_from(ARROW, 3.0, 0.0, lateral=0.2)
-    s = stage(new_group_distance=0.95, **params)
+    s = stage(match__new_group_distance=0.95, **params)
     (r1,) = feed(s, 1, p1, desc(ARROW, p1, 1))
     feed(s, 2, pose_from_xy_yaw(40.0, 0.0, 0.0))
     (r3,) = feed(s, 3, p3, desc(ell, p3, 3))
@@ -1005,11 +1030,11 @@ def _back_to_an_arrow_whose_group_took_in_an_unlike_sgf(**params):
 
 def test_a_revisit_is_no_copy_of_an_unlike_sgf_its_group_took_in_nearby():
     # the L was seen 3.6 m of travel before the revisit, 3 m away: a member seen moments ago elsewhere. Judged by
-    # eq. 10 to the L itself (copy_member), it is no copy of the arrow, and the revisit joins its group
+    # eq. 10 to the L itself (repeats.copy_member), it is no copy of the arrow, and the revisit joins its group
     r1, r4 = _back_to_an_arrow_whose_group_took_in_an_unlike_sgf()
     assert not r4.new_group and r4.group_id == r1.group_id and not r4.aliased and r4.distance < 0.1
     # judged by the group's closest member (the first arrow), the revisit was a copy: a group of its own, aliased
-    r1, r4 = _back_to_an_arrow_whose_group_took_in_an_unlike_sgf(copy_member=False)
+    r1, r4 = _back_to_an_arrow_whose_group_took_in_an_unlike_sgf(repeats__copy_member=False)
     assert r4.new_group and r4.aliased and r4.group_id != r1.group_id
 
 
@@ -1040,7 +1065,7 @@ def test_the_default_gate_holds_the_worlds_odometry_drift_between_two_sightings_
 
     assert driven.max() > 1200.0 and error.max() > 400.0  # the route's end revisits its start
     assert worst() < 0.85
-    assert worst(drift_bias_share=0.0002 / (0.5 * math.radians(0.07))) > 1.1  # 0.0002 d^2
+    assert worst(gate__drift_bias_share=0.0002 / (0.5 * math.radians(0.07))) > 1.1  # 0.0002 d^2
 
 
 def _a_copy_seen_after_a_long_drive(**params):
@@ -1075,7 +1100,7 @@ def test_the_back_ends_heading_bias_correction_narrows_the_end_split_gate():
     # Without the correction (or with it switched off) the gate is the odometry's, and the copy stays.
     s, poses = _a_copy_seen_after_a_long_drive()
     assert _finish(s, PoseEstimate(4, poses), truth).metrics["sgf"]["groups_split"] == 0
-    s, poses = _a_copy_seen_after_a_long_drive(gate_bias_from_backend=False)
+    s, poses = _a_copy_seen_after_a_long_drive(gate__bias_from_backend=False)
     assert _finish(s, corrected, truth).metrics["sgf"]["groups_split"] == 0
     # Nor does a bias measured and not taken off, or a bias left larger than the one measured (the term never grows).
     s, poses = _a_copy_seen_after_a_long_drive()

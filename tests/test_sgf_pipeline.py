@@ -157,7 +157,7 @@ def test_configs_hold_the_paper_defaults():
     assert HuWindowParams().hu_threshold == 0.005
     p = PolarContextParams()
     assert (p.max_radius, p.num_sectors, p.num_rings) == (2.0, 90, 10)
-    assert OnlineGroupsParams().new_group_distance == 0.7
+    assert OnlineGroupsParams().match.new_group_distance == 0.7
 
 
 def test_stages_are_registered_through_entry_points():
@@ -202,7 +202,7 @@ def test_a_synthetic_loop_through_the_runner(recorded, tmp_path):
 def test_without_the_spatial_gate_identical_arrows_merge(recorded):
     """Perceptual aliasing: the two arrows share one design; only the gate keeps their groups apart."""
     cfg = config()
-    cfg["association"]["spatial_gate"] = False
+    cfg["association"]["gate"]["enabled"] = False
     plugins = load_plugins(extra=[("sgf_test_stream", TestPlugin())])
     metrics = Pipeline.from_config(cfg, plugins=plugins).run()
     assert metrics["sgf"]["detected"] == 7

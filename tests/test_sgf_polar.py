@@ -180,7 +180,7 @@ def test_identical_descriptors_have_zero_distance_and_empty_ones_one():
         shifted_distances(m, np.zeros((2, 10, 60)))
 
 
-SYMMETRY_THRESHOLD = OnlineGroupsParams().symmetry_threshold
+SYMMETRY_THRESHOLD = OnlineGroupsParams().match.symmetry_threshold
 
 
 @pytest.mark.parametrize("shape,symmetric", [(disc, True), (ring, True), (arrow, False), (ell, False)])

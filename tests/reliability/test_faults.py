@@ -33,6 +33,7 @@ from sgf_pipeline import outputs as sgf_outputs
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.geometry import pose_from_xy_yaw
 from sgf_pipeline.runner import LOCK_FILE
+from sgf_pipeline.stage import Settlement
 from sgf_pipeline.trajectory import read_tum
 from sgf_pipeline.types import Frame
 
@@ -71,7 +72,7 @@ class FailingSettle(FailingFinalize):
     name = "settle"
     output = "bang"
 
-    def settle(self, context: RunContext) -> None:
+    def settle(self, context: RunContext, settlement: Settlement) -> Settlement:
         raise OSError("disk full")
 
     def finalize(self, context: RunContext) -> None:

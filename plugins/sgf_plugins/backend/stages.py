@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -26,6 +27,7 @@ from pydantic import Field
 from sgf_pipeline import RunContext, Stage, StageParams, StageRegistry, hookimpl
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.sgf_map import SgfMap, build_map, load_map, save_map
+from sgf_pipeline.stage import Settlement
 from sgf_pipeline.trajectory import Trajectory
 from sgf_pipeline.types import Frame, LoopConstraints, OdometryScale, PoseEstimate, YawBiasCorrection
 from sgf_plugins.backend.pose_graph import FRAME_SYMBOL, MAP_SYMBOL, NoiseSettings, PoseGraph, PoseStore, X
@@ -171,6 +173,7 @@ class _Backend(Stage):
         self.calibration: Calibration | None = context.calibration
         self.loops_received = 0
         self.update_seconds: list[float] = []
+        self.settlement = Settlement()  # what the other stages concluded, for the SGF map
 
     def _note(self, frame: Frame) -> None:
         if frame.ground_truth is not None:
@@ -181,6 +184,11 @@ class _Backend(Stage):
     def poses(self) -> tuple[list[float], np.ndarray, PoseEstimate | None]:
         """Timestamps, poses and the latest estimate of the processed frames."""
         raise NotImplementedError
+
+    def conclude(self, context: RunContext, settlement: Settlement) -> Settlement:
+        """Keep the settlement for :meth:`finalize`: the loops closed or taken back at the end, the SGF map's groups."""
+        self.settlement = settlement
+        return settlement
 
     def finalize(self, context: RunContext) -> None:
         """The optimized trajectory, back-end metrics and the run's SGF map."""
@@ -199,33 +207,35 @@ class _Backend(Stage):
         metrics.update(self.extra_metrics())
         params = self.params
         assert isinstance(params, BackendParams)
-        saved = self._save_map(context, estimate, params.map_file)
+        saved = self._save_map(context, estimate, params.map_file, self.settlement)
         if saved is not None:
             metrics["map"] = {"file": params.map_file, "groups": len(saved.groups), "views": len(saved.views)}
         context.metrics.setdefault("backend", {}).update(metrics)
 
-    def partial(self, context: RunContext) -> None:
+    def partial(self, context: RunContext, settlement: Settlement) -> Settlement:
         """The estimate so far (``trajectory_sgf.partial.tum``) and the SGF map so far (``<map_file>.partial``)."""
         timestamps, poses, estimate = self.poses()
         if len(timestamps) == 0 or estimate is None:
-            return
+            return settlement
         context.trajectories["sgf"] = Trajectory(np.asarray(timestamps), poses)
         params = self.params
         assert isinstance(params, BackendParams)
         name = Path(params.map_file)
-        self._save_map(context, estimate, f"{name.stem}.partial{name.suffix}")
+        self._save_map(context, estimate, f"{name.stem}.partial{name.suffix}", settlement)
+        return settlement
 
-    def _save_map(self, context: RunContext, estimate: PoseEstimate, file_name: str) -> SgfMap | None:
+    def _save_map(
+        self, context: RunContext, estimate: PoseEstimate, file_name: str, settlement: Settlement
+    ) -> SgfMap | None:
         """Write the SGF map of the loop stage's group assignments (``save_map``); the map, or None if none."""
         params = self.params
         assert isinstance(params, BackendParams)
-        assignments = context.artifacts.get("group_assignments")
-        if not (params.save_map and context.run_dir is not None and assignments):
+        if not (params.save_map and context.run_dir is not None and settlement.assignments):
             return None
         # a run stopped between the loop stage and this one has assignments of a frame without a pose yet
         assignments = [
             a
-            for a in assignments
+            for a in settlement.assignments
             if getattr(a.descriptor, "sgf", None) is None or a.descriptor.sgf.frame_index in estimate.poses
         ]
         sgf_map = build_map(
@@ -234,7 +244,7 @@ class _Backend(Stage):
             calibration=context.calibration or self.calibration,
             sequence=context.sequence,
             ground_truth=self.ground_truth,
-            group_of=context.artifacts.get("sgf_group_of"),
+            group_of=settlement.group_of,
         )
         path = Path(context.run_dir) / file_name
         map_id = save_map(path, sgf_map)
@@ -327,31 +337,28 @@ class _GraphBackend(_Backend):
         self.loops_received += len(items)
         return len(items), anchored
 
-    def _add_final_loops(self, context: RunContext) -> int:
-        """Add the loops a loop stage closed at the end of the run (``artifacts['final_loops']``); their number."""
-        final = context.artifacts.get("final_loops")
-        return self._add_loops(final if isinstance(final, LoopConstraints) else None)[0]
+    def _add_final_loops(self, settlement: Settlement) -> int:
+        """Add the loops a loop stage closed at the end of the run (``settlement.final_loops``); their number."""
+        return self._add_loops(settlement.final_loops)[0]
 
-    def _drop_loops(self, context: RunContext) -> int:
-        """Take out the loops the loop stage took back at the end (``artifacts['dropped_loops']``); their number."""
-        dropped = context.artifacts.get("dropped_loops")
-        if not isinstance(dropped, LoopConstraints):
-            return 0
-        count = self.graph.remove_loops(dropped.items)  # a loop already out counts no more
+    def _drop_loops(self, settlement: Settlement) -> int:
+        """Take out the loops the loop stage took back (``settlement.taken_back``); their number."""
+        count = self.graph.remove_loops(settlement.taken_back.items)  # a loop already out counts no more
         self.loops_dropped += count
         return count
 
-    def settle(self, context: RunContext) -> None:
-        """Take out the loops the loop stage took back and re-solve (``artifacts['settled_estimate']``).
+    def settle(self, context: RunContext, settlement: Settlement) -> Settlement:
+        """Take out the loops the loop stage took back and re-solve (handed on as ``settlement.estimate``).
 
         The association regroups, and the loop stage's final pass matches, by this estimate: the
         one the run's newest estimate would be without the false loops the consistency test found.
         """
-        if self.graph.timestamps and self._drop_loops(context):
+        if self.graph.timestamps and self._drop_loops(settlement):
             self.graph.take_new()
             self.resolve()
             self.resolved = True
-            context.artifacts["settled_estimate"] = self.estimate()
+            return replace(settlement, estimate=self.estimate())
+        return settlement
 
     def _hindsight(self) -> bool:
         """The final heading bias taken off the whole drive (``odometry_yaw_bias_hindsight``); False if none moved."""
@@ -455,10 +462,10 @@ class GtsamLmBackend(_GraphBackend):
         return self.estimate()
 
     def finalize(self, context: RunContext) -> None:
-        """The loops closed at the end and out those taken back, a final batch optimisation, then the rest."""
+        """The loops closed at the end in and those taken back out, a final batch optimisation, then the rest."""
         if self.graph.timestamps:
-            self._add_final_loops(context)
-            dropped = self._drop_loops(context)
+            self._add_final_loops(self.settlement)
+            dropped = self._drop_loops(self.settlement)
             hindsight = self._hindsight()
             self.graph.take_new()
             if dropped or hindsight:
@@ -561,8 +568,8 @@ class Isam2Backend(_GraphBackend):
         solved by batch LM instead.
         """
         if self.graph.timestamps:
-            final = self._add_final_loops(context)
-            dropped = self._drop_loops(context)
+            final = self._add_final_loops(self.settlement)
+            dropped = self._drop_loops(self.settlement)
             if self._hindsight() or dropped:
                 # iSAM2 holds the loops taken back, or the odometry before the hindsight: solved in batch
                 self.graph.take_new()

@@ -30,6 +30,7 @@ from typing import Any
 
 from sgf_pipeline import Previous, RunContext, Stage, StageRegistry, hookimpl
 from sgf_pipeline.sgf_map import MapDescriptor
+from sgf_pipeline.stage import Settlement
 from sgf_pipeline.types import (
     Frame,
     GroupAssignment,
@@ -95,6 +96,7 @@ class IcpLoopClosing(Stage):
         self._consistency_entry: dict[str, Any] | None = None  # the end-of-run consistency test, both rounds
         self._rounds: list[ConsistencyRound] = []  # what each round judged (for the evaluation)
         self._settled = False
+        self.final_accepted = 0  # loops the final pass closed
 
     # -- per frame --------------------------------------------------------------------------
 
@@ -306,10 +308,10 @@ class IcpLoopClosing(Stage):
 
     # -- end of the run ---------------------------------------------------------------------
 
-    def settle(self, context: RunContext) -> None:
+    def settle(self, context: RunContext, settlement: Settlement) -> Settlement:
         """Refuse the candidates still waiting, and take back the loops outside the largest consistent set.
 
-        The back-end re-solves without them (``artifacts['dropped_loops']``) before the association
+        The back-end re-solves without them (``settlement.taken_back``) before the association
         regroups by its estimate and this stage's final pass matches against it.
         """
         for w in self.waiting:  # the run ended before they were settled
@@ -317,28 +319,39 @@ class IcpLoopClosing(Stage):
             detail = support_detail(support, w.need) + " when the run ended"
             self.log.refuse(w.options[0][0], w.refused, w.options[0][1].gate, detail)
         self.waiting = []
-        self._take_back_inconsistent(context)
+        taken_back = self._take_back_inconsistent()
         self._settled = True
+        return settlement if taken_back is None else replace(settlement, taken_back=taken_back)
 
-    def finalize(self, context: RunContext) -> None:
-        """The final pass, the consistency test once more with its loops, and the loop metrics (Table 3).
+    def conclude(self, context: RunContext, settlement: Settlement) -> Settlement:
+        """The final pass, then the consistency test once more with its loops.
 
-        The final pass matches against the back-end's estimate without the loops taken back
-        (``artifacts['settled_estimate']``) when it re-solved one, else against the newest estimate.
-        A caller that ends the run without :meth:`settle` gets it here first.
+        The final pass matches within the association's final groups (``settlement.groups``) against
+        the back-end's estimate without the loops taken back (``settlement.estimate``) when it
+        re-solved one, else against the newest estimate. A caller that ends the run without
+        :meth:`settle` gets it here first. Hands on the final pass's loops, those the second test
+        took back, and every group assignment (for the SGF map).
         """
         if not self._settled:
-            self.settle(context)
-        settled = context.artifacts.get("settled_estimate")
-        estimate = settled if isinstance(settled, PoseEstimate) else self._estimate
+            settlement = self.settle(context, settlement)
+        estimate = settlement.estimate if settlement.estimate is not None else self._estimate
         final: list[LoopConstraint] = []
-        groups = context.artifacts.get("sgf_groups")
+        groups = settlement.groups
         if self.p.final_pass.enabled and groups is not None and estimate is not None:
-            final = self.final_pass.run(groups, context.artifacts.get("sgf_group_of", {}), estimate)
-        context.artifacts["final_loops"] = LoopConstraints(tuple(final))
-        context.artifacts["dropped_loops"] = LoopConstraints(())  # those of settle are out of the graph already
+            final = self.final_pass.run(list(groups), dict(settlement.group_of), estimate)
+        self.final_accepted = len(final)
+        taken_back = LoopConstraints(())  # those of settle are out of the graph already
         if final:
-            self._take_back_inconsistent(context)  # the final pass's loops judged with the others
+            taken_back = self._take_back_inconsistent() or taken_back  # the final pass's loops judged with the others
+        return replace(
+            settlement,
+            final_loops=LoopConstraints(tuple(final)),
+            taken_back=taken_back,
+            assignments=tuple(self.assignments),
+        )
+
+    def finalize(self, context: RunContext) -> None:
+        """The loop metrics (Table 3), the accepted loops and every candidate's outcome."""
         accepted = self.anchoring.accepted
         loops: dict[str, Any] = {
             "accepted": len(accepted),
@@ -352,7 +365,7 @@ class IcpLoopClosing(Stage):
             "gate_decided": self.gate_decided,
             "position_only": self.position_only,
             "earlier_members": self.earlier_members,
-            "final_pass": {"tried": self.final_pass.tried, "accepted": len(final)},
+            "final_pass": {"tried": self.final_pass.tried, "accepted": self.final_accepted},
         }
         truth = context.truth if context.truth is not None else self.truth
         loops, records = evaluate_loops(
@@ -360,22 +373,21 @@ class IcpLoopClosing(Stage):
         )
         context.metrics.setdefault("loops", {}).update(loops)
         context.artifacts["loops"] = records
-        context.artifacts["group_assignments"] = list(self.assignments)
         context.artifacts["loop_candidates"] = list(self.decisions)
 
-    def partial(self, context: RunContext) -> None:
+    def partial(self, context: RunContext, settlement: Settlement) -> Settlement:
         """The group assignments so far, for the SGF map of a run that stopped early."""
-        context.artifacts["group_assignments"] = list(self.assignments)
+        return replace(settlement, assignments=tuple(self.assignments))
 
-    def _take_back_inconsistent(self, context: RunContext) -> None:
-        """The consistency test of the accepted loops; those outside it are taken back (``consistency``).
+    def _take_back_inconsistent(self) -> LoopConstraints | None:
+        """The consistency test over the accepted loops; with ``drop_inconsistent``, those outside are taken back.
 
-        The loops taken back are published as ``artifacts['dropped_loops']`` for the back-end. A
-        second round (after the final pass) adds to the first round's record.
+        Returns the loops taken back, for the back-end (``None`` without the test). A second round
+        (after the final pass) adds to the first round's record.
         """
         threshold = self.p.consistency.threshold
         if threshold is None:
-            return
+            return None
         accepted = self.anchoring.accepted
         entry, outside = consistency_entry(accepted, self.frames, self.p.consistency, threshold)
         judged = tuple(c for c in accepted if not (c.constraint.from_map or c.constraint.position_only))
@@ -385,11 +397,11 @@ class IcpLoopClosing(Stage):
         for c in dropped:
             self.log.taken_back(c, threshold)
         self.anchoring.accepted = [c for k, c in enumerate(accepted) if k not in out]
-        context.artifacts["dropped_loops"] = LoopConstraints(tuple(c.constraint for c in dropped))
         before = self._consistency_entry
         if before is not None and self.p.consistency.drop_inconsistent:  # the rounds judged different loops
             entry["outside_largest_set"] = before["outside_largest_set"] + entry["outside_largest_set"]
         self._consistency_entry = entry
+        return LoopConstraints(tuple(c.constraint for c in dropped))
 
 
 @hookimpl

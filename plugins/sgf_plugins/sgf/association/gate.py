@@ -1,0 +1,176 @@
+"""The spatial gate of the online SGF grouping and its drift radius."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from sgf_pipeline.geometry import invert, xy_yaw
+from sgf_pipeline.types import LoopConstraints, PoseEstimate, SgfDescriptor
+from sgf_plugins.odometry.anchoring import anchored_distances
+from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS, corrected_yaw_bias, uncorrected_yaw_bias
+from sgf_plugins.sgf.association.groups import GatedGroup
+from sgf_plugins.sgf.association.repeats import RepeatedPattern
+from sgf_plugins.sgf.association.state import Closure
+
+#: A loop anchors the gate when the estimate's relative yaw between its frames is within this of the loop's (rad).
+ANCHOR_YAW_TOLERANCE = 0.05
+
+
+class SpatialGate(RepeatedPattern):
+    """The spatial gate: the groups with a member near the query on the map, its radius growing with drift.
+
+    The radius between two sightings is ``gate.radius + gate.drift_rate * d + q * d^2`` for the
+    distance ``d`` travelled between them (:meth:`_gate_radius`), with the heading-bias term ``q``
+    (:meth:`_quadratic`, :meth:`_per_bias`); with ``gate.anchored``, ``d`` restarts at the loop
+    closures the estimate satisfies (:meth:`_anchoring`).
+    """
+
+    def gated(self, query: SgfDescriptor, estimate: PoseEstimate | None) -> list[GatedGroup]:
+        """The groups the spatial gate lets the query meet, with their nearest member's map distance (m).
+
+        ``repeated`` marks a group holding a member seen moments ago (within ``repeats.window`` of
+        travel) at another place (beyond ``repeats.radius``, and with a ground footprint that
+        overlaps the query's by less than ``repeats.overlap``): if it also looks like the query, the
+        two are neighbouring copies of a repeated pattern (see :meth:`assign`). A partial view of
+        the same marking moves its centroid by up to a metre or two but covers the same paint.
+        """
+        p, index = self.params, self._index
+        n = index.size
+        if n == 0:
+            return []
+        here = self.position_of(query, estimate)
+        distance = np.hypot(*(self._member_positions(estimate) - here).T)
+        anchored = ~np.isnan(index.anchor[:n, 0])
+        # Distance travelled between the two sightings; straight-line odometry distance where unknown.
+        since = self._frames.get_distance(query.sgf.frame_index)
+        travelled = np.abs(index.travelled[:n] - since) if since is not None else np.full(n, np.nan)
+        unknown = np.isnan(travelled)
+        if unknown.any():
+            odometry = np.asarray(query.sgf.odometry, dtype=np.float64)[:3, 3]
+            travelled[unknown] = np.linalg.norm(index.odometry[:n][unknown, :3, 3] - odometry, axis=1)
+        repeated = self._repeated(query, estimate, travelled, distance, anchored)
+        if p.gate.anchored and since is not None:
+            shortcuts = self._anchoring(estimate)
+            if shortcuts:
+                known = ~unknown
+                travelled[known] = anchored_distances(since, index.travelled[:n][known], shortcuts)
+        quadratic = self._quadratic(index.travelled[:n], self._anchoring(estimate), estimate)
+        radius = self._gate_radius(travelled, quadratic)
+        radius[anchored] = math.inf if p.gate.prior_radius is None else p.gate.prior_radius
+        groups = index.group[:n]
+        count = len(self._groups)
+        member_inside = (distance <= radius) | (not p.gate.enabled)
+        nearest = np.full(count, math.inf)
+        np.minimum.at(nearest, groups, np.where(member_inside | (not p.gate.member_gate), distance, math.inf))
+        ratio = np.full(count, math.inf)
+        np.minimum.at(ratio, groups, distance / radius)
+        inside = np.bincount(groups, weights=member_inside, minlength=count) > 0
+        repeats = np.bincount(groups, weights=repeated, minlength=count) > 0
+        members: list[np.ndarray | None] = [None] * count
+        repeating: list[np.ndarray | None] = [None] * count
+        if inside.any() and ((p.gate.member_gate and p.gate.enabled) or (repeats & inside).any()):
+            # members sit in the index in the order they joined their group: rank within the group = member index
+            order = np.argsort(groups, kind="stable")
+            starts = np.concatenate([[0], np.cumsum(np.bincount(groups, minlength=count))[:-1]])
+            rank = np.arange(n) - starts[groups[order]]  # of each member, in ``order``
+
+            def per_group(flags: np.ndarray) -> list[np.ndarray]:
+                kept = flags[order]
+                return np.split(rank[kept], np.cumsum(np.bincount(groups[order][kept], minlength=count))[:-1])
+
+            if p.gate.member_gate and p.gate.enabled:
+                members = [m if inside[k] else None for k, m in enumerate(per_group(member_inside))]
+            repeating = [r if repeats[k] else None for k, r in enumerate(per_group(repeated))]
+        return [
+            GatedGroup(group, float(nearest[k]), bool(repeats[k]), float(min(ratio[k], 1.0)), members[k], repeating[k])
+            for k, group in enumerate(self._groups)
+            if inside[k]
+        ]
+
+    def _remember_loops(self, loops: LoopConstraints | None) -> None:
+        """Keep this run's accepted loop closures (map matches are anchored by the map's own gate)."""
+        for c in () if loops is None else loops.items:
+            if c.from_map:
+                continue
+            ends = [self._travelled_at(c.frame_from), self._travelled_at(c.frame_to)]
+            if all(t is not None for t in ends):
+                self._closures.append(Closure(c.frame_from, c.frame_to, np.asarray(c.relative), *ends))  # type: ignore[arg-type]
+
+    def _travelled_at(self, frame_index: int) -> float | None:
+        """Distance travelled up to a frame: remembered for recent frames and for group members."""
+        known = self._frames.get_distance(frame_index)
+        if known is not None:
+            return known
+        index = self._index
+        hits = np.flatnonzero(index.frame[: index.size] == frame_index)
+        if hits.size and not math.isnan(index.travelled[hits[0]]):
+            return float(index.travelled[hits[0]])
+        return None
+
+    def _anchoring(self, estimate: PoseEstimate | None) -> list[tuple[float, float]]:
+        """Travelled distances of the two frames of each loop closure the estimate satisfies (cached per estimate).
+
+        A loop the back-end has not absorbed (no back-end, a loop down-weighted by the robust kernel)
+        anchors nothing: between its frames the estimate may still carry the whole drift.
+        """
+        if estimate is None or not self._closures:
+            return []
+        if self._shortcuts[0] is estimate:
+            return self._shortcuts[1]
+        tolerance = self.params.gate.anchor_tolerance
+        shortcuts = []
+        for c in self._closures:
+            start, end = estimate.poses.get(c.frame_from), estimate.poses.get(c.frame_to)
+            if start is None or end is None:
+                continue
+            error = invert(c.relative) @ invert(np.asarray(start)) @ np.asarray(end)
+            if math.hypot(error[0, 3], error[1, 3]) <= tolerance and abs(xy_yaw(error)[2]) <= ANCHOR_YAW_TOLERANCE:
+                shortcuts.append((c.travelled_from, c.travelled_to))
+        self._shortcuts = (estimate, shortcuts)
+        return shortcuts
+
+    def _per_bias(self, bias: float) -> float:
+        """The gate's growth per squared metre for a heading bias (rad/m): ``gate.drift_bias_share`` of 0.5 b."""
+        return self.params.gate.drift_bias_share * 0.5 * abs(bias)
+
+    def _gate_radius(self, travelled: np.ndarray, quadratic: np.ndarray | float) -> np.ndarray:
+        """The spatial gate's radius (m) for the distances travelled between two sightings.
+
+        ``quadratic``: the heading bias term per pair (:meth:`_quadratic`).
+        """
+        p = self.params
+        return p.gate.radius + p.gate.drift_rate * travelled + quadratic * travelled**2
+
+    def _quadratic(
+        self, travelled: np.ndarray, shortcuts: list[tuple[float, float]], estimate: PoseEstimate | None
+    ) -> np.ndarray:
+        """The gate's heading bias term for members seen at ``travelled`` metres (``gate.bias_from_backend``).
+
+        The bias is the back-end's model of it (``PoseEstimate.yaw_bias``): as measured so far on
+        odometry nothing was taken off. Once the back-end takes its estimate off, the estimate keeps
+        only the bias left in it, about its sigma, on the drive after the correction began; between
+        the two frames of a loop it satisfies, the pose graph has spread the loop's error, a constant
+        bias included. There the term counts that sigma (never more than elsewhere); for a pair with
+        one member elsewhere it stays.
+        """
+        p = self.params
+        if not p.gate.bias_from_backend:
+            return np.full(np.shape(travelled), self._per_bias(EXPECTED_YAW_BIAS))
+        q = np.full(np.shape(travelled), self._per_bias(uncorrected_yaw_bias(estimate)))
+        corrected = corrected_yaw_bias(estimate)
+        if corrected is None:
+            return q
+        since, sigma = corrected
+        if self._bias_began is None or self._bias_began[0] != since:
+            known = self._travelled_at(since)  # remembered: the frame log forgets old frames
+            self._bias_began = None if known is None else (since, known)
+        if self._bias_began is None:
+            return q
+        began = self._bias_began[1]
+        covered = travelled >= began  # NaN (a map member): never covered
+        for a, b in shortcuts:
+            covered |= (travelled >= min(a, b)) & (travelled <= max(a, b))
+        q[covered] = self._per_bias(sigma)
+        return q

@@ -1,0 +1,65 @@
+"""Repeated patterns: neighbouring copies of one marking (give-way triangles, zebra bars, dashes)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from sgf_pipeline.types import PoseEstimate, SgfDescriptor
+from sgf_plugins.sgf.association.groups import GatedGroup
+from sgf_plugins.sgf.association.state import AssociationState
+from sgf_plugins.sgf.polar import shifted_distances
+
+
+class RepeatedPattern(AssociationState):
+    """The repeated-pattern test: members seen moments ago elsewhere, and whether the query looks like them.
+
+    Give-way triangles, zebra bars and dashes repeat one marking metres apart: a group holding a
+    member seen within ``repeats.window`` of travel at another place (beyond ``repeats.radius``,
+    its ground footprint overlapping the query's by less than ``repeats.overlap``) that also looks
+    like the query (``repeats.copy_distance``) is a neighbouring copy, not a revisit.
+    """
+
+    def _repeated(
+        self,
+        query: SgfDescriptor,
+        estimate: PoseEstimate | None,
+        travelled: np.ndarray,
+        distance: np.ndarray,
+        anchored: np.ndarray,
+    ) -> np.ndarray:
+        """Which members were seen moments ago at another place than the query (a partial view overlaps it)."""
+        p, index = self.params, self._index
+        repeated = ~anchored & (travelled < p.repeats.window) & (distance > p.repeats.radius)
+        if p.repeats.overlap is not None and repeated.any():
+            footprint = self._footprint(query, estimate)
+            for k in np.flatnonzero(repeated):
+                other = self._footprint(index.members[k], estimate)
+                shared = len(footprint & other) / max(1, min(len(footprint), len(other)))
+                repeated[k] = shared < p.repeats.overlap
+        return repeated
+
+    def _footprint(self, descriptor: SgfDescriptor, estimate: PoseEstimate | None) -> set[tuple[int, int]]:
+        """The map cells (``repeats.footprint_cell`` wide) that a descriptor's ground points cover."""
+        pose = self.map_pose(descriptor, estimate)
+        xy = np.asarray(descriptor.points, dtype=np.float64)[:, :2] @ pose[:2, :2].T + pose[:2, 3]
+        cells = np.floor(xy / self.params.repeats.footprint_cell).astype(np.int64)
+        return set(map(tuple, cells.tolist()))
+
+    def _copy_distances(self, query: SgfDescriptor, candidates: list[GatedGroup], eq10: np.ndarray) -> np.ndarray:
+        """Eq. 10 from the query to each repeating group's members seen moments ago elsewhere (``repeats.copy_member``).
+
+        Without ``repeats.copy_member``: the distance to the group (``eq10``).
+        """
+        if not self.params.repeats.copy_member:
+            return eq10
+        out = np.full(len(candidates), math.inf)
+        p = self.params
+        for i, c in enumerate(candidates):
+            if c.repeating is not None and len(c.repeating):  # set for repeated groups only
+                profiles = shifted_distances(
+                    query.matrix, c.group.matrices[c.repeating], p.match.columns, p.match.min_overlap
+                )
+                out[i] = float(profiles.min())
+        return out
