@@ -9,7 +9,7 @@ from sgf_pipeline.errors import ConfigError, DataError, PipelineGraphError, Plug
 from sgf_pipeline.hookspecs import hookimpl, hookspec
 from sgf_pipeline.registry import load_plugins
 from sgf_pipeline.runner import Pipeline, StepResult
-from sgf_pipeline.stage import Dataset, Previous, Stage, StageParams
+from sgf_pipeline.stage import Dataset, Previous, Settlement, Stage, StageParams
 from sgf_pipeline.variants import StageRegistry
 
 __version__ = "0.1.0"
@@ -23,6 +23,7 @@ __all__ = [
     "PluginError",
     "Previous",
     "RunContext",
+    "Settlement",
     "SgfError",
     "Stage",
     "StageError",

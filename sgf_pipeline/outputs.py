@@ -1,4 +1,4 @@
-"""The run directory: metrics.json, trajectories, loops, effective config, plot and report (DESIGN.md section 4)."""
+"""The run directory: metrics.json, trajectories, loops, effective config, plot and report."""
 
 from __future__ import annotations
 

@@ -218,3 +218,28 @@ def consistency_entry(
         "outside_largest_set": [[accepted[k].constraint.frame_from, accepted[k].constraint.frame_to] for k in outside],
     }
     return entry, outside
+
+
+class LoopConsistency:
+    """The end-of-run test over the accepted loops, round by round (``loop.consistency``)."""
+
+    def __init__(self, p: ConsistencyParams, frames: FrameLog) -> None:
+        self.p = p
+        self.frames = frames
+        self.entry: dict[str, Any] | None = None  # metrics.json loops.consistency, both rounds
+        self.rounds: list[ConsistencyRound] = []  # what each round judged (for the evaluation)
+
+    def judge(self, accepted: list[Candidate]) -> list[Candidate] | None:
+        """The loops to take back: with ``drop_inconsistent`` those outside the largest consistent set.
+
+        ``None`` without the test. A second round (after the final pass) adds to the first's record.
+        """
+        if self.p.threshold is None:
+            return None
+        entry, outside = consistency_entry(accepted, self.frames, self.p, self.p.threshold)
+        judged = tuple(c for c in accepted if not (c.constraint.from_map or c.constraint.position_only))
+        self.rounds.append(ConsistencyRound(judged, tuple(accepted[k] for k in outside)))
+        if self.entry is not None and self.p.drop_inconsistent:  # the rounds judged different loops
+            entry["outside_largest_set"] = self.entry["outside_largest_set"] + entry["outside_largest_set"]
+        self.entry = entry
+        return [accepted[k] for k in sorted(set(outside))] if self.p.drop_inconsistent else []

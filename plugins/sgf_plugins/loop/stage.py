@@ -43,7 +43,7 @@ from sgf_pipeline.types import (
 from sgf_plugins.loop.anchoring import LoopAnchoring
 from sgf_plugins.loop.candidate import Candidate
 from sgf_plugins.loop.consensus import NeighbourConsensus, Waiting, support_detail
-from sgf_plugins.loop.consistency import ConsistencyRound, consistency_entry
+from sgf_plugins.loop.consistency import LoopConsistency
 from sgf_plugins.loop.decisions import DecisionLog
 from sgf_plugins.loop.evaluation import evaluate_loops
 from sgf_plugins.loop.final_pass import FinalPass
@@ -93,8 +93,7 @@ class IcpLoopClosing(Stage):
         self.position_only = 0
         self.earlier_members = 0
         self._estimate: PoseEstimate | None = None  # the newest estimate (for the final pass)
-        self._consistency_entry: dict[str, Any] | None = None  # the end-of-run consistency test, both rounds
-        self._rounds: list[ConsistencyRound] = []  # what each round judged (for the evaluation)
+        self.consistency = LoopConsistency(self.p.consistency, self.frames)  # the end-of-run test
         self._settled = False
         self.final_accepted = 0  # loops the final pass closed
 
@@ -369,7 +368,7 @@ class IcpLoopClosing(Stage):
         }
         truth = context.truth if context.truth is not None else self.truth
         loops, records = evaluate_loops(
-            loops, accepted, self._consistency_entry, self._rounds, self.frames, truth, self.p
+            loops, accepted, self.consistency.entry, self.consistency.rounds, self.frames, truth, self.p
         )
         context.metrics.setdefault("loops", {}).update(loops)
         context.artifacts["loops"] = records
@@ -380,27 +379,14 @@ class IcpLoopClosing(Stage):
         return replace(settlement, assignments=tuple(self.assignments))
 
     def _take_back_inconsistent(self) -> LoopConstraints | None:
-        """The consistency test over the accepted loops; with ``drop_inconsistent``, those outside are taken back.
-
-        Returns the loops taken back, for the back-end (``None`` without the test). A second round
-        (after the final pass) adds to the first round's record.
-        """
-        threshold = self.p.consistency.threshold
-        if threshold is None:
+        """The consistency test over the accepted loops; those it takes back, for the back-end (None: no test)."""
+        dropped, threshold = self.consistency.judge(self.anchoring.accepted), self.p.consistency.threshold
+        if dropped is None or threshold is None:
             return None
-        accepted = self.anchoring.accepted
-        entry, outside = consistency_entry(accepted, self.frames, self.p.consistency, threshold)
-        judged = tuple(c for c in accepted if not (c.constraint.from_map or c.constraint.position_only))
-        self._rounds.append(ConsistencyRound(judged, tuple(accepted[k] for k in outside)))
-        out = set(outside) if self.p.consistency.drop_inconsistent else set()
-        dropped = [c for k, c in enumerate(accepted) if k in out]
         for c in dropped:
             self.log.taken_back(c, threshold)
-        self.anchoring.accepted = [c for k, c in enumerate(accepted) if k not in out]
-        before = self._consistency_entry
-        if before is not None and self.p.consistency.drop_inconsistent:  # the rounds judged different loops
-            entry["outside_largest_set"] = before["outside_largest_set"] + entry["outside_largest_set"]
-        self._consistency_entry = entry
+        out = {id(c) for c in dropped}
+        self.anchoring.accepted = [c for c in self.anchoring.accepted if id(c) not in out]
         return LoopConstraints(tuple(c.constraint for c in dropped))
 
 

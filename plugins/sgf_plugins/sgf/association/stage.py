@@ -59,7 +59,7 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
     Groups are ranked by eq. 10 distance, plus ``match.position_weight`` times the ratio of their nearest
     member's map distance to its gate radius (0 where the estimate puts the query, 1 at the
     gate's edge): once the gate is tens of metres wide, a small eq. 10 advantage of a look-alike
-    far away no longer outranks the group right where the query lies. The query joins the
+    far away does not outrank the group right where the query lies. The query joins the
     candidate group ranked first if its eq. 10 distance is at most
     ``match.new_group_distance`` (0.7), else it opens a group (then ``distance`` is the smallest
     distance to a gated group, 1 when none was gated, and ``shift``/``yaw`` are 0). ``matched`` is
