@@ -4,7 +4,9 @@ A relative pose predicted by dead reckoning across ``d`` metres since a loop las
 ends is off by a translation random walk (``sigma_xy^2 d``), a heading random walk whose lateral
 effect grows as ``d^1.5`` (``sigma_yaw^2 d^3 / 3``), a scale error (``scale_error d``) and the
 heading bias ``b`` (rad/m) that bends the drive (``b d^2 / 2`` of position, ``b d`` of heading),
-over floors that hold right after an anchor. The loop gate and the association's gate read the
+over floors that hold right after an anchor (:func:`drift_covariance`, the loop gate). The
+association's spatial gate is the same drift as a radius, ``floor + rate d + q d^2`` with ``q`` a
+share of the bias's ``b / 2`` (:func:`drift_radius`, :func:`bias_growth`). Both gates read the
 heading bias from the back-end's model (``PoseEstimate.yaw_bias``) when it publishes one.
 """
 
@@ -97,3 +99,16 @@ def corrected_yaw_bias(estimate: PoseEstimate | None) -> tuple[int, float] | Non
     if correction is None or correction.since is None:
         return None
     return correction.since, min(correction.sigma, correction.uncorrected)
+
+
+def bias_growth(bias: float, share: float) -> float:
+    """Growth per squared metre (1/m) of a position envelope for a heading bias (rad/m).
+
+    ``share`` of the lateral offset ``0.5 b d^2`` that bias gives a straight drive of ``d`` metres.
+    """
+    return share * 0.5 * abs(bias)
+
+
+def drift_radius(travelled: np.ndarray, floor: float, rate: float, quadratic: np.ndarray | float) -> np.ndarray:
+    """A position envelope (m) across ``travelled`` metres: ``floor + rate d + quadratic d^2``."""
+    return floor + rate * travelled + quadratic * travelled**2

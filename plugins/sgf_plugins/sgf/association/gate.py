@@ -9,7 +9,13 @@ import numpy as np
 from sgf_pipeline.geometry import invert, xy_yaw
 from sgf_pipeline.types import LoopConstraints, PoseEstimate, SgfDescriptor
 from sgf_plugins.odometry.anchoring import anchored_distances
-from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS, corrected_yaw_bias, uncorrected_yaw_bias
+from sgf_plugins.odometry.drift import (
+    EXPECTED_YAW_BIAS,
+    bias_growth,
+    corrected_yaw_bias,
+    drift_radius,
+    uncorrected_yaw_bias,
+)
 from sgf_plugins.sgf.association.groups import GatedGroup
 from sgf_plugins.sgf.association.repeats import RepeatedPattern
 from sgf_plugins.sgf.association.state import Closure
@@ -133,15 +139,14 @@ class SpatialGate(RepeatedPattern):
 
     def _per_bias(self, bias: float) -> float:
         """The gate's growth per squared metre for a heading bias (rad/m): ``gate.drift_bias_share`` of 0.5 b."""
-        return self.params.gate.drift_bias_share * 0.5 * abs(bias)
+        return bias_growth(bias, self.params.gate.drift_bias_share)
 
     def _gate_radius(self, travelled: np.ndarray, quadratic: np.ndarray | float) -> np.ndarray:
         """The spatial gate's radius (m) for the distances travelled between two sightings.
 
         ``quadratic``: the heading bias term per pair (:meth:`_quadratic`).
         """
-        p = self.params
-        return p.gate.radius + p.gate.drift_rate * travelled + quadratic * travelled**2
+        return drift_radius(travelled, self.params.gate.radius, self.params.gate.drift_rate, quadratic)
 
     def _quadratic(
         self, travelled: np.ndarray, shortcuts: list[tuple[float, float]], estimate: PoseEstimate | None
