@@ -22,8 +22,9 @@ from sgf_pipeline.geometry import invert, rotation_rpy
 from sgf_pipeline.types import Frame, LoopConstraint
 from sgf_plugins.backend.factors import FactorBuilder, M, NoiseSettings, PoseKind, X, planar, planar_from_xyt
 from sgf_plugins.backend.heading_bias import HeadingBias
+from sgf_plugins.backend.nodes import NodeChain
 from sgf_plugins.backend.odometry_correction import OdometryCorrection
-from sgf_plugins.backend.poses import PoseStore, grown
+from sgf_plugins.backend.poses import PoseStore
 
 FREE_ROLL_PITCH = 0.1  # rad, first-pose prior on roll and pitch (observed by the IMU, not a gauge)
 
@@ -62,19 +63,13 @@ class PoseGraph:
         self._loop_factor: dict[tuple[int, int, bool], list[Any]] = {}  # per loop's ends: its factors
         self.anchored = not self.map_poses
         self._prior: Any = None
-        self._last_odometry: np.ndarray | None = None
-        # Nodes: every frame, or with ``node_distance`` the frames this far apart (and those loops reach).
-        self.node_distance = node_distance
-        self.nodes: list[int] = []  # node frames, in order (GTSAM keys sort the same way)
-        self._node_of_row = np.zeros(64, dtype=np.int64)  # per processed frame: its node's place in ``nodes``
-        self._offset = np.zeros((64, 4, 4))  # per processed frame: its pose in its node's frame (odometry)
-        self._node_odometries: list[np.ndarray] = []  # per node, in order: its (corrected) odometry pose
-        self._odometry_factors: list[Any] = []  # per node from the second: the odometry factor that reaches it
-        self._node_spans: list[tuple[float, int]] = []  # ...and the path length and frames that factor spans
-        self._pending_distance = 0.0
-        self._pending_steps = 0
-        self._pending_imu: tuple[float, float] | None = None
+        self.chain = NodeChain(node_distance)
         self.odometry = OdometryCorrection(noise)
+
+    @property
+    def nodes(self) -> list[int]:
+        """The node frames, in order (GTSAM keys sort the same way)."""
+        return self.chain.frames
 
     @property
     def heading_bias(self) -> HeadingBias | None:
@@ -111,23 +106,14 @@ class PoseGraph:
             # Pose2 corrects x, y, yaw; the odometry's height, roll and pitch ride along unchanged.
             lift = invert(planar(odometry)) @ odometry
             odometry = planar(odometry)
-        if self._last_odometry is not None:
-            self._pending_distance += float(np.linalg.norm(odometry[:3, 3] - self._last_odometry[:3, 3]))
-            self._pending_steps += 1
-        self._last_odometry = odometry
-        self._pending_imu = frame.imu_roll_pitch
         row = self.store.size
-        if row == len(self._node_of_row):
-            self._node_of_row = grown(self._node_of_row, row)
-            self._offset = grown(self._offset, row)
+        due = self.chain.step(row, odometry, frame.imu_roll_pitch)
         self.timestamps.append(float(frame.timestamp))
-        if not self.nodes or self._pending_distance >= self.node_distance:
+        if due:
             self.store.append(index, np.eye(4), lift)
             self._make_node(index)
         else:
-            offset = invert(self._node_odometries[-1]) @ odometry
-            self._node_of_row[row] = len(self.nodes) - 1
-            self._offset[row] = offset
+            offset = self.chain.ride(row, odometry)
             node_pose = self.store.get(self.nodes[-1])
             assert node_pose is not None
             self.store.append(index, node_pose @ offset, lift)
@@ -135,13 +121,14 @@ class PoseGraph:
     def is_node(self, frame_index: int) -> bool:
         """Whether the frame has its own node (else its pose rides on its node's by odometry)."""
         row = self.store.rows.get(frame_index)
-        return row is not None and self.nodes[self._node_of_row[row]] == frame_index
+        return row is not None and self.chain.node_of(row) == frame_index
 
     def _make_node(self, index: int) -> None:
         """Give the newest frame (already in the store) its node, odometry factor and IMU attitude."""
         import gtsam
 
-        odometry = self._last_odometry
+        chain = self.chain
+        odometry = chain.last_odometry
         assert odometry is not None and self.store.frames[-1] == index
         key = X(index)
         if not self.nodes:
@@ -153,29 +140,22 @@ class PoseGraph:
             self._prior = self.build.prior(key, initial, model)
             self._add(self._prior)
         else:
-            relative = invert(self._node_odometries[-1]) @ odometry
+            relative = invert(chain.odometries[-1]) @ odometry
             node_pose = self.store.get(self.nodes[-1])
             assert node_pose is not None
             initial = node_pose @ relative
-            model = self.build.odometry_noise(relative, self._pending_distance, self._pending_steps)
+            model = self.build.odometry_noise(relative, chain.pending_distance, chain.pending_steps)
             factor = self.build.between(X(self.nodes[-1]), key, relative, model)
             self._add(factor)
-            self._odometry_factors.append(factor)
-            self._node_spans.append((self._pending_distance, self._pending_steps))
-        if self.pose3 and self._pending_imu is not None:
-            roll, pitch = self._pending_imu
+            chain.link(factor)
+        if self.pose3 and chain.pending_imu is not None:
+            roll, pitch = chain.pending_imu
             up = rotation_rpy(float(roll), float(pitch), 0.0).T @ np.array([0.0, 0.0, 1.0])
             model = gtsam.noiseModel.Isotropic.Sigma(2, self.noise.imu_sigma_roll_pitch)
             self._add(gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.array([0.0, 0.0, 1.0])), model, gtsam.Unit3(up)))
         self._insert(key, initial)
-        row = self.store.size - 1
-        self.nodes.append(index)
-        self._node_of_row[row] = len(self.nodes) - 1
-        self._offset[row] = np.eye(4)
+        chain.append(index, self.store.size - 1, odometry)
         self.store.set_latest(self.build.matrix(self.build.pose(initial)))
-        self._node_odometries.append(odometry)
-        self._pending_distance = 0.0
-        self._pending_steps = 0
 
     def _on_node(
         self, frame_index: int, relative: np.ndarray, side: Literal["from", "to"]
@@ -185,12 +165,12 @@ class PoseGraph:
         The adjoint is None when the covariance stays as it is; the newest frame becomes a node.
         """
         row = self.store.rows[frame_index]
-        if self.nodes[self._node_of_row[row]] != frame_index and frame_index == self.store.frames[-1]:
+        if self.chain.node_of(row) != frame_index and frame_index == self.store.frames[-1]:
             self._make_node(frame_index)
-        node = self.nodes[self._node_of_row[row]]
+        node = self.chain.node_of(row)
         if node == frame_index:
             return node, relative, None
-        offset = self._offset[row]
+        offset = self.chain.offset[row]
         if side == "from":  # T_node^-1 T_to = offset @ relative: the error (in the 'to' frame) is the same
             return node, offset @ relative, None
         # T_from^-1 T_node = relative @ offset^-1, its error is the 'to' error moved by offset's adjoint
@@ -274,20 +254,9 @@ class PoseGraph:
 
     def _set_odometry(self, corrected: np.ndarray) -> None:
         """New odometry (N, 4, 4) of the processed frames: the nodes', the frames' offsets and the odometry factors."""
-        size = self.store.size
         if not self.pose3:
             corrected = np.stack([planar(pose) for pose in corrected])
-        self._node_odometries = [corrected[self.store.rows[node]] for node in self.nodes]
-        nodes = np.array(self._node_odometries)
-        self._offset[:size] = np.matmul(np.linalg.inv(nodes[self._node_of_row[:size]]), corrected)
-        self._last_odometry = corrected[-1]
-        replaced: dict[int, Any] = {}
-        for i, (old_factor, (distance, steps)) in enumerate(zip(self._odometry_factors, self._node_spans, strict=True)):
-            relative = invert(self._node_odometries[i]) @ self._node_odometries[i + 1]
-            model = self.build.odometry_noise(relative, distance, steps)
-            factor = self.build.between(X(self.nodes[i]), X(self.nodes[i + 1]), relative, model)
-            replaced[id(old_factor)] = factor
-            self._odometry_factors[i] = factor
+        replaced = self.chain.set_odometry(corrected, self.store.rows, self.build)
         self.factors = [replaced.get(id(f), f) for f in self.factors]
 
     def dead_reckoned(self) -> Any:
@@ -302,8 +271,8 @@ class PoseGraph:
         base = self.build.matrix(
             self.values.atPose3(X(self.nodes[0])) if self.pose3 else self.values.atPose2(X(self.nodes[0]))
         )
-        start = invert(self._node_odometries[0])
-        for frame, odometry in zip(self.nodes, self._node_odometries, strict=True):
+        start = invert(self.chain.odometries[0])
+        for frame, odometry in zip(self.nodes, self.chain.odometries, strict=True):
             values.update(X(frame), self.build.pose(base @ start @ odometry))
         return values
 
@@ -384,10 +353,7 @@ class PoseGraph:
         out = out[len(out) - len(self.nodes) :]
         if len(out) != len(self.nodes):
             raise RuntimeError(f"the solver returned {len(out)} poses for {len(self.nodes)} nodes")
-        size = self.store.size
-        if len(self.nodes) == size:
-            return out
-        return np.matmul(out[self._node_of_row[:size]], self._offset[:size])
+        return self.chain.spread(out, self.store.size)
 
     def set_values(self, values: Any) -> None:
         """Adopt a new full estimate (after an optimisation)."""
