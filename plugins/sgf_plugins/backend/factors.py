@@ -122,6 +122,26 @@ class FactorBuilder:
         factor = gtsam.BetweenFactorPose3 if self.pose3 else gtsam.BetweenFactorPose2
         return factor(key_a, key_b, self.pose(relative), model)
 
+    def attitude(self, key: int, roll: float, pitch: float) -> Any:
+        """The IMU's roll and pitch as an attitude factor on a Pose3 (gravity's direction in the body frame)."""
+        import gtsam
+
+        up = rotation_rpy(float(roll), float(pitch), 0.0).T @ np.array([0.0, 0.0, 1.0])
+        model = gtsam.noiseModel.Isotropic.Sigma(2, self.noise.imu_sigma_roll_pitch)
+        return gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.array([0.0, 0.0, 1.0])), model, gtsam.Unit3(up))
+
+    def poses(self, values: Any) -> np.ndarray:
+        """The (N, 4, 4) poses of every pose in GTSAM ``values``, in key order."""
+        import gtsam
+
+        if self.pose3:
+            rows = np.asarray(gtsam.utilities.extractPose3(values))
+            out = np.tile(np.eye(4), (len(rows), 1, 1))
+            out[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+            out[:, :3, 3] = rows[:, 9:12]
+            return out
+        return planar_from_xyt(np.asarray(gtsam.utilities.extractPose2(values)))
+
     def odometry_noise(self, relative: np.ndarray, distance: float | None = None, steps: int = 1) -> Any:
         """Odometry noise: sigma^2 = steps * floor^2 + (sigma over one metre)^2 * distance (a random walk).
 

@@ -8,6 +8,9 @@ the map's frames that SGFs were matched to (``m<map frame index>``, held by prio
 map poses). Poses are ``Pose2`` or ``Pose3`` (roll and pitch from the IMU as attitude factors).
 With ``NoiseSettings.yaw_bias_sigma`` set, the odometry's heading bias per metre is estimated from
 the loops and taken off the odometry steps that follow (:mod:`sgf_plugins.backend.heading_bias`).
+The graph's factors and noise models are built by :mod:`sgf_plugins.backend.factors`, its nodes
+laid out by :mod:`sgf_plugins.backend.nodes`, its poses kept in :mod:`sgf_plugins.backend.poses`
+and the odometry corrected by :mod:`sgf_plugins.backend.odometry_correction`.
 GTSAM is imported inside functions so that listing plugins stays fast.
 """
 
@@ -18,9 +21,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from sgf_pipeline.geometry import invert, rotation_rpy
+from sgf_pipeline.geometry import invert
 from sgf_pipeline.types import Frame, LoopConstraint
-from sgf_plugins.backend.factors import FactorBuilder, M, NoiseSettings, PoseKind, X, planar, planar_from_xyt
+from sgf_plugins.backend.factors import FactorBuilder, M, NoiseSettings, PoseKind, X, planar
 from sgf_plugins.backend.heading_bias import HeadingBias
 from sgf_plugins.backend.nodes import NodeChain
 from sgf_plugins.backend.odometry_correction import OdometryCorrection
@@ -125,8 +128,6 @@ class PoseGraph:
 
     def _make_node(self, index: int) -> None:
         """Give the newest frame (already in the store) its node, odometry factor and IMU attitude."""
-        import gtsam
-
         chain = self.chain
         odometry = chain.last_odometry
         assert odometry is not None and self.store.frames[-1] == index
@@ -149,10 +150,7 @@ class PoseGraph:
             self._add(factor)
             chain.link(factor)
         if self.pose3 and chain.pending_imu is not None:
-            roll, pitch = chain.pending_imu
-            up = rotation_rpy(float(roll), float(pitch), 0.0).T @ np.array([0.0, 0.0, 1.0])
-            model = gtsam.noiseModel.Isotropic.Sigma(2, self.noise.imu_sigma_roll_pitch)
-            self._add(gtsam.AttitudeFactorPose3(key, gtsam.Unit3(np.array([0.0, 0.0, 1.0])), model, gtsam.Unit3(up)))
+            self._add(self.build.attitude(key, *chain.pending_imu))
         self._insert(key, initial)
         chain.append(index, self.store.size - 1, odometry)
         self.store.set_latest(self.build.matrix(self.build.pose(initial)))
@@ -340,15 +338,7 @@ class PoseGraph:
 
     def session_poses(self, values: Any) -> np.ndarray:
         """The (N, 4, 4) poses of the processed frames, from their nodes' poses in ``values`` (map nodes left out)."""
-        import gtsam
-
-        if self.pose3:
-            rows = np.asarray(gtsam.utilities.extractPose3(values))
-            out = np.tile(np.eye(4), (len(rows), 1, 1))
-            out[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
-            out[:, :3, 3] = rows[:, 9:12]
-        else:
-            out = planar_from_xyt(np.asarray(gtsam.utilities.extractPose2(values)))
+        out = self.build.poses(values)
         # Keys 'm...' sort before 'x...', and frame indices (so nodes) increase with insertion.
         out = out[len(out) - len(self.nodes) :]
         if len(out) != len(self.nodes):
