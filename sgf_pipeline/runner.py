@@ -56,7 +56,12 @@ class StepResult:
 
 
 class Pipeline:
-    """A validated stage graph bound to one dataset sequence."""
+    """A validated stage graph bound to one dataset sequence.
+
+    The graph is built by :mod:`sgf_pipeline.wiring`, frames are read by a
+    :class:`~sgf_pipeline.reading.DatasetReader` and the run's files go to a
+    :class:`~sgf_pipeline.run_directory.RunDirectory`.
+    """
 
     def __init__(
         self,
