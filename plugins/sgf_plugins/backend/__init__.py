@@ -1,1 +1,1 @@
-"""The back-ends (paper Sec. III-E): the GTSAM pose graph and the heading bias it estimates."""
+"""The back-ends (paper Sec. III-E): stages over the GTSAM pose graph, its factors, and the odometry's corrections."""

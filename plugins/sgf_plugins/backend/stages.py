@@ -30,7 +30,9 @@ from sgf_pipeline.sgf_map import SgfMap, build_map, load_map, save_map
 from sgf_pipeline.stage import Settlement
 from sgf_pipeline.trajectory import Trajectory
 from sgf_pipeline.types import Frame, LoopConstraints, OdometryScale, PoseEstimate, YawBiasCorrection
-from sgf_plugins.backend.pose_graph import FRAME_SYMBOL, MAP_SYMBOL, NoiseSettings, PoseGraph, PoseStore, X
+from sgf_plugins.backend.factors import FRAME_SYMBOL, MAP_SYMBOL, NoiseSettings, X
+from sgf_plugins.backend.pose_graph import PoseGraph
+from sgf_plugins.backend.poses import PoseStore
 
 log = logging.getLogger("sgf_pipeline")
 
