@@ -1,4 +1,4 @@
-"""What stands above the ground in a camera view: sky, building walls, trees, lamps, people and vehicles.
+"""What stands above the ground in a camera view: building walls, trees, lamps, people and vehicles.
 
 Everything here draws into a float image with painter's order (far first) and a depth test
 against the ground where it matters (walls and trees behind a rise). People and vehicles also
