@@ -66,7 +66,7 @@ def test_negative_and_out_of_range_biases_are_checked() -> None:
 
 def _cells(world, clutter: float):  # type: ignore[no-untyped-def]
     generator = TileGenerator(world.layout, world.sun, world.seed, clutter)
-    return [generator._cell_features(i, j) for i in range(-10, 10) for j in range(-10, 10)]
+    return [generator.ground_clutter.cell_features(i, j) for i in range(-10, 10) for j in range(-10, 10)]
 
 
 def test_clutter_scales_the_campus_wear_and_strews_leaves_and_post_shadows() -> None:

@@ -6,6 +6,12 @@ pose (``marking_layout``), drives the preset's route (``frames()``) and holds it
 (``truth``). The four presets are registered as ``dataset`` variants by
 :mod:`sgf_plugins.world.dataset`. Names are imported on first use, so that loading the plugin
 (``sgf-plugins``) does not import the renderer.
+
+The camera (:mod:`~sgf_plugins.world.render`) composes its collaborators: the rays on the
+terrain (``raycast``), the ground's tile mosaics and grain (``ground``, tiles from ``texture``
+with ``paving``, ``clutter`` and ``ground_shadows``), ``sky`` and light, the people and vehicles
+in front of it (``occluders``), what stands above the ground (``scenery``: ``buildings``,
+``trees``, ``lamps``, ``pedestrians``, ``vehicles``) and the ``sensor``.
 """
 
 from __future__ import annotations
