@@ -334,7 +334,7 @@ def test_nearest_member_distances_are_per_group_minima():
         groups.append(g)
     s = stage(match__group_distance="nearest_member")
     query = desc(ELL, seen_from(ELL, 2.5, 0.3), 20)
-    got = s._nearest_member_distances(query, groups)
+    got = s.matching.nearest_member_distances(query, groups)
     want = [min(shifted_distances(query.matrix, m.matrix[None])[0].min() for m in g.members) for g in groups]
     assert np.allclose(got, want) and got[2] < 0.06 and got[1] > 0.1
 
@@ -475,7 +475,7 @@ def test_a_revisit_that_joined_a_look_alike_is_merged_into_its_own_group_at_the_
     assert shifted_distances(turned, own.members[0].matrix[None])[0, 0] < 0.05
     assert np.allclose(own.descriptor, (own.members[0].matrix + turned) / 2)
     # The merged group's members index where they are: a new SGF there meets A's group once.
-    s._record(Frame(7, 0.7, np.zeros((2, 2), np.uint8), p1, toy_calibration()))
+    s.state.record(Frame(7, 0.7, np.zeros((2, 2), np.uint8), p1, toy_calibration()))
     gated = s.gated(desc(ARROW, p1, 7), PoseEstimate(frame_index=6, poses={1: p1, 4: p4, 6: p6}))
     assert [g.group.group_id for g in gated] == [a.group_id] and len(gated[0].group.members) == 2
 
@@ -507,10 +507,10 @@ def test_a_member_seen_long_after_the_last_loop_does_not_chain_two_places():
     s = stage()
     positions = np.array([[0.0, 0.0], [30.0, 0.0], [14.0, 0.0], [0.5, 0.0]])
     travelled = np.array([0.0, 20.0, 520.0, 1.0])
-    parts = s._parts(positions, travelled, [])
+    parts = s.end.parts(positions, travelled, [])
     assert parts.tolist() == [0, 1, 0, 0]  # C joins A (nearer); the part of the first member is 0
     # A loop joining 20 m and 519 m of travel makes C's sighting 1 m from B's: C is too far from A now.
-    assert s._parts(positions, travelled, [(20.0, 519.0)]).tolist() == [0, 1, 2, 0]
+    assert s.end.parts(positions, travelled, [(20.0, 519.0)]).tolist() == [0, 1, 2, 0]
 
 
 @pytest.mark.parametrize("member_gate", [True, False])
@@ -526,7 +526,7 @@ def test_a_group_is_compared_through_its_members_inside_the_gate(member_gate):
     assert a.new_group and not b.new_group and b.group_id == a.group_id  # the premise: the L joined the arrow's group
     here = pose_from_xy_yaw(40, 0, 0)
     query = desc(ELL, seen_from(ELL, 3.0, 0.0), 4, here)
-    s._record(Frame(4, 0.4, np.zeros((2, 2), np.uint8), here, toy_calibration()))
+    s.state.record(Frame(4, 0.4, np.zeros((2, 2), np.uint8), here, toy_calibration()))
     (gated,) = s.gated(query, None)
     c = s.assign(query)
     assert gated.group.group_id == a.group_id
@@ -936,7 +936,7 @@ def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[
     """The spatial gate member by member, as its docstring states it (to check the vectorised one)."""
     p = s.params
     here = s.position_of(query, estimate)
-    since = s._frames.distance(query.sgf.frame_index)
+    since = s.state.frames.distance(query.sgf.frame_index)
     out = []
     for group in s.groups:
         nearest, repeated, members = math.inf, False, []
@@ -946,8 +946,10 @@ def _reference_gate(s: OnlineSgfGroups, query: SgfDescriptor, estimate) -> list[
                 radius = math.inf if p.gate.prior_radius is None else p.gate.prior_radius
             else:
                 distance = float(np.linalg.norm(s.position_of(member, estimate) - here))
-                travelled = abs(since - s._frames.distance(member.sgf.frame_index))
-                radius = p.gate.radius + p.gate.drift_rate * travelled + s._per_bias(EXPECTED_YAW_BIAS) * travelled**2
+                travelled = abs(since - s.state.frames.distance(member.sgf.frame_index))
+                radius = (
+                    p.gate.radius + p.gate.drift_rate * travelled + s.gate.per_bias(EXPECTED_YAW_BIAS) * travelled**2
+                )
                 if travelled < p.repeats.window and distance > p.repeats.radius:
                     repeated |= _shared_cells(s, query, member, estimate) < p.repeats.overlap
             if distance <= radius or not p.gate.enabled:
@@ -988,7 +990,7 @@ def test_the_vectorised_gate_is_the_member_by_member_gate():
         estimates = [None, PoseEstimate(frame - 1, store.snapshot()), PoseEstimate(frame - 1, dict(dictionary))]
         if frame > 1:
             f = Frame(frame, 0.1 * frame, np.zeros((2, 2), np.uint8), odometry, toy_calibration())
-            s._record(f)
+            s.state.record(f)
             for estimate in estimates:
                 for query in items:
                     got = [(g.group.group_id, g.nearest, g.repeated) for g in s.gated(query, estimate)]
@@ -1007,7 +1009,7 @@ def test_the_vectorised_gate_is_the_member_by_member_gate():
             for query in items:
                 s.assign(query, estimates[frame % 3])
         else:
-            s._record(Frame(frame, 0.1 * frame, np.zeros((2, 2), np.uint8), odometry, toy_calibration()))
+            s.state.record(Frame(frame, 0.1 * frame, np.zeros((2, 2), np.uint8), odometry, toy_calibration()))
         if frame % 5 != 0:  # the estimate lacks some frames: they are placed by corrected odometry
             store.append(frame, truth)
             dictionary[frame] = truth
@@ -1061,7 +1063,7 @@ def test_the_default_gate_holds_the_worlds_odometry_drift_between_two_sightings_
 
     def worst(**params) -> float:
         s = stage(**params)
-        return float(np.max(error / s._gate_radius(driven, s._per_bias(math.radians(0.07)))))
+        return float(np.max(error / s.gate.radius(driven, s.gate.per_bias(math.radians(0.07)))))
 
     assert driven.max() > 1200.0 and error.max() > 400.0  # the route's end revisits its start
     assert worst() < 0.85
@@ -1115,16 +1117,16 @@ def test_the_heading_bias_term_shrinks_only_where_the_correction_covers_the_driv
     from sgf_pipeline.types import YawBiasCorrection
 
     s, poses = _a_copy_seen_after_a_long_drive()
-    began = s._frames.get_distance(3)  # the correction begins at frame 3, 500 m out
+    began = s.state.frames.get_distance(3)  # the correction begins at frame 3, 500 m out
     estimate = PoseEstimate(4, poses, YawBiasCorrection(3, math.radians(0.007), math.radians(0.07)))
     travelled = np.array([0.0, began - 1.0, began, began + 400.0, np.nan])
     # half a straight drive's 0.5 b d^2: 0.00031 for the 0.07 deg/m measured, 0.000031 for the 0.007 left
     big, small = 0.25 * math.radians(0.07), 0.25 * math.radians(0.007)
-    q = s._quadratic(travelled, [], estimate)
+    q = s.gate.quadratic(travelled, [], estimate)
     assert q.tolist()[:4] == pytest.approx([big, big, small, small], rel=1e-12) and q[4] == pytest.approx(big)
     # A loop the estimate satisfies spans the early drive: the pose graph took the bias off it there.
-    q = s._quadratic(travelled, [(began + 300.0, 0.5)], estimate)
+    q = s.gate.quadratic(travelled, [(began + 300.0, 0.5)], estimate)
     assert q.tolist()[:4] == pytest.approx([big, small, small, small], rel=1e-12)
     # no model from the back-end: the bias wheel odometry is expected to have, 0.1 deg/m
-    expected = s._quadratic(travelled, [], PoseEstimate(4, poses)).tolist()[:4]
+    expected = s.gate.quadratic(travelled, [], PoseEstimate(4, poses)).tolist()[:4]
     assert expected == pytest.approx([0.25 * math.radians(0.1)] * 4, rel=1e-12)

@@ -10,49 +10,56 @@ from sgf_pipeline.types import PoseEstimate
 from sgf_plugins.odometry.anchoring import anchored_distances
 from sgf_plugins.sgf.association.gate import SpatialGate
 from sgf_plugins.sgf.association.groups import SgfGroup
+from sgf_plugins.sgf.association.params import OnlineGroupsParams
+from sgf_plugins.sgf.association.state import AssociationState
 from sgf_plugins.sgf.polar import shifted_distances
 
 
-class EndOfRun(SpatialGate):
-    """The split and merge of the groups at the end of the run, by the final estimate."""
+class EndOfRun:
+    """The split and merge of the groups at the end of the run, by the final estimate and the spatial gate."""
+
+    def __init__(self, params: OnlineGroupsParams, state: AssociationState, gate: SpatialGate) -> None:
+        self.params = params
+        self.state = state
+        self.gate = gate
 
     def split_groups(self, estimate: PoseEstimate | None) -> int:
         """Split each group into the parts the estimate puts within the spatial gate of each other; new groups made.
 
         Two members may stay together when their map distance is within the gate radius of the
         (anchored) distance travelled between their sightings; a part holds members that may all
-        stay together (:meth:`_parts`). Early in a run, before any loop, the gate is tens of metres wide and identical
+        stay together (:meth:`parts`). Early in a run, before any loop, the gate is tens of metres wide and identical
         standard markings at different places (stop lines, chevrons) can join one group; once
         loops have corrected the estimate, their members lie far apart and the group is split:
         the part holding its first member keeps its id, the others get new ids. Groups seeded
         from a map are left alone.
         """
-        index = self._index
-        if not self._groups or index.size == 0:
+        index = self.state.index
+        if not self.state.groups or index.size == 0:
             return 0
-        positions = self._member_positions(estimate)
-        shortcuts = self._anchoring(estimate) if self.params.gate.anchored else []
+        positions = self.state.member_positions(estimate)
+        shortcuts = self.gate.anchoring(estimate) if self.params.gate.anchored else []
         rows = np.arange(index.size)
         made = 0
-        for slot, group in enumerate(list(self._groups)):
+        for slot, group in enumerate(list(self.state.groups)):
             mine = rows[index.group[: index.size] == slot]
             if len(mine) < 2 or any(a is not None for a in group.anchors) or np.isnan(index.travelled[mine]).any():
                 continue
-            parts = self._parts(positions[mine], index.travelled[mine], shortcuts, estimate)
+            parts = self.parts(positions[mine], index.travelled[mine], shortcuts, estimate)
             if parts.max() == 0:
                 continue
             keep = parts == 0  # holds the first member, whose offset (the group's orientation) is 0
             for label in range(1, int(parts.max()) + 1):
                 taken = np.flatnonzero(parts == label)
-                new = SgfGroup(self._next_id, aliased=group.aliased)
-                self._next_id += 1
+                new = SgfGroup(self.state.next_id, aliased=group.aliased)
+                self.state.next_id += 1
                 base = group.offsets[taken[0]]
                 for k in taken:
                     new.add(group.members[k], group.offsets[k] - base)
                 new.refresh(self.params.match.columns, self.params.match.symmetry_threshold)
-                self._slot[new.group_id] = len(self._groups)
-                index.group[mine[taken]] = len(self._groups)
-                self._groups.append(new)
+                self.state.slot[new.group_id] = len(self.state.groups)
+                index.group[mine[taken]] = len(self.state.groups)
+                self.state.groups.append(new)
                 made += 1
             group.members = [m for m, k in zip(group.members, keep, strict=True) if k]
             group.offsets = [o for o, k in zip(group.offsets, keep, strict=True) if k]
@@ -76,13 +83,13 @@ class EndOfRun(SpatialGate):
         """
         from scipy.spatial import cKDTree
 
-        p, index = self.params, self._index
+        p, index = self.params, self.state.index
         n = index.size
-        if len(self._groups) < 2 or n < 2:
+        if len(self.state.groups) < 2 or n < 2:
             return 0
-        positions = self._member_positions(estimate)
+        positions = self.state.member_positions(estimate)
         slots = index.group[:n].copy()
-        free = np.array([all(a is None for a in g.anchors) for g in self._groups])
+        free = np.array([all(a is None for a in g.anchors) for g in self.state.groups])
         rows = np.flatnonzero(free[slots] & ~np.isnan(index.travelled[:n]))
         if len(rows) < 2:
             return 0
@@ -98,12 +105,12 @@ class EndOfRun(SpatialGate):
         for a, b in zip(first[apart].tolist(), second[apart].tolist(), strict=True):
             if index.frame[b] < index.frame[a]:
                 a, b = b, a
-            ga, gb = self._groups[slots[a]], self._groups[slots[b]]
+            ga, gb = self.state.groups[slots[a]], self.state.groups[slots[b]]
             if ga.symmetric != gb.symmetric:
                 continue
             profile = shifted_distances(index.members[b].matrix, index.members[a].matrix[None], p.match.columns)[0]
             if not ga.symmetric:
-                predicted = round(self._predicted_shift(index.members[b], index.members[a], estimate))
+                predicted = round(self.state.predicted_shift(index.members[b], index.members[a], estimate))
                 allowed = np.full(n_s, np.inf)
                 shifts = np.arange(predicted - window, predicted + window + 1) % n_s
                 allowed[shifts] = profile[shifts]
@@ -111,7 +118,7 @@ class EndOfRun(SpatialGate):
             shift = int(np.argmin(profile))
             if profile[shift] <= p.end.merge_distance:
                 candidates.append((float(profile[shift]), a, b, shift))
-        shortcuts = self._anchoring(estimate) if p.gate.anchored else []
+        shortcuts = self.gate.anchoring(estimate) if p.gate.anchored else []
         made = 0
         for _, a, b, shift in sorted(candidates):
             sa, sb = int(slots[a]), int(slots[b])
@@ -122,9 +129,9 @@ class EndOfRun(SpatialGate):
             seen_a, seen_b = index.travelled[:n][in_a], index.travelled[:n][in_b]
             if np.abs(seen_a[:, None] - seen_b[None, :]).min() < p.repeats.window:
                 continue  # seen on one drive-by: two markings (a repeated pattern's copies), not a revisit
-            if self._parts(positions[both], index.travelled[both], shortcuts, estimate).max() > 0:
+            if self.parts(positions[both], index.travelled[both], shortcuts, estimate).max() > 0:
                 continue
-            ga, gb = self._groups[sa], self._groups[sb]
+            ga, gb = self.state.groups[sa], self.state.groups[sb]
             # Member b turned by ``shift`` lies on member a: B's members turn into A's orientation so.
             rebase = shift + ga.offsets[member_at[a]] - gb.offsets[member_at[b]]
             members = [(ga if slots[r] == sa else gb).members[member_at[r]] for r in both]
@@ -139,15 +146,15 @@ class EndOfRun(SpatialGate):
             ga.refresh(p.match.columns, p.match.symmetry_threshold)
             made += 1
         if made:
-            kept = [k for k, g in enumerate(self._groups) if g.members]
-            renumber = np.full(len(self._groups), -1, dtype=np.int64)
+            kept = [k for k, g in enumerate(self.state.groups) if g.members]
+            renumber = np.full(len(self.state.groups), -1, dtype=np.int64)
             renumber[kept] = np.arange(len(kept))
             index.group[:n] = renumber[slots]
-            self._groups = [self._groups[k] for k in kept]
-            self._slot = {g.group_id: k for k, g in enumerate(self._groups)}
+            self.state.groups = [self.state.groups[k] for k in kept]
+            self.state.slot = {g.group_id: k for k, g in enumerate(self.state.groups)}
         return made
 
-    def _parts(
+    def parts(
         self,
         positions: np.ndarray,
         travelled: np.ndarray,
@@ -163,8 +170,8 @@ class EndOfRun(SpatialGate):
         n = len(positions)
         distance = np.hypot(*(positions[:, None, :] - positions[None, :, :]).transpose(2, 0, 1))
         anchored = np.stack([anchored_distances(float(t), travelled, shortcuts) for t in travelled])
-        quadratic = self._quadratic(travelled, shortcuts, estimate)
-        ratio = distance / self._gate_radius(anchored, np.maximum(quadratic[:, None], quadratic[None, :]))
+        quadratic = self.gate.quadratic(travelled, shortcuts, estimate)
+        ratio = distance / self.gate.radius(anchored, np.maximum(quadratic[:, None], quadratic[None, :]))
         within = ratio <= 1.0
         label = np.arange(n)
         i, j = np.triu_indices(n, 1)

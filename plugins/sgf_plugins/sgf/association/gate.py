@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from sgf_pipeline.geometry import invert, xy_yaw
-from sgf_pipeline.types import LoopConstraints, PoseEstimate, SgfDescriptor
+from sgf_pipeline.types import PoseEstimate, SgfDescriptor
 from sgf_plugins.odometry.anchoring import anchored_distances
 from sgf_plugins.odometry.drift import (
     EXPECTED_YAW_BIAS,
@@ -16,22 +16,34 @@ from sgf_plugins.odometry.drift import (
     drift_radius,
     uncorrected_yaw_bias,
 )
-from sgf_plugins.sgf.association.groups import GatedGroup
+from sgf_plugins.sgf.association.groups import NO_ESTIMATE, GatedGroup
+from sgf_plugins.sgf.association.params import OnlineGroupsParams
 from sgf_plugins.sgf.association.repeats import RepeatedPattern
-from sgf_plugins.sgf.association.state import Closure
+from sgf_plugins.sgf.association.state import AssociationState
 
 #: A loop anchors the gate when the estimate's relative yaw between its frames is within this of the loop's (rad).
 ANCHOR_YAW_TOLERANCE = 0.05
 
 
-class SpatialGate(RepeatedPattern):
+class SpatialGate:
     """The spatial gate: the groups with a member near the query on the map, its radius growing with drift.
 
     The radius between two sightings is ``gate.radius + gate.drift_rate * d + q * d^2`` for the
-    distance ``d`` travelled between them (:meth:`_gate_radius`), with the heading-bias term ``q``
-    (:meth:`_quadratic`, :meth:`_per_bias`); with ``gate.anchored``, ``d`` restarts at the loop
-    closures the estimate satisfies (:meth:`_anchoring`).
+    distance ``d`` travelled between them (:meth:`radius`), with the heading-bias term ``q``
+    (:meth:`quadratic`, :meth:`per_bias`); with ``gate.anchored``, ``d`` restarts at the loop
+    closures the estimate satisfies (:meth:`anchoring`).
     """
+
+    def __init__(self, params: OnlineGroupsParams, state: AssociationState, repeats: RepeatedPattern) -> None:
+        self.params = params
+        self.state = state
+        self.repeats = repeats
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the anchoring and bias caches (a new sequence)."""
+        self._shortcuts: tuple[object, list[tuple[float, float]]] = (NO_ESTIMATE, [])
+        self._bias_began: tuple[int, float] | None = None  # frame and travelled distance the bias correction began
 
     def gated(self, query: SgfDescriptor, estimate: PoseEstimate | None) -> list[GatedGroup]:
         """The groups the spatial gate lets the query meet, with their nearest member's map distance (m).
@@ -39,34 +51,34 @@ class SpatialGate(RepeatedPattern):
         ``repeated`` marks a group holding a member seen moments ago (within ``repeats.window`` of
         travel) at another place (beyond ``repeats.radius``, and with a ground footprint that
         overlaps the query's by less than ``repeats.overlap``): if it also looks like the query, the
-        two are neighbouring copies of a repeated pattern (see :meth:`assign`). A partial view of
+        two are neighbouring copies of a repeated pattern (see the stage's ``assign``). A partial view of
         the same marking moves its centroid by up to a metre or two but covers the same paint.
         """
-        p, index = self.params, self._index
+        p, index = self.params, self.state.index
         n = index.size
         if n == 0:
             return []
-        here = self.position_of(query, estimate)
-        distance = np.hypot(*(self._member_positions(estimate) - here).T)
+        here = self.state.position_of(query, estimate)
+        distance = np.hypot(*(self.state.member_positions(estimate) - here).T)
         anchored = ~np.isnan(index.anchor[:n, 0])
         # Distance travelled between the two sightings; straight-line odometry distance where unknown.
-        since = self._frames.get_distance(query.sgf.frame_index)
+        since = self.state.frames.get_distance(query.sgf.frame_index)
         travelled = np.abs(index.travelled[:n] - since) if since is not None else np.full(n, np.nan)
         unknown = np.isnan(travelled)
         if unknown.any():
             odometry = np.asarray(query.sgf.odometry, dtype=np.float64)[:3, 3]
             travelled[unknown] = np.linalg.norm(index.odometry[:n][unknown, :3, 3] - odometry, axis=1)
-        repeated = self._repeated(query, estimate, travelled, distance, anchored)
+        repeated = self.repeats.repeated(query, estimate, travelled, distance, anchored)
         if p.gate.anchored and since is not None:
-            shortcuts = self._anchoring(estimate)
+            shortcuts = self.anchoring(estimate)
             if shortcuts:
                 known = ~unknown
                 travelled[known] = anchored_distances(since, index.travelled[:n][known], shortcuts)
-        quadratic = self._quadratic(index.travelled[:n], self._anchoring(estimate), estimate)
-        radius = self._gate_radius(travelled, quadratic)
+        quadratic = self.quadratic(index.travelled[:n], self.anchoring(estimate), estimate)
+        radius = self.radius(travelled, quadratic)
         radius[anchored] = math.inf if p.gate.prior_radius is None else p.gate.prior_radius
         groups = index.group[:n]
-        count = len(self._groups)
+        count = len(self.state.groups)
         member_inside = (distance <= radius) | (not p.gate.enabled)
         nearest = np.full(count, math.inf)
         np.minimum.at(nearest, groups, np.where(member_inside | (not p.gate.member_gate), distance, math.inf))
@@ -91,43 +103,23 @@ class SpatialGate(RepeatedPattern):
             repeating = [r if repeats[k] else None for k, r in enumerate(per_group(repeated))]
         return [
             GatedGroup(group, float(nearest[k]), bool(repeats[k]), float(min(ratio[k], 1.0)), members[k], repeating[k])
-            for k, group in enumerate(self._groups)
+            for k, group in enumerate(self.state.groups)
             if inside[k]
         ]
 
-    def _remember_loops(self, loops: LoopConstraints | None) -> None:
-        """Keep this run's accepted loop closures (map matches are anchored by the map's own gate)."""
-        for c in () if loops is None else loops.items:
-            if c.from_map:
-                continue
-            ends = [self._travelled_at(c.frame_from), self._travelled_at(c.frame_to)]
-            if all(t is not None for t in ends):
-                self._closures.append(Closure(c.frame_from, c.frame_to, np.asarray(c.relative), *ends))  # type: ignore[arg-type]
-
-    def _travelled_at(self, frame_index: int) -> float | None:
-        """Distance travelled up to a frame: remembered for recent frames and for group members."""
-        known = self._frames.get_distance(frame_index)
-        if known is not None:
-            return known
-        index = self._index
-        hits = np.flatnonzero(index.frame[: index.size] == frame_index)
-        if hits.size and not math.isnan(index.travelled[hits[0]]):
-            return float(index.travelled[hits[0]])
-        return None
-
-    def _anchoring(self, estimate: PoseEstimate | None) -> list[tuple[float, float]]:
+    def anchoring(self, estimate: PoseEstimate | None) -> list[tuple[float, float]]:
         """Travelled distances of the two frames of each loop closure the estimate satisfies (cached per estimate).
 
         A loop the back-end has not absorbed (no back-end, a loop down-weighted by the robust kernel)
         anchors nothing: between its frames the estimate may still carry the whole drift.
         """
-        if estimate is None or not self._closures:
+        if estimate is None or not self.state.closures:
             return []
         if self._shortcuts[0] is estimate:
             return self._shortcuts[1]
         tolerance = self.params.gate.anchor_tolerance
         shortcuts = []
-        for c in self._closures:
+        for c in self.state.closures:
             start, end = estimate.poses.get(c.frame_from), estimate.poses.get(c.frame_to)
             if start is None or end is None:
                 continue
@@ -137,18 +129,18 @@ class SpatialGate(RepeatedPattern):
         self._shortcuts = (estimate, shortcuts)
         return shortcuts
 
-    def _per_bias(self, bias: float) -> float:
+    def per_bias(self, bias: float) -> float:
         """The gate's growth per squared metre for a heading bias (rad/m): ``gate.drift_bias_share`` of 0.5 b."""
         return bias_growth(bias, self.params.gate.drift_bias_share)
 
-    def _gate_radius(self, travelled: np.ndarray, quadratic: np.ndarray | float) -> np.ndarray:
+    def radius(self, travelled: np.ndarray, quadratic: np.ndarray | float) -> np.ndarray:
         """The spatial gate's radius (m) for the distances travelled between two sightings.
 
-        ``quadratic``: the heading bias term per pair (:meth:`_quadratic`).
+        ``quadratic``: the heading bias term per pair (:meth:`quadratic`).
         """
         return drift_radius(travelled, self.params.gate.radius, self.params.gate.drift_rate, quadratic)
 
-    def _quadratic(
+    def quadratic(
         self, travelled: np.ndarray, shortcuts: list[tuple[float, float]], estimate: PoseEstimate | None
     ) -> np.ndarray:
         """The gate's heading bias term for members seen at ``travelled`` metres (``gate.bias_from_backend``).
@@ -162,14 +154,14 @@ class SpatialGate(RepeatedPattern):
         """
         p = self.params
         if not p.gate.bias_from_backend:
-            return np.full(np.shape(travelled), self._per_bias(EXPECTED_YAW_BIAS))
-        q = np.full(np.shape(travelled), self._per_bias(uncorrected_yaw_bias(estimate)))
+            return np.full(np.shape(travelled), self.per_bias(EXPECTED_YAW_BIAS))
+        q = np.full(np.shape(travelled), self.per_bias(uncorrected_yaw_bias(estimate)))
         corrected = corrected_yaw_bias(estimate)
         if corrected is None:
             return q
         since, sigma = corrected
         if self._bias_began is None or self._bias_began[0] != since:
-            known = self._travelled_at(since)  # remembered: the frame log forgets old frames
+            known = self.state.travelled_at(since)  # remembered: the frame log forgets old frames
             self._bias_began = None if known is None else (since, known)
         if self._bias_began is None:
             return q
@@ -177,5 +169,5 @@ class SpatialGate(RepeatedPattern):
         covered = travelled >= began  # NaN (a map member): never covered
         for a, b in shortcuts:
             covered |= (travelled >= min(a, b)) & (travelled <= max(a, b))
-        q[covered] = self._per_bias(sigma)
+        q[covered] = self.per_bias(sigma)
         return q

@@ -5,21 +5,26 @@ from __future__ import annotations
 import numpy as np
 
 from sgf_pipeline.types import LookAlike, PoseEstimate, SgfDescriptor
-from sgf_plugins.sgf.association.gate import SpatialGate
 from sgf_plugins.sgf.association.groups import GatedGroup, SgfGroup
+from sgf_plugins.sgf.association.params import OnlineGroupsParams
+from sgf_plugins.sgf.association.state import AssociationState
 from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, symmetry_spread
 
 
-class Eq10Matching(SpatialGate):
+class Eq10Matching:
     """Eq. 10 between a query and the gated groups: their closest members, the shift, ties and look-alikes."""
 
-    def _prior_shift(self, query: SgfDescriptor, member: SgfDescriptor, estimate: PoseEstimate | None) -> float | None:
+    def __init__(self, params: OnlineGroupsParams, state: AssociationState) -> None:
+        self.params = params
+        self.state = state
+
+    def prior_shift(self, query: SgfDescriptor, member: SgfDescriptor, estimate: PoseEstimate | None) -> float | None:
         """The column shift that the pose estimate predicts between two sightings (None for map members)."""
         if self.params.match.yaw_tolerance <= 0.0:
             return None
-        return self._predicted_shift(query, member, estimate)
+        return self.state.predicted_shift(query, member, estimate)
 
-    def _closable_ties(self, query: SgfDescriptor, candidates: list[GatedGroup], ties: np.ndarray) -> np.ndarray:
+    def closable_ties(self, query: SgfDescriptor, candidates: list[GatedGroup], ties: np.ndarray) -> np.ndarray:
         """The tied groups a match could close a loop with: a shaped query leaves out the symmetric ones.
 
         A query whose own profile is not flat matched into a symmetric group (a round manhole
@@ -29,20 +34,20 @@ class Eq10Matching(SpatialGate):
         p = self.params
         if len(ties) < 2 or symmetry_spread(query.matrix, p.match.columns) < p.match.symmetry_threshold:
             return ties
-        closable = [t for t in ties if not self._symmetric_match(query, candidates[t])]
+        closable = [t for t in ties if not self.symmetric_match(query, candidates[t])]
         return np.asarray(closable, dtype=np.int64) if closable else ties
 
-    def _symmetric_match(self, query: SgfDescriptor, gated: GatedGroup) -> bool:
+    def symmetric_match(self, query: SgfDescriptor, gated: GatedGroup) -> bool:
         """Whether a match of a shaped query into this gated group would be symmetric (its closest member flat)."""
         if not gated.group.symmetric:
             return False
-        m, _ = self._nearest_member(query, gated.group, gated.members)
+        m, _ = self.nearest_member(query, gated.group, gated.members)
         return (
             symmetry_spread(gated.group.members[m].matrix, self.params.match.columns)
             < self.params.match.symmetry_threshold
         )
 
-    def _nearest_member_distances(
+    def nearest_member_distances(
         self, query: SgfDescriptor, groups: list[SgfGroup], members: list[np.ndarray | None] | None = None
     ) -> np.ndarray:
         """Eq. 10 distance (best shift) from the query to each group's closest member (of ``members``, when given)."""
@@ -55,16 +60,16 @@ class Eq10Matching(SpatialGate):
         starts = np.cumsum([0] + [len(c) for c in chosen[:-1]])
         return np.minimum.reduceat(per_member, starts)
 
-    def _closest_member(
+    def closest_member(
         self, query: SgfDescriptor, group: SgfGroup, estimate: PoseEstimate | None, members: np.ndarray | None = None
     ) -> tuple[int, SgfDescriptor, int]:
         """The group member (of ``members``, when given) closest to the query by eq. 10, its index, and the shift."""
-        m, profile = self._nearest_member(query, group, members)
+        m, profile = self.nearest_member(query, group, members)
         matched = group.members[m]
-        prior = None if group.anchors[m] is not None else self._prior_shift(query, matched, estimate)
+        prior = None if group.anchors[m] is not None else self.prior_shift(query, matched, estimate)
         return m, matched, best_shift(profile, prior, self.params.match.yaw_tolerance)
 
-    def _nearest_member(
+    def nearest_member(
         self, query: SgfDescriptor, group: SgfGroup, members: np.ndarray | None = None
     ) -> tuple[int, np.ndarray]:
         """The index of the group member (of ``members``, when given) closest by eq. 10, and its shift profile."""
@@ -74,7 +79,7 @@ class Eq10Matching(SpatialGate):
         k = int(np.argmin(profiles.min(axis=1)))
         return int(candidates[k]), profiles[k]
 
-    def _look_alike(self, query: SgfDescriptor, gated: GatedGroup, estimate: PoseEstimate | None) -> LookAlike:
+    def look_alike(self, query: SgfDescriptor, gated: GatedGroup, estimate: PoseEstimate | None) -> LookAlike:
         """A tied group's closest member, as an alternative match of the query."""
-        _, matched, shift = self._closest_member(query, gated.group, estimate, gated.members)
+        _, matched, shift = self.closest_member(query, gated.group, estimate, gated.members)
         return LookAlike(gated.group.group_id, matched, shift, shift_to_yaw(shift, query.matrix.shape[1]))

@@ -8,11 +8,12 @@ import numpy as np
 
 from sgf_pipeline.types import PoseEstimate, SgfDescriptor
 from sgf_plugins.sgf.association.groups import GatedGroup
+from sgf_plugins.sgf.association.params import OnlineGroupsParams
 from sgf_plugins.sgf.association.state import AssociationState
 from sgf_plugins.sgf.polar import shifted_distances
 
 
-class RepeatedPattern(AssociationState):
+class RepeatedPattern:
     """The repeated-pattern test: members seen moments ago elsewhere, and whether the query looks like them.
 
     Give-way triangles, zebra bars and dashes repeat one marking metres apart: a group holding a
@@ -21,7 +22,11 @@ class RepeatedPattern(AssociationState):
     like the query (``repeats.copy_distance``) is a neighbouring copy, not a revisit.
     """
 
-    def _repeated(
+    def __init__(self, params: OnlineGroupsParams, state: AssociationState) -> None:
+        self.params = params
+        self.state = state
+
+    def repeated(
         self,
         query: SgfDescriptor,
         estimate: PoseEstimate | None,
@@ -30,24 +35,24 @@ class RepeatedPattern(AssociationState):
         anchored: np.ndarray,
     ) -> np.ndarray:
         """Which members were seen moments ago at another place than the query (a partial view overlaps it)."""
-        p, index = self.params, self._index
+        p, index = self.params, self.state.index
         repeated = ~anchored & (travelled < p.repeats.window) & (distance > p.repeats.radius)
         if p.repeats.overlap is not None and repeated.any():
-            footprint = self._footprint(query, estimate)
+            footprint = self.footprint(query, estimate)
             for k in np.flatnonzero(repeated):
-                other = self._footprint(index.members[k], estimate)
+                other = self.footprint(index.members[k], estimate)
                 shared = len(footprint & other) / max(1, min(len(footprint), len(other)))
                 repeated[k] = shared < p.repeats.overlap
         return repeated
 
-    def _footprint(self, descriptor: SgfDescriptor, estimate: PoseEstimate | None) -> set[tuple[int, int]]:
+    def footprint(self, descriptor: SgfDescriptor, estimate: PoseEstimate | None) -> set[tuple[int, int]]:
         """The map cells (``repeats.footprint_cell`` wide) that a descriptor's ground points cover."""
-        pose = self.map_pose(descriptor, estimate)
+        pose = self.state.map_pose(descriptor, estimate)
         xy = np.asarray(descriptor.points, dtype=np.float64)[:, :2] @ pose[:2, :2].T + pose[:2, 3]
         cells = np.floor(xy / self.params.repeats.footprint_cell).astype(np.int64)
         return set(map(tuple, cells.tolist()))
 
-    def _copy_distances(self, query: SgfDescriptor, candidates: list[GatedGroup], eq10: np.ndarray) -> np.ndarray:
+    def copy_distances(self, query: SgfDescriptor, candidates: list[GatedGroup], eq10: np.ndarray) -> np.ndarray:
         """Eq. 10 from the query to each repeating group's members seen moments ago elsewhere (``repeats.copy_member``).
 
         Without ``repeats.copy_member``: the distance to the group (``eq10``).

@@ -21,14 +21,11 @@ from sgf_pipeline.types import (
     SgfDescriptor,
     SgfDescriptors,
 )
-from sgf_plugins.odometry.frame_log import FrameLog
 from sgf_plugins.sgf.association import evaluation
 from sgf_plugins.sgf.association.end_of_run import EndOfRun
+from sgf_plugins.sgf.association.gate import SpatialGate
 from sgf_plugins.sgf.association.groups import (
-    HISTORY_FRAMES,
-    NO_ESTIMATE,
     GatedGroup,
-    MemberIndex,
     Ranking,
     SgfGroup,
     groups_from_map,
@@ -37,11 +34,12 @@ from sgf_plugins.sgf.association.groups import (
 )
 from sgf_plugins.sgf.association.matching import Eq10Matching
 from sgf_plugins.sgf.association.params import OnlineGroupsParams
-from sgf_plugins.sgf.association.state import Closure
+from sgf_plugins.sgf.association.repeats import RepeatedPattern
+from sgf_plugins.sgf.association.state import AssociationState
 from sgf_plugins.sgf.polar import shift_to_yaw, shifted_distances, symmetry_spread
 
 
-class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
+class OnlineSgfGroups(Stage):
     """Assign each SGF descriptor to the nearest SGF group by the column-shifted cosine distance (eq. 10).
 
     Candidates: with ``gate.enabled``, only groups with a member whose map position lies within
@@ -97,24 +95,42 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
         super().__init__(params)
         self.params: OnlineGroupsParams = params
         self._prior: list[SgfGroup] = []
-        self._groups: list[SgfGroup] = []
-        self._frames = FrameLog(keep=HISTORY_FRAMES)
-        self._next_id = 0
-        self._index = MemberIndex()
-        self._slot: dict[int, int] = {}
-        self._closures: list[Closure] = []
-        self._shortcuts: tuple[object, list[tuple[float, float]]] = (NO_ESTIMATE, [])
+        self.state = AssociationState()
+        self.repeats = RepeatedPattern(params, self.state)
+        self.gate = SpatialGate(params, self.state, self.repeats)
+        self.matching = Eq10Matching(params, self.state)
+        self.end = EndOfRun(params, self.state, self.gate)
         self._rankings: list[Ranking] = []  # every query's ranking of the gated groups (for the evaluation)
         self._estimate: PoseEstimate | None = None  # the newest estimate seen (for the split at the end)
-        self._bias_began: tuple[int, float] | None = None  # frame and travelled distance the bias correction began
-        self._end: tuple[tuple[SettledGroup, ...], int | None, int | None] | None = None  # online groups, split, merged
+        # the groups before the end of the run, and the splits and merges made then
+        self._concluded: tuple[tuple[SettledGroup, ...], int | None, int | None] | None = None
 
     # -- groups ---------------------------------------------------------------------------
 
     @property
     def groups(self) -> list[SgfGroup]:
         """The SGF groups so far (seeded groups first)."""
-        return list(self._groups)
+        return list(self.state.groups)
+
+    def gated(self, query: SgfDescriptor, estimate: PoseEstimate | None) -> list[GatedGroup]:
+        """The groups the spatial gate lets the query meet (:meth:`SpatialGate.gated`)."""
+        return self.gate.gated(query, estimate)
+
+    def pose_of(self, frame_index: int, odometry: np.ndarray, estimate: PoseEstimate | None) -> np.ndarray:
+        """The map pose of a frame (:meth:`AssociationState.pose_of`)."""
+        return self.state.pose_of(frame_index, odometry, estimate)
+
+    def position_of(self, descriptor: SgfDescriptor, estimate: PoseEstimate | None) -> np.ndarray:
+        """The map position (x, y) of a descriptor's centroid (:meth:`AssociationState.position_of`)."""
+        return self.state.position_of(descriptor, estimate)
+
+    def split_groups(self, estimate: PoseEstimate | None) -> int:
+        """Split the groups the estimate spreads beyond the spatial gate (:meth:`EndOfRun.split_groups`)."""
+        return self.end.split_groups(estimate)
+
+    def merge_groups(self, estimate: PoseEstimate | None) -> int:
+        """Merge look-alike groups the estimate puts at one place (:meth:`EndOfRun.merge_groups`)."""
+        return self.end.merge_groups(estimate)
 
     def seed_groups(self, groups: Iterable[SgfGroup]) -> None:
         """Start every sequence with prior groups (from a saved SGF map); their members keep fixed map positions.
@@ -140,22 +156,11 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
         self._reset()
 
     def _reset(self) -> None:
-        self._groups = [copy.copy(g) for g in self._prior]
-        for g, p in zip(self._groups, self._prior, strict=True):
-            g.members, g.offsets, g.anchors = list(p.members), list(p.offsets), list(p.anchors)
-        self._next_id = max((g.group_id for g in self._prior), default=-1) + 1
-        self._frames = FrameLog(keep=HISTORY_FRAMES)
-        self._index = MemberIndex()
-        self._slot = {g.group_id: k for k, g in enumerate(self._groups)}
-        self._closures = []
-        self._shortcuts = (NO_ESTIMATE, [])
+        self.state.reset(self._prior)
+        self.gate.reset()
         self._rankings = []
         self._estimate = None
-        self._bias_began = None
-        self._end = None
-        for k, group in enumerate(self._groups):
-            for member, anchor in zip(group.members, group.anchors, strict=True):
-                self._index.add(k, member, None, anchor)
+        self._concluded = None
 
     def begin(self, context: RunContext) -> None:
         """Start the sequence with the seeded groups only (those of ``prior_map`` when it is set)."""
@@ -182,7 +187,8 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
         """Assign one descriptor to its SGF group (eq. 10), creating a group when none is close enough."""
         p = self.params
         n_s = query.matrix.shape[1]
-        candidates = self.gated(query, estimate)
+        state = self.state
+        candidates = self.gate.gated(query, estimate)
         best: tuple[SgfGroup, float] | None = None
         opened_distance = 1.0  # reported when the query opens a group and no group was kept
         tied: list[GatedGroup] = []
@@ -198,7 +204,7 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
             if p.match.group_distance == "mean":
                 eq10 = shifted_distances(query.matrix, stack, p.match.columns, p.match.min_overlap).min(axis=1)
             else:
-                eq10 = self._nearest_member_distances(
+                eq10 = self.matching.nearest_member_distances(
                     query, [c.group for c in candidates], [c.members for c in candidates]
                 )
             # Where the estimate puts the query counts too: a group at the gate's edge pays position_weight.
@@ -209,7 +215,7 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
             # A look-alike group just seen elsewhere is a neighbouring copy of a repeated pattern
             # (give-way triangles, dashes): the query may not join it, and neither gives loop factors.
             copy = np.array([c.repeated for c in candidates]) & (
-                self._copy_distances(query, candidates, eq10) <= p.repeats.copy_distance
+                self.repeats.copy_distances(query, candidates, eq10) <= p.repeats.copy_distance
             )
             for i in np.flatnonzero(copy):
                 candidates[i].group.aliased = True
@@ -220,7 +226,7 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
                 opened_distance = float(eq10.min())
             elif not copy.all():
                 ties = np.flatnonzero(~copy & (score <= best_kept + p.match.tie_margin))
-                ties = self._closable_ties(query, candidates, ties)
+                ties = self.matching.closable_ties(query, candidates, ties)
                 i = int(min(ties, key=lambda t: candidates[t].nearest))
                 best = (candidates[i].group, float(eq10[i]))
                 # Look-alike groups inside the gate (identical standard markings) cannot be told apart
@@ -229,13 +235,13 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
                 tied = [candidates[t] for t in ties if t != i]
                 gated_members = candidates[i].members
         if best is None or best[1] > p.match.new_group_distance:
-            group = SgfGroup(self._next_id, aliased=copy_nearby)
-            self._next_id += 1
+            group = SgfGroup(state.next_id, aliased=copy_nearby)
+            state.next_id += 1
             group.add(query, 0)
-            self._index.add(len(self._groups), query, self._frames.get_distance(query.sgf.frame_index), None)
+            state.index.add(len(state.groups), query, state.frames.get_distance(query.sgf.frame_index), None)
             group.refresh(p.match.columns, p.match.symmetry_threshold)
-            self._slot[group.group_id] = len(self._groups)
-            self._groups.append(group)
+            state.slot[group.group_id] = len(state.groups)
+            state.groups.append(group)
             distance = opened_distance if best is None else best[1]
             return GroupAssignment(
                 query,
@@ -251,13 +257,15 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
             )
         group, best_distance = best
         group.aliased = group.aliased or copy_nearby
-        m, matched, shift = self._closest_member(query, group, estimate, gated_members)
+        m, matched, shift = self.matching.closest_member(query, group, estimate, gated_members)
         # An aliased look-alike (a repeated pattern) could be the true one: then nothing resolves the tie.
         alternatives = (
-            () if any(g.group.aliased for g in tied) else tuple(self._look_alike(query, g, estimate) for g in tied)
+            ()
+            if any(g.group.aliased for g in tied)
+            else tuple(self.matching.look_alike(query, g, estimate) for g in tied)
         )
         group.add(query, shift + group.offsets[m])
-        self._index.add(self._slot[group.group_id], query, self._frames.get_distance(query.sgf.frame_index), None)
+        state.index.add(state.slot[group.group_id], query, state.frames.get_distance(query.sgf.frame_index), None)
         group.refresh(p.match.columns, p.match.symmetry_threshold)
         # A flat group mean may only be a smear of members from different markings: the match is
         # symmetric when one of its two own views is flat too. Two flat views are symmetric whatever
@@ -288,8 +296,8 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
         loops: Previous[LoopConstraints] = None,
     ) -> GroupAssignments:
         """Group this frame's SGF descriptors."""
-        self._record(frame)
-        self._remember_loops(loops)
+        self.state.record(frame)
+        self.state.remember_loops(loops)
         if estimate is not None:
             self._estimate = estimate
         return GroupAssignments(tuple(self.assign(d, estimate) for d in descriptors.items))
@@ -305,21 +313,21 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
         ``group_of`` maps each run member's ``(frame_index, track_id)`` to its final group, for the
         loop stage's final pass and the SGF map.
         """
-        online = settled(self._groups)
+        online = settled(self.state.groups)
         estimate = settlement.estimate if settlement.estimate is not None else self._estimate
         split = merged = None
         if self.params.end.split and self.params.gate.enabled:
-            split = self.split_groups(estimate)
+            split = self.end.split_groups(estimate)
         if self.params.end.merge:
-            merged = self.merge_groups(estimate)
-        self._end = (online, split, merged)
+            merged = self.end.merge_groups(estimate)
+        self._concluded = (online, split, merged)
         group_of = {
             (m.sgf.frame_index, m.sgf.track_id): g.group_id
-            for g in self._groups
+            for g in self.state.groups
             for m, a in zip(g.members, g.anchors, strict=True)
             if a is None
         }
-        return replace(settlement, groups=settled(self._groups), group_of=group_of)
+        return replace(settlement, groups=settled(self.state.groups), group_of=group_of)
 
     def finalize(self, context: RunContext) -> None:
         """Publish the groups and the group metrics (:meth:`conclude` runs here first when the run ended without it).
@@ -328,21 +336,21 @@ class OnlineSgfGroups(EndOfRun, Eq10Matching, Stage):
         ``sgf_groups`` (the final groups), ``sgf_groups_online`` (the groups before the split and merge
         at the end) and ``sgf_rankings`` (every query's ranking of the gated groups).
         """
-        if self._end is None:
+        if self._concluded is None:
             self.conclude(context, Settlement())
-        assert self._end is not None
-        online, split, merged = self._end
+        assert self._concluded is not None
+        online, split, merged = self._concluded
         sgf: dict[str, Any] = context.metrics.setdefault("sgf", {})
         if split is not None:
             sgf["groups_split"] = split
         if merged is not None:
             sgf["groups_merged"] = merged
-        context.artifacts["sgf_groups"] = list(self._groups)
+        context.artifacts["sgf_groups"] = list(self.state.groups)
         context.artifacts["sgf_groups_online"] = online
         context.artifacts["sgf_rankings"] = list(self._rankings)
-        sgf["groups"] = len(self._groups)
-        sgf["symmetric_groups"] = sum(1 for g in self._groups if g.symmetric)
-        sgf["aliased_groups"] = sum(1 for g in self._groups if g.aliased)
+        sgf["groups"] = len(self.state.groups)
+        sgf["symmetric_groups"] = sum(1 for g in self.state.groups if g.symmetric)
+        sgf["aliased_groups"] = sum(1 for g in self.state.groups if g.aliased)
 
 
 # The ground-truth scores of the groups, from what the stage publishes, when a run ends.
