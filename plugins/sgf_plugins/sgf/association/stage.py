@@ -5,7 +5,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Iterable
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -37,6 +37,23 @@ from sgf_plugins.sgf.association.params import OnlineGroupsParams
 from sgf_plugins.sgf.association.repeats import RepeatedPattern
 from sgf_plugins.sgf.association.state import AssociationState
 from sgf_plugins.sgf.polar import shift_to_yaw, shifted_distances, symmetry_spread
+
+
+@dataclass(frozen=True)
+class Choice:
+    """What the ranking of the gated groups decided for one query.
+
+    ``best``: the group to join and its eq. 10 distance (None: open a group, reporting
+    ``opened_distance``); ``tied``: the look-alike groups level with it; ``members``: the best
+    group's members inside the gate (None: every member); ``copy_nearby``: a neighbouring copy of a
+    repeated pattern was among the candidates.
+    """
+
+    best: tuple[SgfGroup, float] | None
+    opened_distance: float
+    tied: list[GatedGroup]
+    members: np.ndarray | None
+    copy_nearby: bool
 
 
 class OnlineSgfGroups(Stage):
@@ -185,10 +202,16 @@ class OnlineSgfGroups(Stage):
 
     def assign(self, query: SgfDescriptor, estimate: PoseEstimate | None = None) -> GroupAssignment:
         """Assign one descriptor to its SGF group (eq. 10), creating a group when none is close enough."""
-        p = self.params
-        n_s = query.matrix.shape[1]
-        state = self.state
         candidates = self.gate.gated(query, estimate)
+        choice = self._choose(query, candidates)
+        if choice.best is None or choice.best[1] > self.params.match.new_group_distance:
+            return self._open(query, choice)
+        group, best_distance = choice.best
+        return self._join(query, estimate, group, best_distance, choice)
+
+    def _choose(self, query: SgfDescriptor, candidates: list[GatedGroup]) -> Choice:
+        """Rank the gated groups by eq. 10 and the position weight; the group the query joins, if any."""
+        p = self.params
         best: tuple[SgfGroup, float] | None = None
         opened_distance = 1.0  # reported when the query opens a group and no group was kept
         tied: list[GatedGroup] = []
@@ -234,35 +257,45 @@ class OnlineSgfGroups(Stage):
                 # handed on as alternatives (a loop stage may tell them apart by their neighbours).
                 tied = [candidates[t] for t in ties if t != i]
                 gated_members = candidates[i].members
-        if best is None or best[1] > p.match.new_group_distance:
-            group = SgfGroup(state.next_id, aliased=copy_nearby)
-            state.next_id += 1
-            group.add(query, 0)
-            state.index.add(len(state.groups), query, state.frames.get_distance(query.sgf.frame_index), None)
-            group.refresh(p.match.columns, p.match.symmetry_threshold)
-            state.slot[group.group_id] = len(state.groups)
-            state.groups.append(group)
-            distance = opened_distance if best is None else best[1]
-            return GroupAssignment(
-                query,
-                group.group_id,
-                True,
-                distance,
-                0,
-                0.0,
-                None,
-                group.symmetric,
-                ambiguous=group.aliased,
-                aliased=group.aliased,
-            )
-        group, best_distance = best
-        group.aliased = group.aliased or copy_nearby
-        m, matched, shift = self.matching.closest_member(query, group, estimate, gated_members)
+        return Choice(best, opened_distance, tied, gated_members, copy_nearby)
+
+    def _open(self, query: SgfDescriptor, choice: Choice) -> GroupAssignment:
+        """Open a group for the query."""
+        p, state = self.params, self.state
+        group = SgfGroup(state.next_id, aliased=choice.copy_nearby)
+        state.next_id += 1
+        group.add(query, 0)
+        state.index.add(len(state.groups), query, state.frames.get_distance(query.sgf.frame_index), None)
+        group.refresh(p.match.columns, p.match.symmetry_threshold)
+        state.slot[group.group_id] = len(state.groups)
+        state.groups.append(group)
+        distance = choice.opened_distance if choice.best is None else choice.best[1]
+        return GroupAssignment(
+            query,
+            group.group_id,
+            True,
+            distance,
+            0,
+            0.0,
+            None,
+            group.symmetric,
+            ambiguous=group.aliased,
+            aliased=group.aliased,
+        )
+
+    def _join(
+        self, query: SgfDescriptor, estimate: PoseEstimate | None, group: SgfGroup, best_distance: float, choice: Choice
+    ) -> GroupAssignment:
+        """Add the query to the chosen group, turned by the shift to its closest member."""
+        p, state = self.params, self.state
+        n_s = query.matrix.shape[1]
+        group.aliased = group.aliased or choice.copy_nearby
+        m, matched, shift = self.matching.closest_member(query, group, estimate, choice.members)
         # An aliased look-alike (a repeated pattern) could be the true one: then nothing resolves the tie.
         alternatives = (
             ()
-            if any(g.group.aliased for g in tied)
-            else tuple(self.matching.look_alike(query, g, estimate) for g in tied)
+            if any(g.group.aliased for g in choice.tied)
+            else tuple(self.matching.look_alike(query, g, estimate) for g in choice.tied)
         )
         group.add(query, shift + group.offsets[m])
         state.index.add(state.slot[group.group_id], query, state.frames.get_distance(query.sgf.frame_index), None)
@@ -283,7 +316,7 @@ class OnlineSgfGroups(Stage):
             yaw=shift_to_yaw(shift, n_s),
             matched=matched,
             symmetric=symmetric,
-            ambiguous=group.aliased or bool(tied),
+            ambiguous=group.aliased or bool(choice.tied),
             aliased=group.aliased,
             alternatives=alternatives,
         )
