@@ -35,7 +35,7 @@ from sgf_pipeline.run_info import RunInfo, RunView, StageNode
 from sgf_pipeline.stage import Dataset, Settlement, Stage
 from sgf_pipeline.trajectory import Trajectory
 from sgf_pipeline.types import Frame, PoseEstimate
-from sgf_pipeline.wiring import instantiate, wire
+from sgf_pipeline.wiring import build_node, wire
 
 log = logging.getLogger("sgf_pipeline")
 
@@ -74,7 +74,7 @@ class Pipeline:
         self.plugins = plugins
         self.run_dir = Path(run_dir) if run_dir is not None else None
         self.effective_config = effective_config
-        self.order = wire([instantiate(config.stages[kind], plugins) for kind in config.pipeline])
+        self.order = wire([build_node(config.stages[kind], plugins) for kind in config.pipeline])
         self.dataset_node = self.order[0]
         self.context = RunContext(run_dir=self.run_dir)
         self.info = RunInfo(

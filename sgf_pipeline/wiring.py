@@ -18,7 +18,7 @@ from sgf_pipeline.stage import Dataset
 log = logging.getLogger("sgf_pipeline")
 
 
-def instantiate(sc: StageConfig, plugins: LoadedPlugins) -> StageNode:
+def build_node(sc: StageConfig, plugins: LoadedPlugins) -> StageNode:
     """The stage node of one configured stage: its variant, validated parameters and renamed inputs."""
     variant = plugins.registry.get(sc.kind, sc.name)
     if variant.kind != sc.kind:  # pragma: no cover - registry keys guarantee this
