@@ -416,7 +416,11 @@ def test_connect_streams_to_a_running_viewer(tmp_path: Path) -> None:
             time.sleep(0.5)
     finally:
         os.killpg(server.pid, signal.SIGINT)  # the viewer's server finishes its file on Ctrl-C
-        server.wait(timeout=120)  # a loaded machine takes a while to finish the file
+        try:
+            server.wait(timeout=30)
+        except subprocess.TimeoutExpired:  # it may hang on Ctrl-C: the file holds what it received without a footer
+            os.killpg(server.pid, signal.SIGKILL)
+            server.wait(timeout=30)
     rows = read(received)
     assert [r["frame"] for r in temporal(rows, "/camera/image")] == list(range(12))
 
