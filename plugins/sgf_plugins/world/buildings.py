@@ -8,7 +8,7 @@ from collections import OrderedDict
 import cv2
 import numpy as np
 
-from sgf_plugins.world.drawing import Item, Lighting, ToCamera, blend_into, clip_near
+from sgf_plugins.world.drawing import CameraView, Item, Lighting, ToCamera, blend_into, clip_near
 from sgf_plugins.world.layout import Building, CampusLayout
 from sgf_plugins.world.noise import lattice_noise, rng_for
 
@@ -110,20 +110,10 @@ class Buildings:
             self._facades.popitem(last=False)
         return out
 
-    def queue(
-        self,
-        items: list[Item],
-        centre: np.ndarray,
-        rot: np.ndarray,
-        trans: np.ndarray,
-        image: np.ndarray,
-        depth: np.ndarray,
-        K: np.ndarray,
-        light: Lighting,
-        to_cam: ToCamera,
-        project: ToCamera,
-    ) -> None:
+    def queue(self, items: list[Item], view: CameraView) -> None:
         """Queue the walls that face the camera and can show in the image."""
+        centre, rot, trans, image = view.centre, view.rot, view.trans, view.image
+        depth, K, light, to_cam = view.depth, view.K, view.light, view.to_cam
         h, w = image.shape[:2]
         layout = self.layout
         quads = self._facade_quads

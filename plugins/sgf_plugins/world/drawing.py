@@ -16,6 +16,21 @@ Item = tuple[float, Callable[[], None]]
 ToCamera = Callable[[np.ndarray], np.ndarray]
 
 
+@dataclass(frozen=True)
+class CameraView:
+    """One camera view the builders queue their drawings for: the pose, the image and its maps."""
+
+    centre: np.ndarray  # camera position in the world
+    rot: np.ndarray  # world to camera rotation
+    trans: np.ndarray  # world to camera translation
+    image: np.ndarray
+    depth: np.ndarray
+    K: np.ndarray
+    light: Lighting
+    to_cam: ToCamera
+    project: ToCamera
+
+
 @dataclass
 class Lighting:
     """Light falling on upright things: ambient level, sun (day) and the robot's headlight (night)."""

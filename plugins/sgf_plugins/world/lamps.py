@@ -5,7 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from sgf_plugins.world.drawing import Item, Lighting, ToCamera, clip_near, in_view
+from sgf_plugins.world.drawing import CameraView, Item, Lighting, ToCamera, clip_near, in_view
 from sgf_plugins.world.layout import CampusLayout, Lamp
 
 
@@ -19,20 +19,10 @@ class Lamps:
             [[lp.position[0], lp.position[1], z, lp.height] for lp, z in zip(layout.lamps, lamp_z, strict=True)]
         ).reshape(-1, 4)
 
-    def queue(
-        self,
-        items: list[Item],
-        centre: np.ndarray,
-        rot: np.ndarray,
-        trans: np.ndarray,
-        image: np.ndarray,
-        depth: np.ndarray,
-        K: np.ndarray,
-        light: Lighting,
-        to_cam: ToCamera,
-        project: ToCamera,
-    ) -> None:
+    def queue(self, items: list[Item], view: CameraView) -> None:
         """Queue the lamps within 60 m whose foot or head can show in the image."""
+        centre, rot, trans, image = view.centre, view.rot, view.trans, view.image
+        depth, K, light, to_cam, project = view.depth, view.K, view.light, view.to_cam, view.project
         h, w = image.shape[:2]
         layout = self.layout
         if len(self._lamps):

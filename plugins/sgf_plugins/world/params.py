@@ -36,7 +36,7 @@ class WorldParams(StageParams):
     odometry_seed: int | None = Field(
         None,
         description="seed of the wheel odometry's and the IMU's noise alone (null: seed); another value drives the "
-        "same world, route and camera images with other sensor noise: a second session",
+        "same world, route and camera images with other sensor noise: a second drive of the same campus",
     )
     odometry_scale_error: float = Field(0.012, description="relative error of the wheel distance")
     odometry_yaw_bias_deg_per_m: float = Field(

@@ -12,7 +12,7 @@ from collections.abc import Callable
 import numpy as np
 
 from sgf_plugins.world.buildings import Buildings
-from sgf_plugins.world.drawing import Item, Lighting, PlacedAgent, ToCamera, clip_near
+from sgf_plugins.world.drawing import CameraView, Item, Lighting, PlacedAgent, ToCamera, clip_near
 from sgf_plugins.world.lamps import Lamps
 from sgf_plugins.world.layout import CampusLayout
 from sgf_plugins.world.pedestrians import draw_person
@@ -84,30 +84,15 @@ class Scenery:
             )
 
         if far_field:
-            self._cull_and_queue(items, centre, rot, trans, image, depth, K, light, to_cam, project)
+            view = CameraView(centre, rot, trans, image, depth, K, light, to_cam, project)
+            for builder in (self.trees, self.lamps, self.buildings):  # each culls (vectorised) and queues its own
+                builder.queue(items, view)
         for placed in agents:
             item = self._agent_item(placed, to_cam, project, image, occlusion, K, light)
             if item is not None:
                 items.append(item)
         for _, draw in sorted(items, key=lambda it: -it[0]):
             draw()
-
-    def _cull_and_queue(
-        self,
-        items: list[Item],
-        centre: np.ndarray,
-        rot: np.ndarray,
-        trans: np.ndarray,
-        image: np.ndarray,
-        depth: np.ndarray,
-        K: np.ndarray,
-        light: Lighting,
-        to_cam: ToCamera,
-        project: ToCamera,
-    ) -> None:
-        """Queue the walls, trees and lamps that can show in the image (vectorised culling first)."""
-        for builder in (self.trees, self.lamps, self.buildings):
-            builder.queue(items, centre, rot, trans, image, depth, K, light, to_cam, project)
 
     def _agent_item(
         self,

@@ -9,7 +9,7 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from sgf_plugins.world.drawing import Item, Lighting, ToCamera, clip_near, in_view
+from sgf_plugins.world.drawing import CameraView, Item, Lighting, ToCamera, clip_near, in_view
 from sgf_plugins.world.layout import CampusLayout, Tree
 from sgf_plugins.world.noise import lattice_noise, rng_for
 
@@ -65,20 +65,10 @@ class Trees:
         sprite[..., 3] = alpha * (0.85 + 0.15 * (leaves > 0.3))
         return sprite
 
-    def queue(
-        self,
-        items: list[Item],
-        centre: np.ndarray,
-        rot: np.ndarray,
-        trans: np.ndarray,
-        image: np.ndarray,
-        depth: np.ndarray,
-        K: np.ndarray,
-        light: Lighting,
-        to_cam: ToCamera,
-        project: ToCamera,
-    ) -> None:
+    def queue(self, items: list[Item], view: CameraView) -> None:
         """Queue the trees within 75 m whose trunk or crown can show in the image."""
+        centre, rot, trans = view.centre, view.rot, view.trans
+        image, K, light, project = view.image, view.K, view.light, view.project
         h, w = image.shape[:2]
         layout = self.layout
         if len(self._trees):
