@@ -58,6 +58,19 @@ class RunOptions(BaseModel):
         description="a label of the run for reports; `<variant>/<severity>` for a perturbation of the robot or "
         "world (conf/perturbation), which sgf-report's robustness table reads",
     )
+    cache: bool = Field(
+        True,
+        description="keep the outputs of stages that depend only on the dataset and the stages before them, and "
+        "reuse them in later runs (sgf_pipeline.cache; `sgf-cache` shows and clears it)",
+    )
+    cache_dir: str | None = Field(
+        None,
+        description="the stage cache's folder; null = stages/ in $SGF_PIPELINE_CACHE, else "
+        "~/.cache/sgf_pipeline/stages ($SGF_PIPELINE_STAGE_CACHE=off turns the cache off for every run)",
+    )
+    cache_max_gb: float = Field(
+        20.0, gt=0.0, description="the stage cache's size bound (GB): the least recently used entries go first"
+    )
     read_ahead_seconds: float = Field(
         30.0,
         gt=0.0,

@@ -31,3 +31,11 @@ class StageError(SgfError):
         self.kind = kind
         self.name = name
         self.frame_index = frame_index
+
+
+class CacheError(SgfError):
+    """The stage cache cannot be used as configured, or an entry disagrees with the run."""
+
+
+class ImageNotCachedError(CacheError):
+    """A frame read from the stage cache has no image: every stage that reads images took its outputs from the cache."""

@@ -75,6 +75,9 @@ class DatasetReader:
         self.options = options
         self.drops = drops
         self.last_key: np.ndarray | None = None
+        #: Whether keyframes' images are loaded as they are read (counted as dataset time); when stages
+        #: take their outputs from the stage cache, an image is loaded only if a stage reads it.
+        self.load_images = True
 
     @property
     def dataset(self) -> Dataset:
@@ -143,6 +146,7 @@ class DatasetReader:
             key = self.is_keyframe(frame)
             if key:
                 self.last_key = frame.odometry
+            if key and self.load_images:
                 try:
                     _ = frame.image  # load (decode or render) now, so it counts as dataset time
                     frame.truth_ids()

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from sgf_pipeline import outputs
+from sgf_pipeline.cache import CachePlan, StageCache, cache_dir
 from sgf_pipeline.config import (
     PipelineConfig,
     check_keys,
@@ -99,6 +100,7 @@ class Pipeline:
         self._begun = False
         self._finished = False
         self._written = False
+        self.cache: CachePlan | None = None
         self.directory = RunDirectory(self.run_dir, config.run.overwrite) if self.run_dir is not None else None
 
     # -- building ---------------------------------------------------------------------------
@@ -138,9 +140,18 @@ class Pipeline:
                 torch.set_num_threads(self.config.run.torch_threads)
             except ImportError:  # pragma: no cover - torch is a dependency
                 pass
-        self.info.total_frames = len(self.dataset)
+        root = cache_dir(self.config.run)
+        if root is not None:
+            store = StageCache(root, int(self.config.run.cache_max_gb * 1e9))
+            self.cache = CachePlan.build(store, self.order, self.config.run, self.read_ahead)
+            self.reader.load_images = not self.cache.hits
+        cached = self.cache is not None and self.cache.dataset_from_cache
+        self.info.total_frames = self.cache.reading["total_frames"] if self.cache and cached else len(self.dataset)
         for node in self.order:
-            node.stage.begin(self.context)
+            if self.cache is not None:
+                self.cache.begin(node, self.context)
+            else:
+                node.stage.begin(self.context)
         if self.context.sequence:  # the dataset's own name for the recording (else the variant's)
             self.info.sequence = self.context.sequence
         if self.directory is not None:
@@ -149,7 +160,12 @@ class Pipeline:
         self._begun = True
 
     def release(self) -> None:
-        """Unlock the run directory (``run`` and ``finish`` do it; for code that stops feeding frames early)."""
+        """Unlock the run directory (``run`` and ``finish`` do it; for code that stops feeding frames early).
+
+        Stage cache entries still being filled are dropped: only a finished run fills the cache.
+        """
+        if self.cache is not None:
+            self.cache.abort()
         if self.directory is not None:
             self.directory.release()
 
@@ -186,7 +202,14 @@ class Pipeline:
         hook = self.plugins.manager.hook
         values: dict[str, Any] = {"frame": frame}
         start = time.perf_counter()
+        cache = self.cache
         for node in self.order[1:]:
+            if cache is not None:
+                hit, out = cache.cached_output(node, frame, values)
+                if hit:
+                    values[node.output] = out
+                    hook.sgf_after_stage(run=self.info, stage=node, frame=frame, output=out, seconds=0.0)
+                    continue
             kwargs: dict[str, Any] = {}
             skip = False
             for spec, source in node.inputs:
@@ -197,6 +220,8 @@ class Pipeline:
                 kwargs[spec.parameter] = value
             if skip:
                 values[node.output] = None
+                if cache is not None:
+                    cache.keep(node, frame, None, {})
                 hook.sgf_after_stage(run=self.info, stage=node, frame=frame, output=None, seconds=0.0)
                 continue
             hook.sgf_before_stage(run=self.info, stage=node, frame=frame)
@@ -214,6 +239,8 @@ class Pipeline:
                 ) from exc
             seconds = time.perf_counter() - t0
             values[node.output] = out
+            if cache is not None:
+                cache.keep(node, frame, out, kwargs)
             hook.sgf_after_stage(run=self.info, stage=node, frame=frame, output=out, seconds=seconds)
         elapsed = time.perf_counter() - start
         self.info.work_seconds += elapsed
@@ -244,7 +271,29 @@ class Pipeline:
         """
         distance = self.read_ahead
         self.begin()
-        yield from self.reader.frames(distance)
+        cache = self.cache
+        if cache is not None and cache.dataset_from_cache:
+            yield from self._cached_frames(cache)
+            return
+        for frame in self.reader.frames(distance):
+            if cache is not None:
+                cache.keep_frame(frame, self.context, self.info.frames_seen)
+            yield frame
+
+    def _cached_frames(self, cache: CachePlan) -> Iterator[Frame]:
+        """The keyframes kept in the stage cache, counted as the dataset's reading counted them."""
+        reading = cache.reading
+        start = time.perf_counter()
+        for frame, seen in cache.frames(self.context):
+            self.info.frames_seen = seen
+            if self.info.first_timestamp is None:
+                self.info.first_timestamp = frame.timestamp
+            self.info.dataset_seconds += time.perf_counter() - start
+            yield frame
+            start = time.perf_counter()
+        self.info.frames_seen = reading["frames_seen"]
+        self.info.last_timestamp = reading["last_timestamp"]
+        self.drops.by_reason.update(reading["dropped_by_reason"])
 
     def run(self) -> dict[str, Any]:
         """Stream the whole dataset through the pipeline, finalize, and return the metrics."""
@@ -269,9 +318,13 @@ class Pipeline:
         failures: list[tuple[StageError, str]] = []
         settlement = Settlement()
 
+        cache = self.cache
+
         def end(node: StageNode, phase: str, *args: Any) -> Any:
             """One stage's end-of-run call, its result; a failure is recorded (result ``None``)."""
             try:
+                if phase == "finalize" and cache is not None:
+                    return cache.finalize(node, self.context)
                 return getattr(node.stage, phase)(self.context, *args)
             except Exception as exc:
                 self.plugins.manager.hook.sgf_on_error(run=self.info, stage=node, frame=None, error=exc)
@@ -297,6 +350,8 @@ class Pipeline:
                 others = ", ".join(f"{e.kind}={e.name} in {phase}" for e, phase in failures[1:])
                 first.args = (f"{first.args[0]} (also failed: {others})",)
             raise first
+        if cache is not None:
+            self._commit_cache(cache)
         view = self.view()
         trajectories = dict(self.context.trajectories)
         for name, trajectory in view.recorded.items():
@@ -311,6 +366,21 @@ class Pipeline:
             assert self.run_dir is not None
             outputs.link_figures(self.run_dir)  # what the observers drew at the end
         return metrics
+
+    def _commit_cache(self, cache: CachePlan) -> None:
+        """Keep the finished run's new stage cache entries; report the run's use of the cache in metrics.json."""
+        reading = {
+            "total_frames": self.info.total_frames,
+            "frames_seen": self.info.frames_seen,
+            "last_timestamp": self.info.last_timestamp,
+            "dropped_by_reason": dict(self.drops.by_reason),
+        }
+        try:
+            cache.commit(reading)
+        except OSError as exc:  # a full disk costs the cache, never the run
+            log.warning("stage cache: the new entries were not kept: %s", exc)
+            cache.abort()
+        self.context.metrics["cache"] = cache.report()
 
     def _write_failure(self, exc: BaseException) -> None:
         if self.run_dir is None or not self._begun:
@@ -358,6 +428,11 @@ class PoseLog:
         poses = np.tile(np.eye(4), (self._count, 1, 1))
         poses[:, :3, :4] = rows[:, 1:].reshape(-1, 3, 4)
         return Trajectory(rows[:, 0].copy(), poses)
+
+
+def plain_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """A composed config as the plain, resolved mapping a run saves as ``config.yaml`` (without ``hydra``)."""
+    return _to_plain(cfg)
 
 
 def _to_plain(cfg: Mapping[str, Any]) -> dict[str, Any]:

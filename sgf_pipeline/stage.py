@@ -93,9 +93,24 @@ class Stage(ABC):
     name: ClassVar[str]
     output: ClassVar[str]
     Params: ClassVar[type[StageParams]] = StageParams
+    #: Whether the runner may keep this stage's outputs in the stage cache (:mod:`sgf_pipeline.cache`)
+    #: when they depend only on the dataset and the stages before it; ``False`` for a stage whose
+    #: outputs depend on anything else (the clock, a random source without a seed parameter).
+    cacheable: ClassVar[bool] = True
+    #: Whether the stage cache keeps this stage's outputs; ``False`` for outputs that cost more to
+    #: store than to compute (an image filter's image): then only its changes to the run context are
+    #: kept, and it runs whenever a stage after it misses.
+    cache_outputs: ClassVar[bool] = True
 
     def __init__(self, params: StageParams) -> None:
         self.params = params
+
+    def cache_identity(self) -> dict[str, str]:
+        """What the outputs depend on besides the variant, its parameters and its code (a weights file's hash).
+
+        Part of the stage cache's key; parameters naming files are identified by their content already.
+        """
+        return {}
 
     @property
     def read_ahead(self) -> float:
@@ -166,6 +181,13 @@ class Dataset(ABC):
     def __len__(self) -> int:
         """Number of frames, or 0 when unknown in advance."""
         return 0
+
+    def cache_identity(self) -> dict[str, str]:
+        """What the frames depend on besides the variant, its parameters, its code and the files they name.
+
+        Part of the stage cache's key (:mod:`sgf_pipeline.cache`).
+        """
+        return {}
 
     def begin(self, context: RunContext) -> None:  # noqa: B027  (optional hook, empty by design)
         """Fill what the dataset knows into the run context (calibration, ground truth)."""

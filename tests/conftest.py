@@ -24,8 +24,12 @@ def shared_data() -> Path:
 
 @pytest.fixture(scope="session", autouse=True)
 def _onnx_cache(tmp_path_factory: pytest.TempPathFactory) -> None:
-    """One ONNX export cache for the session (the default runtime exports each network once), not the user's."""
+    """One ONNX export cache for the session (the default runtime exports each network once), not the user's.
+
+    The stage cache is off unless a test turns it on: a test's run computes what it asserts on.
+    """
     os.environ["SGF_PIPELINE_CACHE"] = str(tmp_path_factory.mktemp("sgf_cache"))
+    os.environ["SGF_PIPELINE_STAGE_CACHE"] = "off"
 
 
 @pytest.fixture(autouse=True)

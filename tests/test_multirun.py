@@ -144,3 +144,31 @@ def test_the_robustness_suite_runs_on_a_ray_cluster(tmp_path: Path) -> None:
     finally:
         subprocess.run([ray, "stop", "--force"], capture_output=True, env={**os.environ, **env})
         shutil.rmtree(ray_tmp, ignore_errors=True)
+
+
+def test_a_sweep_run_again_skips_its_finished_jobs(toy_plugin_site: Path, tmp_path: Path) -> None:
+    sweep = tmp_path / "sweep"
+    args = [
+        "sgf-run",
+        "-m",
+        "pipeline=[dataset,enhance]",
+        "dataset=toy_circle",
+        "dataset.frames=12",
+        "enhance=clahe",
+        "enhance.clip_limit=1.0,3.0",
+        "run.progress=false",
+        f"hydra.sweep.dir={sweep}",
+    ]
+    env = {"PYTHONPATH": str(toy_plugin_site)}
+    first = run_cli(*args, env=env)
+    assert first.returncode == 0, first.stderr[-3000:]
+    jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
+    stamps = [(j / "metrics.json").stat().st_mtime_ns for j in jobs]
+    (jobs[1] / "metrics.json").unlink()  # as if the sweep had stopped during its second job
+    again = run_cli(*args, "run.progress=true", env=env)  # a result-neutral option may differ
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert again.stdout.count("finished already; skipped") == 1
+    assert (jobs[0] / "metrics.json").stat().st_mtime_ns == stamps[0]  # not run again
+    assert json.loads((jobs[1] / "metrics.json").read_text())["status"] == "finished"
+    other = run_cli(*args[:-1], "enhance.tiles=4", f"hydra.sweep.dir={sweep}", env=env)  # another config
+    assert "skipped" not in other.stdout

@@ -2,19 +2,29 @@
 
 from __future__ import annotations
 
+import json
+import logging
 import signal
 import threading
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import hydra
+import yaml
 from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
 from omegaconf import DictConfig, open_dict
 
 from sgf_pipeline.cli.common import console, friendly_errors, raise_terminated
 from sgf_pipeline.config import config_dir
 from sgf_pipeline.outputs import taken_back
-from sgf_pipeline.runner import Pipeline
+from sgf_pipeline.runner import Pipeline, plain_config
+
+log = logging.getLogger("sgf_pipeline")
+
+#: Runner options that do not change a run's results: a sweep run again skips a finished job that differs only in them.
+RESULT_NEUTRAL_OPTIONS = ("progress", "torch_threads", "overwrite", "cache", "cache_dir", "cache_max_gb")
 
 
 def _fmt(value: Any, spec: str = ".2f") -> str:
@@ -54,10 +64,30 @@ def summary(metrics: dict[str, Any], run_dir: Path) -> str:
     return "\n".join([f"sgf-run: {metrics.get('sequence', '')}", *lines])
 
 
+def _results_config(config: Mapping[str, Any]) -> dict[str, Any]:
+    out = dict(config)
+    out["run"] = {k: v for k, v in dict(out.get("run") or {}).items() if k not in RESULT_NEUTRAL_OPTIONS}
+    return out
+
+
+def finished_job(run_dir: Path, cfg: DictConfig) -> dict[str, Any] | None:
+    """The metrics of the run that already finished in ``run_dir`` with this configuration, else ``None``.
+
+    A sweep run again with the same command finds its finished jobs so and skips them; a job whose
+    directory holds another configuration's run is not skipped (the run directory then refuses it).
+    """
+    metrics, saved = run_dir / "metrics.json", run_dir / "config.yaml"
+    if not (metrics.is_file() and saved.is_file()):
+        return None
+    try:
+        same = _results_config(yaml.safe_load(saved.read_text())) == _results_config(plain_config(cfg))
+        return json.loads(metrics.read_text()) if same else None
+    except (OSError, ValueError, yaml.YAMLError):
+        return None
+
+
 def _parallel_sweep(hydra_cfg: Any) -> bool:
     """Whether this job runs in a multirun whose launcher runs jobs in parallel."""
-    from hydra.types import RunMode
-
     if hydra_cfg.mode != RunMode.MULTIRUN:
         return False
     target = str(hydra_cfg.launcher.get("_target_", ""))
@@ -74,6 +104,13 @@ def app(cfg: DictConfig) -> float | None:
         # Parallel jobs on one machine: torch's intra-op threads would fight over the cores.
         with open_dict(cfg):
             cfg.run.torch_threads = 1
+    if hydra_cfg.mode == RunMode.MULTIRUN and not cfg.get("run", {}).get("overwrite"):
+        done = finished_job(run_dir, cfg)
+        if done is not None:  # the same sweep run again: this job has finished already
+            log.info("%s holds this job's finished run; skipped", run_dir)
+            print(f"sgf-run: {run_dir} finished already; skipped (run.overwrite=true runs it again)", flush=True)
+            value = done.get("ate_rmse_m", {}).get("sgf")
+            return float(value) if value is not None else None
     pipeline = Pipeline.from_config(cfg, run_dir=run_dir)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, raise_terminated)

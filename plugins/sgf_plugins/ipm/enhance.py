@@ -29,6 +29,7 @@ class NoEnhancement(Stage):
     kind = "enhance"
     name = "none"
     output = "image"
+    cache_outputs = False  # the camera image: cheaper to read again than to keep
 
     def process(self, frame: Frame) -> CameraImage:
         """The frame's image as RGB."""
@@ -59,6 +60,7 @@ class ClaheEnhancement(Stage):
     name = "clahe"
     output = "image"
     Params = ClaheParams
+    cache_outputs = False  # an image: cheaper to equalise again than to keep
 
     def __init__(self, params: ClaheParams) -> None:
         super().__init__(params)

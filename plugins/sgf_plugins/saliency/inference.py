@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -13,6 +12,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import cv2
 import numpy as np
 
+from sgf_pipeline.cache import caches_root
 from sgf_pipeline.errors import DataError
 from sgf_plugins.saliency.data import as_rgb, normalize_image
 
@@ -24,11 +24,8 @@ ONNX_OPSET = 17
 
 
 def onnx_cache_dir() -> Path:
-    """Where exported ONNX models are kept (``$SGF_PIPELINE_CACHE`` or ``~/.cache/sgf_pipeline``)."""
-    root = os.environ.get("SGF_PIPELINE_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "sgf_pipeline"
-    )
-    return Path(root) / "onnx"
+    """Where exported ONNX models are kept: ``onnx/`` of sgf-pipeline's caches (``~/.cache/sgf_pipeline``)."""
+    return caches_root() / "onnx"
 
 
 def load_network(model: str, arch: Mapping[str, Any], weights: str | Path, input_size: int | None = None) -> nn.Module:

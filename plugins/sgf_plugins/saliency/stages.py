@@ -8,12 +8,14 @@ variants load safetensors weights (the package's by default), run in PyTorch or 
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import ClassVar, Literal
 
 import numpy as np
 from pydantic import Field
 
 from sgf_pipeline import RunContext, Stage, StageParams
+from sgf_pipeline.cache import file_hash
 from sgf_pipeline.types import Bev, SaliencyMap
 from sgf_plugins.saliency.classical import marking_saliency
 from sgf_plugins.saliency.models import ARCHITECTURES
@@ -136,6 +138,10 @@ class LearnedSaliency(Stage):
         self.predictor = SaliencyPredictor(
             self.name, self.architecture(), self.weights_path, p.input_size, p.runtime, p.threads, p.onnx_path
         )
+
+    def cache_identity(self) -> dict[str, str]:
+        """The weights' content hash: new weights make new saliency maps."""
+        return {"weights": file_hash(Path(self.weights_path))}
 
     def architecture(self) -> dict[str, object]:
         """The architecture parameters of this instance."""

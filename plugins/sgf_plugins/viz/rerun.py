@@ -45,6 +45,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from sgf_pipeline import ConfigError, hookimpl
+from sgf_pipeline.errors import ImageNotCachedError
 from sgf_pipeline.runner import RunInfo, StageNode
 from sgf_pipeline.types import (
     Bev,
@@ -205,7 +206,7 @@ class _Keyframe:
 
     index: int
     timestamp: float
-    image: np.ndarray
+    image: np.ndarray | None  # None: the frame came from the stage cache without its image
     odometry: np.ndarray
     ground_truth: np.ndarray | None
     outputs: dict[type, Any]
@@ -368,7 +369,8 @@ class _Recording:
         self.count += 1
         camera = outputs.get(CameraImage)
         image = camera.pixels if camera is not None else key.image
-        self.hold("camera/image", rr.EncodedImage, blob=_jpeg(np.asarray(image)), media_type="image/jpeg")
+        if image is not None:
+            self.hold("camera/image", rr.EncodedImage, blob=_jpeg(np.asarray(image)), media_type="image/jpeg")
         bev = outputs.get(Bev)
         if bev is not None:
             self.hold("bev/image", rr.EncodedImage, blob=_jpeg(bev.image), media_type="image/jpeg")
@@ -663,10 +665,14 @@ class _Recorder:
         if truth is not None:
             truth = np.asarray(truth, dtype=np.float64)
             truth = truth if truth.shape == (4, 4) and bool(np.all(np.isfinite(truth))) else None
+        try:
+            image: np.ndarray | None = frame.image
+        except ImageNotCachedError:  # the run took every image stage's outputs from the stage cache
+            image = None
         key = _Keyframe(
             frame.index,
             float(frame.timestamp),
-            frame.image,
+            image,
             np.array(frame.odometry, dtype=np.float64),
             truth,
             self.outputs,
