@@ -42,7 +42,7 @@ def main() -> None:
     print(f"overrides: {' '.join(sys.argv[1:]) or '(the main job)'}")
     with tempfile.TemporaryDirectory(prefix="sgf_bench_cache") as folder:
         cache = Path(folder) / "cache"
-        base = None
+        base = 0.0
         print(f"{'case':<24} {'wall s':>7} {'x uncached':>10} {'cache s':>8}  hits")
         for name, overrides in CASES:
             with initialize_config_dir(str(config_dir()), version_base="1.3"):

@@ -5,7 +5,9 @@ from __future__ import annotations
 import json
 import logging
 import os
+import queue
 import shutil
+import threading
 import time
 import uuid
 import zipfile
@@ -77,7 +79,7 @@ class EntryWriter:
         self.components = dict(components)
         self.effects: dict[str, Any] = {}
         self.frames = 0
-        self._zip = zipfile.ZipFile(self.tmp / _ARRAYS, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1)
+        self._arrays = _ArrayWriter(self.tmp / _ARRAYS)
         self._records = (self.tmp / _RECORDS).open("w", encoding="utf-8")
         self._count = 0
         self.broken: str | None = None
@@ -85,8 +87,7 @@ class EntryWriter:
     def _sink(self, array: np.ndarray) -> str:
         name = f"{self._count}.npy"
         self._count += 1
-        with self._zip.open(name, "w", force_zip64=True) as f:
-            np.lib.format.write_array(f, np.ascontiguousarray(array), allow_pickle=False)
+        self._arrays.put(name, array)
         return name
 
     def add(self, frame_index: int, value: Any, inputs: Mapping[int, str] | None = None) -> None:
@@ -113,6 +114,7 @@ class EntryWriter:
     def commit(self, extra: Mapping[str, Any] | None = None) -> Path | None:
         """Close the files, write the manifest and move the entry into place; ``None`` when it was not kept."""
         self._close()
+        self.broken = self.broken or self._arrays.error
         if self.broken:
             log.warning("stage cache: %s=%s is not cached: %s", self.kind, self.components.get("stage"), self.broken)
             self.abort()
@@ -146,6 +148,42 @@ class EntryWriter:
     def _close(self) -> None:
         if not self._records.closed:
             self._records.close()
+        self._arrays.close()
+
+
+class _ArrayWriter:
+    """Arrays compressed into a zip by a thread of its own, so that a run's next stages go on meanwhile.
+
+    Each array is copied when queued (a later stage may change it in place); the queue is bounded.
+    """
+
+    def __init__(self, path: Path) -> None:
+        self._zip = zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1)
+        self._queue: queue.Queue[tuple[str, np.ndarray] | None] = queue.Queue(maxsize=64)
+        self.error: str | None = None
+        self._thread = threading.Thread(target=self._work, name="sgf-cache-writer", daemon=True)
+        self._thread.start()
+
+    def put(self, name: str, array: np.ndarray) -> None:
+        """Queue an array under ``name``."""
+        self._queue.put((name, np.array(array, copy=True, order="C")))
+
+    def _work(self) -> None:
+        while (item := self._queue.get()) is not None:
+            if self.error:
+                continue
+            name, array = item
+            try:
+                with self._zip.open(name, "w", force_zip64=True) as f:
+                    np.lib.format.write_array(f, array, allow_pickle=False)
+            except Exception as exc:  # a full disk: the entry is not kept, the run goes on
+                self.error = f"its arrays could not be written ({exc})"
+
+    def close(self) -> None:
+        """Write what is queued and close the zip (a no-op when closed)."""
+        if self._thread.is_alive():
+            self._queue.put(None)
+            self._thread.join()
         if self._zip.fp is not None:
             self._zip.close()
 
