@@ -25,7 +25,7 @@ from sgf_pipeline.config import (
     validate_options,
 )
 from sgf_pipeline.context import RunContext
-from sgf_pipeline.errors import ConfigError, StageError
+from sgf_pipeline.errors import CacheError, ConfigError, StageError
 from sgf_pipeline.reading import DatasetReader, FrameDrops, frame_problem
 from sgf_pipeline.reading import read_ahead as read_ahead
 from sgf_pipeline.registry import LoadedPlugins, load_plugins
@@ -101,6 +101,9 @@ class Pipeline:
         self._finished = False
         self._written = False
         self.cache: CachePlan | None = None
+        self._yielded: Frame | None = None  # the last frame frames() gave
+        self._given = self._taken = 0  # frames frames() gave, and of them the ones process() took
+        self._read_to_end = False
         self.directory = RunDirectory(self.run_dir, config.run.overwrite) if self.run_dir is not None else None
 
     # -- building ---------------------------------------------------------------------------
@@ -129,8 +132,12 @@ class Pipeline:
         assert isinstance(stage, Dataset)
         return stage
 
-    def begin(self) -> None:
-        """Prepare every stage for the sequence and announce the run to observers."""
+    def begin(self, cache: bool = False) -> None:
+        """Prepare every stage for the sequence and announce the run to observers.
+
+        With ``cache`` (as :meth:`frames` begins a run) the stages take their outputs from the stage
+        cache where it has them: a run fed frames from elsewhere (a robot's driver) computes everything.
+        """
         if self._begun:
             return
         if self.config.run.torch_threads is not None:
@@ -140,7 +147,7 @@ class Pipeline:
                 torch.set_num_threads(self.config.run.torch_threads)
             except ImportError:  # pragma: no cover - torch is a dependency
                 pass
-        root = cache_dir(self.config.run)
+        root = cache_dir(self.config.run) if cache else None
         if root is not None:
             store = StageCache(root, int(self.config.run.cache_max_gb * 1e9))
             self.cache = CachePlan.build(store, self.order, self.config.run, self.read_ahead)
@@ -195,6 +202,12 @@ class Pipeline:
         so that a robot feeding imperfect data keeps running.
         """
         self.begin()
+        if self.cache is not None and frame is not self._yielded:
+            raise CacheError(
+                f"frame {frame.index} did not come from Pipeline.frames(), whose run takes stage outputs from the "
+                "stage cache; feed one source of frames, or set run.cache=false"
+            )
+        self._taken += 1
         problem = frame_problem(frame, self._last_processed)
         if problem is not None:
             self.drops.drop(frame, problem)
@@ -270,15 +283,20 @@ class Pipeline:
         the sequence has ended), its ``path_ahead`` filled with every frame read after it.
         """
         distance = self.read_ahead
-        self.begin()
+        self.begin(cache=True)
         cache = self.cache
-        if cache is not None and cache.dataset_from_cache:
-            yield from self._cached_frames(cache)
-            return
-        for frame in self.reader.frames(distance):
-            if cache is not None:
+        source = (
+            self._cached_frames(cache)
+            if cache is not None and cache.dataset_from_cache
+            else self.reader.frames(distance)
+        )
+        for frame in source:
+            if cache is not None and not cache.dataset_from_cache:
                 cache.keep_frame(frame, self.context, self.info.frames_seen)
+            self._yielded = frame
+            self._given += 1
             yield frame
+        self._read_to_end = True
 
     def _cached_frames(self, cache: CachePlan) -> Iterator[Frame]:
         """The keyframes kept in the stage cache, counted as the dataset's reading counted them."""
@@ -369,6 +387,11 @@ class Pipeline:
 
     def _commit_cache(self, cache: CachePlan) -> None:
         """Keep the finished run's new stage cache entries; report the run's use of the cache in metrics.json."""
+        if not self._read_to_end or self._taken != self._given:
+            log.info("stage cache: the run did not process every frame of its dataset; no entry is kept")
+            cache.abort()
+            self.context.metrics["cache"] = cache.report()
+            return
         reading = {
             "total_frames": self.info.total_frames,
             "frames_seen": self.info.frames_seen,

@@ -26,7 +26,7 @@ from sgf_pipeline.cache.codec import NotCacheableError, decode, encode
 from sgf_pipeline.cache.keys import _imported_names
 from sgf_pipeline.calibration import Calibration, Intrinsics
 from sgf_pipeline.config import RunOptions, config_dir
-from sgf_pipeline.errors import DataError
+from sgf_pipeline.errors import CacheError, DataError
 from sgf_pipeline.types import Bev, BevGrid, SaliencyMap
 
 #: The main job, a tenth of its route (about 220 keyframes, a reverse loop closed): every stage as shipped.
@@ -363,3 +363,67 @@ def test_sgf_cache_shows_and_clears_the_entries(tmp_path: Path) -> None:
     assert [e.kind for e in cache.entries()] == ["saliency"]
     bad = subprocess.run([*command, "action=purge"], capture_output=True, text=True)
     assert bad.returncode == 2 and "action=purge" in bad.stderr
+
+
+# -- the runner with small stages ----------------------------------------------------------------
+
+
+@pytest.fixture
+def toy(monkeypatch: pytest.MonkeyPatch, tmp_path: Path):  # type: ignore[no-untyped-def]
+    from toy_stages import ToyPlugin
+
+    from sgf_pipeline import load_plugins
+
+    monkeypatch.delenv(STAGE_CACHE_ENV, raising=False)
+    plugins = load_plugins(extra=[("toy", ToyPlugin())])
+    cfg = {
+        "pipeline": ["dataset", "enhance", "measure", "counter", "gate", "consumer"],
+        "dataset": {"name": "figure_eight", "frames": 30},
+        "enhance": {"name": "none"},
+        "measure": {"name": "brightness"},
+        "counter": {"name": "feedback", "start": 5},  # Previous[int]: never cached
+        "gate": {"name": "even"},  # None on odd frames
+        "consumer": {"name": "strict"},  # skipped when its input is None
+        "run": {"progress": False, "cache_dir": str(tmp_path / "cache")},
+    }
+    return lambda: Pipeline.from_config(cfg, plugins=plugins)
+
+
+def outputs(pipeline: Pipeline) -> list[dict[str, Any]]:
+    steps = [pipeline.process(frame).outputs for frame in pipeline.frames()]
+    return [{k: v for k, v in step.items() if k not in ("frame", "image")} for step in steps]
+
+
+def test_the_runner_takes_only_the_stages_before_any_feedback_from_the_cache(toy) -> None:  # type: ignore[no-untyped-def]
+    first = toy()
+    computed = outputs(first)
+    assert first.finish()["cache"]["misses"] == ["consumer", "enhance", "gate", "measure"]
+    second = toy()
+    assert outputs(second) == computed
+    report = second.finish()["cache"]
+    assert report["hits"] == ["consumer", "enhance", "gate", "measure"] and report["dataset_from_cache"]
+    assert [step["consumed"] for step in computed[:4]] == [0, None, 20, None]
+    assert [step["count"] for step in computed[:3]] == [5, 6, 7]  # the feedback stage ran
+
+
+def test_a_run_fed_other_frames_computes_everything_or_is_refused(toy) -> None:  # type: ignore[no-untyped-def]
+    outputs(toy())  # nothing kept: finish() was not called
+    driven = toy()
+    for frame in driven.dataset.frames():  # a robot's driver: the cache stays out of it
+        driven.process(frame)
+    assert "cache" not in driven.finish()
+    mixed = toy()
+    first = next(iter(mixed.frames()))
+    mixed.process(first)
+    with pytest.raises(CacheError, match=r"did not come from Pipeline.frames\(\)"):
+        mixed.process(next(iter(mixed.dataset.frames())))
+    mixed.release()
+
+
+def test_a_run_that_skips_frames_keeps_no_entry(toy, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    pipeline = toy()
+    for n, frame in enumerate(pipeline.frames()):
+        if n % 2 == 0:
+            pipeline.process(frame)
+    assert pipeline.finish()["cache"]["misses"] == ["consumer", "enhance", "gate", "measure"]
+    assert StageCache(tmp_path / "cache", 10**12).entries() == []
