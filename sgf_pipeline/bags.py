@@ -338,9 +338,9 @@ def read_bag_trajectory(
     """The poses of one topic of a bag as a trajectory, at their ``header.stamp``.
 
     ``topic`` (with or without its leading ``/``, :func:`find_topic`) carries Odometry, PoseStamped,
-    PoseWithCovarianceStamped or TransformStamped, or is a tf topic (``/tf``): ``/tf:map.base_link`` is the pose of ``base_link`` in ``map`` through
-    the tree (``/tf_static`` included), as evo names it; ``/tf`` alone takes the topic's one moving
-    transform.
+    PoseWithCovarianceStamped or TransformStamped, or is a tf topic (``/tf``): ``/tf:map.base_link``
+    is the pose of ``base_link`` in ``map`` through the tree (``/tf_static`` included), as evo names
+    it; ``/tf`` alone takes the topic's one moving transform.
     """
     given, _, frames = topic.partition(":")
     reader = open_bag(bag, typestore)

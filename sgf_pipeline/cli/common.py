@@ -83,10 +83,11 @@ def unknown_key(exc: BaseException) -> str | None:
     cause = exc.__cause__
     if not str(exc).startswith("Could not override") or cause is None:
         return None
-    parent, leaf, full = getattr(cause, "parent_node", None), getattr(cause, "key", None), getattr(cause, "full_key", "")
+    parent, leaf = getattr(cause, "parent_node", None), getattr(cause, "key", None)
+    full = getattr(cause, "full_key", "")
     if parent is None or leaf is None or not full or not hasattr(parent, "keys"):
         return None
-    known = [str(k) for k in parent.keys() if str(k) != "hydra"]
+    known = [str(k) for k in parent if str(k) != "hydra"]
     group = str(full).rsplit(".", 1)[0] if "." in str(full) else ""
     prefix = f"{group}." if group else ""
     close = difflib.get_close_matches(str(leaf), known, n=3, cutoff=0.6)
@@ -178,9 +179,7 @@ def positional_overrides(args: Sequence[str], keys: Sequence[str], usage: str) -
         count += 1
     if count > len(keys):
         extra = " ".join(args[len(keys) : count])
-        raise ConfigError(
-            f"too many paths ({extra!r} left over): {usage}; other options are key=value (see --help)"
-        )
+        raise ConfigError(f"too many paths ({extra!r} left over): {usage}; other options are key=value (see --help)")
     named = {a.split("=", 1)[0].lstrip("+~") for a in args[count:] if "=" in a}
     overrides = []
     for key, value in zip(keys, args[:count], strict=False):

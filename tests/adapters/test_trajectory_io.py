@@ -185,7 +185,9 @@ def test_a_tum_file_whose_last_quaternion_was_cut_is_refused(shared_data: Path, 
     cut = tmp_path / "cut.txt"
     cut.write_text(_last_line_cut(text, 4))
     assert cut.read_text().endswith(" -0.2")
-    with pytest.raises(TrajectoryError, match=rf"cut.txt:{last}: the last line has no line end, so the file may be cut"):
+    with pytest.raises(
+        TrajectoryError, match=rf"cut.txt:{last}: the last line has no line end, so the file may be cut"
+    ):
         read_trajectory(cut)
     # a qw mangled into another number, the line end kept ('-0.2336' read as '2.71'): length from the values
     mangled = tmp_path / "mangled.txt"

@@ -262,10 +262,16 @@ def test_positional_paths_become_overrides():
         "estimate='b c.txt'",
         "align=sim3",
     ]
-    assert positional_overrides(["d.bag:/gt", "1.5", "-m"], keys, usage) == ["reference=d.bag:/gt", "estimate='1.5'", "-m"]
+    assert positional_overrides(["d.bag:/gt", "1.5", "-m"], keys, usage) == [
+        "reference=d.bag:/gt",
+        "estimate='1.5'",
+        "-m",
+    ]
     assert positional_overrides(["-m", "a.txt"], keys, usage) == ["-m", "a.txt"]  # only leading paths
     assert positional_overrides(["reference=a", "estimate=b"], keys, usage) == ["reference=a", "estimate=b"]
-    with pytest.raises(ConfigError, match=r"^estimate is given twice, as the path 'b' and as estimate=...; give it once"):
+    with pytest.raises(
+        ConfigError, match=r"^estimate is given twice, as the path 'b' and as estimate=...; give it once"
+    ):
         positional_overrides(["a", "b", "estimate=c"], keys, usage)
 
 

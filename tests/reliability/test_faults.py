@@ -448,8 +448,11 @@ def test_sigterm_keeps_the_pose_estimate_and_the_sgf_map_so_far(tmp_path: Path):
         np.testing.assert_allclose(view.pose, sgf.poses[row], atol=1e-6)
     assert not (tmp_path / "metrics.json").exists() and leftovers(tmp_path) == []
     # a new run into the directory is refused; with run.overwrite=true it replaces the record and everything partial
-    with pytest.raises(ConfigError, match=r"holds a run that did not finish \(failure.json, sgf_map.partial.safetensors, trajectory_gt.partial.tum, "
-        r"trajectory_odometry.partial.tum and 1 more\); its files are kept"):
+    with pytest.raises(
+        ConfigError,
+        match=r"holds a run that did not finish \(failure.json, sgf_map.partial.safetensors, trajectory_gt.partial.tum, "
+        r"trajectory_odometry.partial.tum and 1 more\); its files are kept",
+    ):
         Pipeline.from_config(config(frames=5), run_dir=tmp_path, plugins=load_plugins(extra=[("toy", ToyPlugin())]))
     assert json.loads((tmp_path / "failure.json").read_text())["frames_processed"] == 100
     overwrite = config(frames=5)

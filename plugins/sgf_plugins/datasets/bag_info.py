@@ -197,7 +197,9 @@ def render(summary: dict[str, Any]) -> str:
 def app(cfg: DictConfig) -> None:
     """Print the topics of the bag given as ``path=...``."""
     if not cfg.get("path"):
-        raise DataError(f"give the bag: {USAGE} (or path=<bag>); a bag is a file.bag, a ROS 2 bag folder or a file.mcap")
+        raise DataError(
+            f"give the bag: {USAGE} (or path=<bag>); a bag is a file.bag, a ROS 2 bag folder or a file.mcap"
+        )
     summary = bag_summary(str(cfg.path), str(cfg.get("typestore") or "ros2_humble"))
     if cfg.get("format") == "json":
         print(json.dumps(summary, indent=2))
