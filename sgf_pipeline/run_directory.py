@@ -27,7 +27,7 @@ class RunDirectory:
         self.path = path
         self.overwrite = overwrite
         self._lock: IO[str] | None = None
-        self.check_finished_run()
+        self.check_earlier_run()
 
     def interrupted_files(self) -> list[Path]:
         """The record and partial results of a run that failed or was interrupted here (empty when none)."""
@@ -36,7 +36,7 @@ class RunDirectory:
             found.insert(0, self.path / FAILURE_FILE)
         return found
 
-    def check_finished_run(self) -> None:
+    def check_earlier_run(self) -> None:
         """Refuse a directory that holds a finished or an interrupted run, unless it may be overwritten."""
         if self.overwrite:
             return
@@ -59,7 +59,7 @@ class RunDirectory:
         run_dir.mkdir(parents=True, exist_ok=True)
         self._lock = _lock_directory(run_dir)
         try:
-            self.check_finished_run()  # again, under the lock: another run may have finished meanwhile
+            self.check_earlier_run()  # again, under the lock: another run may have finished meanwhile
         except ConfigError:
             self.release()
             raise
