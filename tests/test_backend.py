@@ -694,7 +694,6 @@ def test_position_only_loops_join_their_markings_and_leave_the_turn_to_the_odome
 def test_a_robust_factor_s_g2o_information_carries_the_kernel_s_weight():
     """Cauchy(k=3) at a whitened error of 3: the weight k^2 / (k^2 + e^2) = 1/2 scales the information."""
     import gtsam
-
     from sgf_plugins.backend.pose_graph import _information
 
     gaussian = gtsam.noiseModel.Gaussian.Covariance(np.diag([0.01, 0.01, 0.001]))

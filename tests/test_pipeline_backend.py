@@ -216,7 +216,8 @@ def test_the_final_pose_graph_as_g2o_reads_back_to_the_same_poses(tmp_path: Path
     metrics = pipeline.run()
     backend = metrics["backend"]
     graph, written = gtsam.readG2o(str(tmp_path / "pose_graph.g2o"), False)
-    ids = sorted(int(k) for k in written.keys())
+    keys = written.keys()
+    ids = sorted(int(k) for k in keys)
     assert backend["loop_factors"] == 7 and backend["pose_nodes"] == len(ids) > 50
     assert graph.size() == len(ids) - 1 + 7  # an odometry edge between consecutive nodes, and the loops
     assert backend["graph"] == {"file": "pose_graph.g2o", "format": "g2o", "vertices": len(ids), "edges": graph.size()}

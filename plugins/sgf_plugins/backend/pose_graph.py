@@ -359,7 +359,8 @@ class PoseGraph:
                 continue
             if not isinstance(factor, gtsam.BetweenFactorPose2):  # pragma: no cover - the graph has no other
                 raise ValueError(f"a {type(factor).__name__} has no g2o edge")
-            a, b = (gtsam.Symbol(key).index() for key in factor.keys())
+            keys = factor.keys()
+            a, b = gtsam.Symbol(keys[0]).index(), gtsam.Symbol(keys[1]).index()
             m = factor.measured()
             info = _information(factor, self.values)
             upper = " ".join(repr(float(info[i, j])) for i in range(3) for j in range(i, 3))
@@ -407,7 +408,8 @@ def _information(factor: Any, values: Any) -> np.ndarray:
     if isinstance(model, gtsam.noiseModel.Robust):
         gaussian = model.noise()
         whitened = gaussian.whiten(factor.unwhitenedError(values))
-        weight = float(model.robust().weight(float(np.linalg.norm(whitened))))
+        kernel = model.robust()
+        weight = float(kernel.weight(float(np.linalg.norm(whitened))))  # type: ignore[attr-defined]
         model = gaussian
     sqrt_information = np.asarray(model.R(), dtype=np.float64)
     return weight * sqrt_information.T @ sqrt_information
