@@ -320,14 +320,19 @@ def read_transform_tree(reader: Any, topics: list[str] | None = None) -> Transfo
 
 
 def split_bag_source(source: str) -> tuple[Path, str] | None:
-    """``(bag, topic)`` of ``drive.bag:/topic`` or ``drive.bag:topic`` (a bag file or folder that exists), else None."""
+    """``(bag, topic)`` of ``drive.bag:/topic`` (a bag that exists), else None.
+
+    ``drive.bag:topic`` without the slash names a topic too when ``drive.bag`` is a file or a
+    ROS 2 bag folder (one with ``metadata.yaml``), not any folder: ``runs:v2.tum`` stays a file name.
+    """
     if Path(source).expanduser().exists():
         return None
     start = 0
     while (i := source.find(":", start)) > 0:
-        bag = Path(source[:i]).expanduser()
-        if bag.exists() and i + 1 < len(source):
-            return bag, source[i + 1 :]
+        bag, topic = Path(source[:i]).expanduser(), source[i + 1 :]
+        bag_like = bag.is_file() or (bag / "metadata.yaml").is_file()
+        if topic and (bag.exists() if topic.startswith("/") else bag_like):
+            return bag, topic
         start = i + 1
     return None
 

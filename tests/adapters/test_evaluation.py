@@ -328,6 +328,7 @@ def test_bag_topics_are_found_with_or_without_the_leading_slash(shared_data: Pat
     bag = write_messages(tmp_path / "example.bag", msgs, "ros1")
     assert split_bag_source(f"{bag}:groundtruth") == (bag, "groundtruth")
     assert split_bag_source(f"{bag}:/groundtruth") == (bag, "/groundtruth")
+    assert split_bag_source(f"{tmp_path}:v2.tum") is None  # a folder that is no bag: a file name with a colon
     slash, bare = read_bag_trajectory(bag, "/groundtruth"), read_bag_trajectory(bag, "groundtruth")
     assert len(slash) == len(bare) == 16702  # V1_02's ground truth
     np.testing.assert_array_equal(slash.poses, bare.poses)
