@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -87,6 +88,24 @@ def topic_rows(reader: Any) -> list[TopicRow]:
         rate = (count - 1) / duration if duration > 0 and count > 1 else None
         rows.append(TopicRow(name, info.msgtype or "?", count, rate))
     return rows
+
+
+def find_topic(topics: Iterable[str], name: str, bag: str | Path) -> str | None:
+    """The bag's topic ``name`` names, with or without its leading ``/``; None when none does.
+
+    A topic spelled exactly as ``name`` wins; else the one that differs only by leading slashes
+    (ROS 1 bags may name topics without one: ``groundtruth``). Two such topics are a :class:`DataError`.
+    """
+    topics = list(topics)
+    if name in topics:
+        return name
+    matches = sorted(t for t in topics if t.lstrip("/") == name.lstrip("/"))
+    if len(matches) > 1:
+        raise DataError(
+            f"{bag}: {name} is ambiguous: the bag has {' and '.join(matches)}, which differ only by their "
+            "leading slashes; name one exactly as the bag spells it"
+        )
+    return matches[0] if matches else None
 
 
 def describe_topics(reader: Any, types: tuple[str, ...] = ()) -> str:
@@ -301,14 +320,19 @@ def read_transform_tree(reader: Any, topics: list[str] | None = None) -> Transfo
 
 
 def split_bag_source(source: str) -> tuple[Path, str] | None:
-    """``(bag, topic)`` of ``drive.bag:/topic`` (a bag file or ROS 2 bag folder that exists), else None."""
+    """``(bag, topic)`` of ``drive.bag:/topic`` (a bag that exists), else None.
+
+    ``drive.bag:topic`` without the slash names a topic too when ``drive.bag`` is a file or a
+    ROS 2 bag folder (one with ``metadata.yaml``), not any folder: ``runs:v2.tum`` stays a file name.
+    """
     if Path(source).expanduser().exists():
         return None
     start = 0
-    while (i := source.find(":/", start)) > 0:
-        bag = Path(source[:i]).expanduser()
-        if bag.exists():
-            return bag, source[i + 1 :]
+    while (i := source.find(":", start)) > 0:
+        bag, topic = Path(source[:i]).expanduser(), source[i + 1 :]
+        bag_like = bag.is_file() or (bag / "metadata.yaml").is_file()
+        if topic and (bag.exists() if topic.startswith("/") else bag_like):
+            return bag, topic
         start = i + 1
     return None
 
@@ -318,16 +342,17 @@ def read_bag_trajectory(
 ) -> Trajectory:
     """The poses of one topic of a bag as a trajectory, at their ``header.stamp``.
 
-    ``topic`` carries Odometry, PoseStamped, PoseWithCovarianceStamped or TransformStamped, or
-    is a tf topic (``/tf``): ``/tf:map.base_link`` is the pose of ``base_link`` in ``map`` through
-    the tree (``/tf_static`` included), as evo names it; ``/tf`` alone takes the topic's one moving
-    transform.
+    ``topic`` (with or without its leading ``/``, :func:`find_topic`) carries Odometry, PoseStamped,
+    PoseWithCovarianceStamped or TransformStamped, or is a tf topic (``/tf``): ``/tf:map.base_link``
+    is the pose of ``base_link`` in ``map`` through the tree (``/tf_static`` included), as evo names
+    it; ``/tf`` alone takes the topic's one moving transform.
     """
-    name, _, frames = topic.partition(":")
+    given, _, frames = topic.partition(":")
     reader = open_bag(bag, typestore)
     try:
         rows = {r.topic: r for r in topic_rows(reader)}
         usable = [r.topic for r in rows.values() if r.msgtype in POSE_TYPES + TF_TYPES]
+        name = find_topic(rows, given, bag) or given
         if name not in rows:
             raise DataError(
                 f"{bag}: no topic {name}; topics with poses (PoseStamped, Odometry, TransformStamped, tf): "

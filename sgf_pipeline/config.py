@@ -47,7 +47,9 @@ class RunOptions(BaseModel):
     )
     max_frames: int | None = Field(None, ge=1, description="stop after this many dataset frames")
     progress: bool = Field(True, description="show a progress bar over frames")
-    overwrite: bool = Field(False, description="allow writing into a directory that holds a finished run")
+    overwrite: bool = Field(
+        False, description="replace the files of a finished or interrupted run found in the run directory"
+    )
     plots: bool = Field(True, description="write the trajectory plot and report.md")
     torch_threads: int | None = Field(
         None, ge=1, description="torch intra-op threads (1 inside parallel sweeps); null = torch's default"

@@ -464,8 +464,18 @@ def _link(target: Path, out: Path) -> str:
         return str(target.resolve())
 
 
+#: The aggregate report's name: ``report.md``, or beside a run's own ``report.md`` (in its directory) this one.
+REPORT_FILE, REPORT_BESIDE_RUN = "report.md", "tables.md"
+
+
+def report_path(out_dir: str | Path) -> Path:
+    """Where the aggregate report goes in ``out_dir``: never over the ``report.md`` of a run written there."""
+    out = Path(out_dir)
+    return out / (REPORT_BESIDE_RUN if (out / "metrics.json").exists() else REPORT_FILE)
+
+
 def write_report(root: str | Path, out_dir: str | Path | None = None) -> dict[str, Any]:
-    """Read every run below ``root`` and write report.md, runs.csv, tables.json and figures."""
+    """Read every run below ``root`` and write the report (:func:`report_path`), runs.csv, tables.json and figures."""
     runs = find_runs(root)
     out = Path(out_dir) if out_dir is not None else Path(root)
     out.mkdir(parents=True, exist_ok=True)
@@ -491,7 +501,7 @@ def write_report(root: str | Path, out_dir: str | Path | None = None) -> dict[st
         ):
             if (run.path / name).exists():
                 figures[f"{title}: {run.path.name}"] = _link(run.path / name, out)
-    atomic_write_text(out / "report.md", render_markdown(runs, tables, figures))
+    atomic_write_text(report_path(out), render_markdown(runs, tables, figures))
     atomic_write_text(out / "runs.csv", runs_csv(runs))
     atomic_write_json(out / "tables.json", tables)
     return tables

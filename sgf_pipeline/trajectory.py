@@ -1,7 +1,9 @@
 """Timed pose sequences and their file formats: TUM, KITTI (with a times file) and EuRoC state CSV.
 
 Every reader checks what evo would silently accept or reject late: each line's field count,
-finite numbers, strictly increasing timestamps; errors name the file and line. Writers are
+finite numbers, strictly increasing timestamps, unit quaternions (within
+:data:`QUATERNION_TOLERANCE`), rotation matrices (within :data:`ROTATION_TOLERANCE`), and a last
+line that ends (a file cut off mid-number does not); errors name the file and line. Writers are
 atomic. ``read_trajectory``/``write_trajectory`` pick the format from a name or the file.
 
 Formats:
@@ -30,8 +32,11 @@ from sgf_pipeline.geometry import quaternion_from_rotation, rotation_from_quater
 from sgf_pipeline.io import atomic_write_text
 
 TrajectoryFormat = Literal["tum", "kitti", "euroc"]
-#: Largest deviation of ``R R^T`` from the identity (and of ``det R`` from 1) a file's rotation may have.
+#: Largest deviation of an element of ``R R^T`` from the identity's a file's rotation matrix may have.
 ROTATION_TOLERANCE = 1e-3
+#: Largest deviation of a file's quaternion length from 1: a quaternion written with 3 decimals is
+#: within sqrt(4) * 0.0005 = 0.001 of unit length (evo's example files: at most 0.00016).
+QUATERNION_TOLERANCE = 1e-3
 #: Quaternions shorter than this (or of non-finite length) carry no rotation.
 _MIN_QUATERNION_NORM = 1e-9
 #: Poses at a repeated timestamp: refused (``error``), the first kept (``drop``), or all kept (``keep``, as evo does).
@@ -94,13 +99,21 @@ class Trajectory:
 # -- parsing helpers ------------------------------------------------------------------------
 
 
-def _table(path: Path, separators: str, columns: tuple[int, ...], what: str) -> tuple[np.ndarray, list[int]]:
-    """Numeric rows of a text file (``#`` comments and blank lines skipped) and their line numbers."""
+def _table(
+    path: Path, separators: str, columns: tuple[int, ...], what: str, whole: bool = True
+) -> tuple[np.ndarray, list[int]]:
+    """Numeric rows of a text file (``#`` comments and blank lines skipped) and their line numbers.
+
+    ``whole``: refuse a last data line without a line end (:func:`_check_ended`).
+    """
     if not path.is_file():
         raise TrajectoryError(f"{what} file not found: {path}")
     rows: list[list[float]] = []
     lines: list[int] = []
-    for number, line in enumerate(_text(path).split("\n"), start=1):
+    text = _text(path)
+    if whole:
+        _check_ended(path, text)
+    for number, line in enumerate(text.split("\n"), start=1):
         line = line.strip()
         if not line or line.startswith("#") or line.startswith("%"):
             continue
@@ -136,6 +149,34 @@ def _text(path: Path) -> str:
         raise TrajectoryError(f"{path}:{line}: not a text file (is it an image or a bag?)") from None
     except OSError as exc:
         raise TrajectoryError(f"{path}: cannot be read: {exc.strerror or exc}") from None
+
+
+def _check_ended(path: Path, text: str) -> None:
+    """Refuse a file whose last data line has no line end: it may be cut off in the middle of a number."""
+    lines = text.split("\n")
+    last = lines[-1].strip()
+    if last and not last.startswith(("#", "%")):
+        raise TrajectoryError(
+            f"{path}:{len(lines)}: the last line has no line end, so the file may be cut off in the middle of a "
+            f"number (an interrupted write or copy): {last[:80]!r}; if that line is whole, end it with a newline "
+            "(echo >> FILE)"
+        )
+
+
+def _check_quaternions(path: Path, quaternions: np.ndarray, lines: list[int], order: str) -> None:
+    """Refuse quaternions whose length is off 1 by more than :data:`QUATERNION_TOLERANCE` (zero or NaN: later)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        norms = np.linalg.norm(quaternions, axis=1)
+        off = np.abs(norms - 1.0)
+    bad = np.flatnonzero(np.isfinite(norms) & (norms > _MIN_QUATERNION_NORM) & (off > QUATERNION_TOLERANCE))
+    if bad.size:
+        i = int(bad[0])
+        values = " ".join(f"{v:.9g}" for v in quaternions[i])
+        raise TrajectoryError(
+            f"{path}:{lines[i]}: the quaternion ({order}) = ({values}) has length {norms[i]:.6g}, off 1 by more "
+            f"than {QUATERNION_TOLERANCE:g}: a cut or corrupt number? A pose's quaternion has unit length"
+            + (f" ({bad.size} such lines)" if bad.size > 1 else "")
+        )
 
 
 def _rotation(quaternion: np.ndarray) -> np.ndarray:
@@ -214,15 +255,26 @@ def checked_trajectory(
 def parse_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, list[int]]:
     """Timestamps, (N, 4, 4) poses and line numbers of a TUM file, unchecked for order and NaN.
 
-    For readers that skip bad rows of a long recording instead of refusing the file.
+    For readers that skip bad rows of a long recording instead of refusing the file: a quaternion
+    off unit length (beyond :data:`QUATERNION_TOLERANCE`) gives a NaN pose, as a zero one does.
     """
-    p = Path(path)
-    data, lines = _table(p, ",", (8,), "TUM (t x y z qx qy qz qw)")
+    data, lines = _tum_rows(Path(path), whole=False)
+    off = np.abs(np.linalg.norm(np.nan_to_num(data[:, 4:8], nan=0.0, posinf=0.0, neginf=0.0), axis=1) - 1.0)
+    poses = _tum_poses(data)
+    poses[off > QUATERNION_TOLERANCE, :3, :3] = np.nan
+    return data[:, 0].copy(), poses, lines
+
+
+def _tum_rows(path: Path, whole: bool) -> tuple[np.ndarray, list[int]]:
+    return _table(path, ",", (8,), "TUM (t x y z qx qy qz qw)", whole)
+
+
+def _tum_poses(data: np.ndarray) -> np.ndarray:
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     for i, row in enumerate(data):
         poses[i, :3, :3] = _rotation(row[4:8])
         poses[i, :3, 3] = row[1:4]
-    return data[:, 0].copy(), poses, lines
+    return poses
 
 
 def _format_seconds(t: float) -> str:
@@ -243,10 +295,14 @@ def write_tum(path: str | os.PathLike[str], trajectory: Trajectory) -> None:
 
 
 def read_tum(path: str | os.PathLike[str], duplicates: Duplicates = "error") -> Trajectory:
-    """Read a TUM trajectory (``#`` comments allowed; ``duplicates="drop"`` keeps the first of equal stamps)."""
+    """Read a TUM trajectory (``#`` comments allowed; ``duplicates="drop"`` keeps the first of equal stamps).
+
+    A quaternion off unit length by more than :data:`QUATERNION_TOLERANCE` is refused.
+    """
     p = Path(path)
-    timestamps, poses, lines = parse_tum(p)
-    return _checked(p, timestamps, poses, lines, duplicates)
+    data, lines = _tum_rows(p, whole=True)
+    _check_quaternions(p, data[:, 4:8], lines, "qx qy qz qw")
+    return _checked(p, data[:, 0].copy(), _tum_poses(data), lines, duplicates)
 
 
 # -- KITTI ----------------------------------------------------------------------------------
@@ -270,7 +326,11 @@ def read_times(path: str | os.PathLike[str]) -> np.ndarray:
 
 
 def read_kitti(path: str | os.PathLike[str], times: str | os.PathLike[str] | np.ndarray | None = None) -> Trajectory:
-    """Read KITTI poses (3x4 row-major per line); timestamps from ``times`` or else the row numbers."""
+    """Read KITTI poses (3x4 row-major per line); timestamps from ``times`` or else the row numbers.
+
+    A 3x3 block that is not a rotation (an element of ``R R^T - I`` beyond :data:`ROTATION_TOLERANCE`,
+    or ``det R < 0``) is refused.
+    """
     p = Path(path)
     data, lines = _table(p, ",", (12,), "KITTI pose (12 numbers, row-major 3x4)")
     poses = np.tile(np.eye(4), (len(data), 1, 1))
@@ -299,8 +359,9 @@ def _check_rotations(path: Path, poses: np.ndarray, lines: list[int]) -> None:
     if bad.size:
         i = int(bad[0])
         raise TrajectoryError(
-            f"{path}:{lines[i]}: the pose's 3x3 block is not a rotation (|R R^T - I| = {deviation[i]:.3g}, "
-            f"det R = {determinant[i]:.3g}); a KITTI line is a row-major 3x4 pose [R | t]"
+            f"{path}:{lines[i]}: the pose's 3x3 block is not a rotation (|R R^T - I| = {deviation[i]:.3g}, more "
+            f"than {ROTATION_TOLERANCE:g}, det R = {determinant[i]:.3g}): a cut or corrupt number? A KITTI line "
+            "is a row-major 3x4 pose [R | t] whose R is orthonormal"
         )
 
 
@@ -332,13 +393,18 @@ def _ns_from_seconds(t: float) -> int:
 
 
 def read_euroc_csv(path: str | os.PathLike[str], duplicates: Duplicates = "error") -> Trajectory:
-    """Read an EuRoC/ASL state CSV (ns timestamps, position, quaternion w x y z, optional extra columns)."""
+    """Read an EuRoC/ASL state CSV (ns timestamps, position, quaternion w x y z, optional extra columns).
+
+    A quaternion off unit length by more than :data:`QUATERNION_TOLERANCE` is refused.
+    """
     p = Path(path)
     if not p.is_file():
         raise TrajectoryError(f"EuRoC CSV file not found: {p}")
     rows: list[tuple[int, list[float]]] = []
     lines: list[int] = []
-    for number, line in enumerate(_text(p).split("\n"), start=1):
+    text = _text(p)
+    _check_ended(p, text)
+    for number, line in enumerate(text.split("\n"), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -362,6 +428,7 @@ def read_euroc_csv(path: str | os.PathLike[str], duplicates: Duplicates = "error
         raise TrajectoryError(f"{p}: no poses")
     ns = np.array([r[0] for r in rows], dtype=np.int64)
     values = np.array([r[1] for r in rows], dtype=np.float64)
+    _check_quaternions(p, values[:, 3:7], lines, "qw qx qy qz")
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
     for i, v in enumerate(values):
         q = v[3:7]

@@ -689,3 +689,25 @@ def test_position_only_loops_join_their_markings_and_leave_the_turn_to_the_odome
         assert turn_error < 6.0  # not the loop's 20 degrees
     # the heading bias is read from loops' turns: position-only loops have none to give
     assert context.metrics["backend"]["odometry_yaw_bias"]["loops"] == 0
+
+
+def test_a_robust_factor_s_g2o_information_carries_the_kernel_s_weight():
+    """Cauchy(k=3) at a whitened error of 3: the weight k^2 / (k^2 + e^2) = 1/2 scales the information."""
+    import gtsam
+    from sgf_plugins.backend.pose_graph import _information
+
+    gaussian = gtsam.noiseModel.Gaussian.Covariance(np.diag([0.01, 0.01, 0.001]))
+    robust = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Cauchy.Create(3.0), gaussian)
+    values = gtsam.Values()
+    values.insert(1, gtsam.Pose2(0.0, 0.0, 0.0))
+    values.insert(2, gtsam.Pose2(0.3, 0.0, 0.0))  # 0.3 m off the measured identity: 3 sigmas
+    np.testing.assert_allclose(
+        _information(gtsam.BetweenFactorPose2(1, 2, gtsam.Pose2(), robust), values),
+        0.5 * np.diag([100.0, 100.0, 1000.0]),
+        rtol=1e-12,
+    )
+    np.testing.assert_allclose(
+        _information(gtsam.BetweenFactorPose2(1, 2, gtsam.Pose2(), gaussian), values),
+        np.diag([100.0, 100.0, 1000.0]),
+        rtol=1e-12,
+    )

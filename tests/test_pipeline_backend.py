@@ -202,3 +202,75 @@ def test_a_map_of_another_camera_stops_the_run_before_the_first_frame(tmp_path: 
     with pytest.raises(DataError, match="another camera calibration"):
         pipeline.run()
     assert pipeline.info.frames_processed == 0
+
+
+def test_the_final_pose_graph_as_g2o_reads_back_to_the_same_poses(tmp_path: Path, plugins) -> None:  # type: ignore[no-untyped-def]
+    """GTSAM reads pose_graph.g2o; optimised from dead reckoning under a prior on the first pose, it gives the run's poses."""
+    import gtsam
+    import numpy as np
+
+    from sgf_pipeline.geometry import xy_yaw
+
+    WORLDS.clear()
+    pipeline = Pipeline.from_config(config({"name": "gtsam_lm", "graph": "g2o"}), run_dir=tmp_path, plugins=plugins)
+    metrics = pipeline.run()
+    backend = metrics["backend"]
+    graph, written = gtsam.readG2o(str(tmp_path / "pose_graph.g2o"), False)
+    keys = written.keys()
+    ids = sorted(int(k) for k in keys)
+    assert backend["loop_factors"] == 7 and backend["pose_nodes"] == len(ids) > 50
+    assert graph.size() == len(ids) - 1 + 7  # an odometry edge between consecutive nodes, and the loops
+    assert backend["graph"] == {"file": "pose_graph.g2o", "format": "g2o", "vertices": len(ids), "edges": graph.size()}
+    lines = (tmp_path / "pose_graph.g2o").read_text().splitlines()
+    assert lines[-1] == f"FIX {ids[0]}" and sum(line.startswith("EDGE_SE2 ") for line in lines) == graph.size()
+    # the gauge: a prior on the first pose (as the run's); the start: the odometry edges chained from it
+    noise = gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-3, 1e-3, math.radians(0.01)]))
+    graph.add(gtsam.PriorFactorPose2(ids[0], written.atPose2(ids[0]), noise))
+    steps = {}
+    for i in range(graph.size() - 1):
+        factor = graph.at(i)
+        a, b = factor.keys()
+        if ids.index(b) == ids.index(a) + 1:
+            steps[a] = factor.measured()
+    start = gtsam.Values()
+    pose = written.atPose2(ids[0])
+    for key in ids:
+        start.insert(key, pose)
+        pose = pose.compose(steps[key]) if key in steps else pose
+    assert len(steps) == len(ids) - 1
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setRelativeErrorTol(1e-14)
+    lm.setAbsoluteErrorTol(1e-14)
+    lm.setMaxIterations(500)
+    result = gtsam.LevenbergMarquardtOptimizer(graph, start, lm).optimize()
+    # The run's LM stopped once a step lowered the error by less than max(relative_error_tol * error, the
+    # absolute tolerance): its poses lie within that error of the optimum, so within sqrt(2 dE sigma^2) of
+    # it along each axis (sigma^2: the optimum's marginal covariance, the inverse of the error's Hessian).
+    run_lm = gtsam.LevenbergMarquardtParams()
+    error = graph.error(written)
+    stop = max(1e-6 * error, run_lm.getAbsoluteErrorTol())  # relative_error_tol of backend=gtsam_lm: 1e-6
+    marginals = gtsam.Marginals(graph, result)
+    sgf = read_tum(tmp_path / "trajectory_sgf.tum")
+    world = next(iter(WORLDS.values()))
+    stamps = {f.index: f.timestamp for f in world.frames}
+    worst = [0.0, 0.0]
+    for key in ids:
+        ours, theirs = written.atPose2(key), result.atPose2(key)
+        covariance = marginals.marginalCovariance(key)
+        tol_xy = math.sqrt(2 * stop * float(np.linalg.eigvalsh(covariance[:2, :2]).max()))
+        tol_yaw = math.sqrt(2 * stop * float(covariance[2, 2]))
+        offset = math.hypot(ours.x() - theirs.x(), ours.y() - theirs.y())
+        turn = abs(math.remainder(ours.theta() - theirs.theta(), math.tau))
+        assert offset <= tol_xy and turn <= tol_yaw, (key, offset, tol_xy, turn, tol_yaw)
+        worst = [max(worst[0], offset / tol_xy), max(worst[1], turn / tol_yaw)]
+        row = int(np.argmin(np.abs(sgf.timestamps - stamps[key])))  # the run's trajectory file: 9 decimals
+        x, y, _ = xy_yaw(sgf.poses[row])
+        assert math.hypot(x - theirs.x(), y - theirs.y()) <= tol_xy + 1e-8
+    assert 0.0 < max(worst) <= 1.0
+
+
+def test_a_g2o_graph_of_pose3_or_a_prior_map_is_refused(tmp_path: Path, plugins) -> None:  # type: ignore[no-untyped-def]
+    from sgf_pipeline import ConfigError
+
+    with pytest.raises(ConfigError, match=r"backend: graph=g2o writes the Pose2 graph of one session; the pose3"):
+        Pipeline.from_config(config({"name": "gtsam_lm", "graph": "g2o", "pose": "pose3"}), plugins=plugins)

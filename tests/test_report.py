@@ -161,3 +161,24 @@ def test_figures_are_linked_relative_to_the_report(tmp_path: Path):
     write_report(runs, tmp_path / "elsewhere")
     report = (tmp_path / "elsewhere" / "report.md").read_text()
     assert "![Trajectories: 0_run](../sweep/0_run/trajectory.png)" in report
+
+
+def test_the_report_of_a_single_run_goes_beside_its_own_report(tmp_path: Path):
+    counts = {"detected": 20, "total": 23, "found": 1, "pairs": 1, "closed": 1}
+    fake_run(tmp_path, "r", "campus_delivery", 0, "mc", (70.0, 10.0), counts)
+    run = tmp_path / "r"
+    own = "# campus_delivery\n\n| stage | ms per frame |\n| ipm | 1.5 |\n"  # the run's report with its timings
+    (run / "report.md").write_text(own)
+    result = run_cli("sgf-report", str(run))
+    assert result.returncode == 0, result.stderr
+    assert (run / "report.md").read_text() == own  # untouched
+    aggregate = (run / "tables.md").read_text()
+    assert "| odometry + SGF | 10.00 |" in aggregate and result.stdout.startswith(aggregate)
+    assert f"wrote {run / 'tables.md'}, {run / 'runs.csv'}, {run / 'tables.json'}" in result.stdout
+    assert json.loads((run / "tables.json").read_text())["rows"][0]["variant"] == "default"
+    # the directory of many runs holds no run of its own: its aggregate is report.md, rewritten on each call
+    assert run_cli("sgf-report", f"dir={tmp_path}").returncode == 0
+    first = (tmp_path / "report.md").read_text()
+    assert "| odometry + SGF | 10.00 |" in first and not (tmp_path / "tables.md").exists()
+    assert run_cli("sgf-report", str(tmp_path), f"out={run}").returncode == 0  # out= a run directory: beside too
+    assert (run / "report.md").read_text() == own

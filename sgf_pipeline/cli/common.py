@@ -11,18 +11,23 @@ Every console script is a Hydra app wrapped twice:
   with 130 and 143 after the run has recorded itself. Any other exception is a bug and keeps its
   traceback. ``SGF_PIPELINE_TRACEBACK=1`` (or ``HYDRA_FULL_ERROR=1``) shows every traceback.
 
+A script's main paths may also come first, without their keys (``sgf-eval REF EST``):
+:func:`positional_overrides` turns them into ``key=value`` overrides before Hydra reads the
+command line. A closed standard output (``sgf-bag-info BAG | head -1``) ends the script quietly.
 Hydra's ``--experimental-rerun`` option is refused: it loads a pickle, and no pickle is ever loaded.
 """
 
 from __future__ import annotations
 
+import difflib
 import functools
 import logging
 import os
+import re
 import signal
 import sys
-from collections.abc import Callable
-from typing import Any, TypeVar
+from collections.abc import Callable, Sequence
+from typing import Any, NoReturn, TypeVar
 
 from sgf_pipeline.errors import ConfigError, SgfError
 
@@ -69,6 +74,28 @@ def one_paragraph(exc: BaseException) -> str:
     return "\n  ".join(lines) or type(exc).__name__
 
 
+def unknown_key(exc: BaseException) -> str | None:
+    """Hydra's refusal of an override of a key the config does not have, with the closest known keys.
+
+    Hydra's own advice (``+key=value`` appends the key) only moves the error to the config's
+    validation; a misspelt key wants the right spelling. None for any other error.
+    """
+    cause = exc.__cause__
+    if not str(exc).startswith("Could not override") or cause is None:
+        return None
+    parent, leaf = getattr(cause, "parent_node", None), getattr(cause, "key", None)
+    full = getattr(cause, "full_key", "")
+    if parent is None or leaf is None or not full or not hasattr(parent, "keys"):
+        return None
+    known = [str(k) for k in parent if str(k) != "hydra"]
+    group = str(full).rsplit(".", 1)[0] if "." in str(full) else ""
+    prefix = f"{group}." if group else ""
+    close = difflib.get_close_matches(str(leaf), known, n=3, cutoff=0.6)
+    guess = f"; did you mean {' or '.join(prefix + c for c in close)}?" if close else ""
+    where = f"keys of {group}" if group else "top-level keys"
+    return f"{full}: no such key{guess} ({where}: {', '.join(known) or 'none'})"
+
+
 def _failed_job() -> str | None:
     """``job N (overrides) in DIR`` when running inside a Hydra multirun, else None."""
     try:
@@ -101,6 +128,8 @@ def friendly_errors(func: F) -> F:
 
         try:
             return func(*args, **kwargs)
+        except BrokenPipeError:  # before Hydra reports the job as failed
+            _quiet_closed_pipe()
         except (SgfError, OmegaConfBaseException) as exc:
             error = exc if isinstance(exc, SgfError) else ConfigError(describe_omegaconf_error(exc))
             job = _failed_job()
@@ -121,11 +150,78 @@ def _full_tracebacks() -> bool:
     return bool(os.environ.get(TRACEBACK_ENV))
 
 
-def console(app: Callable[[], Any]) -> Callable[[], None]:
-    """The entry point of a console script around a Hydra app (see the module docstring for exit statuses)."""
+def hydra_value(value: str) -> str:
+    """A string as a Hydra override takes it: plain when it is a simple word or path, else quoted.
+
+    Words Hydra would read as another type (``true``, ``null``, ``1.5``) are quoted too.
+    """
+    try:
+        float(value)
+        other_type = True
+    except ValueError:
+        other_type = value.lower() in ("true", "false", "null")
+    if re.fullmatch(r"[\w./+\-@%:]+", value) and not other_type:
+        return value
+    # Hydra's quoted strings: backslashes before a quote or at the end are doubled, then quotes escaped
+    escaped = re.sub(r"(\\+)(?='|$)", lambda m: m.group(1) * 2, value).replace("'", "\\'")
+    return f"'{escaped}'"
+
+
+def positional_overrides(args: Sequence[str], keys: Sequence[str], usage: str) -> list[str]:
+    """``args`` with the leading ones that are neither ``key=value`` nor a flag given as overrides of ``keys``.
+
+    ``sgf-eval ref.txt est.txt align=sim3`` reads as ``reference=ref.txt estimate=est.txt align=sim3``.
+    More leading paths than ``keys``, or a key given both ways, is a :class:`ConfigError` citing ``usage``.
+    """
+    args = list(args)
+    count = 0
+    while count < len(args) and "=" not in args[count] and not args[count].startswith("-"):
+        count += 1
+    if count > len(keys):
+        extra = " ".join(args[len(keys) : count])
+        raise ConfigError(f"too many paths ({extra!r} left over): {usage}; other options are key=value (see --help)")
+    named = {a.split("=", 1)[0].lstrip("+~") for a in args[count:] if "=" in a}
+    overrides = []
+    for key, value in zip(keys, args[:count], strict=False):
+        if key in named:
+            raise ConfigError(f"{key} is given twice, as the path {value!r} and as {key}=...; give it once: {usage}")
+        overrides.append(f"{key}={hydra_value(value)}")
+    return overrides + args[count:]
+
+
+def _quiet_closed_pipe() -> NoReturn:
+    """End the process at once and quietly: a reader of standard output (``| head``) closed it."""
+    try:  # further writes (the interpreter's final flush) go nowhere instead of raising again
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):  # pragma: no cover - no file descriptor to replace
+        pass
+    os._exit(0)
+
+
+def console(app: Callable[[], Any], positional: Sequence[str] = (), usage: str = "") -> Callable[[], None]:
+    """The entry point of a console script around a Hydra app (see the module docstring for exit statuses).
+
+    ``positional`` names the keys of the paths that may come first without their keys, in order.
+    """
 
     @functools.wraps(app)
     def main() -> None:
+        try:
+            try:
+                _main()
+            finally:
+                sys.stdout.flush()  # here, where a closed pipe is caught, not at the interpreter's exit
+        except BrokenPipeError:
+            _quiet_closed_pipe()
+
+    def _main() -> None:
+        if positional:
+            try:
+                sys.argv[1:] = positional_overrides(sys.argv[1:], positional, usage)
+            except ConfigError as exc:
+                print(f"error: {one_paragraph(exc)}", file=sys.stderr)
+                sys.exit(EXIT_USAGE)
         refused = [a for a in sys.argv[1:] if a.split("=", 1)[0] in REFUSED_OPTIONS]
         if refused:
             print(
@@ -145,7 +241,7 @@ def console(app: Callable[[], Any]) -> Callable[[], None]:
         try:
             app()
         except (SgfError, HydraException, OmegaConfBaseException) as exc:
-            print(f"error: {one_paragraph(exc)}", file=sys.stderr)
+            print(f"error: {unknown_key(exc) or one_paragraph(exc)}", file=sys.stderr)
             sys.exit(EXIT_USAGE)
         except KeyboardInterrupt as exc:
             name, status = ("SIGTERM", EXIT_TERMINATED) if isinstance(exc, Terminated) else ("SIGINT", EXIT_INTERRUPTED)

@@ -20,6 +20,8 @@ from sgf_pipeline.io import atomic_write_json
 from sgf_pipeline.trajectory import Duplicates, Trajectory, TrajectoryError, read_trajectory
 
 log = logging.getLogger("sgf_pipeline")
+#: The command line with the trajectories given as paths.
+USAGE = "sgf-eval REFERENCE ESTIMATE [key=value ...]"
 #: Below this share of the reference's time span covered by the estimate, a warning says so.
 MIN_COVERAGE = 0.9
 
@@ -151,7 +153,7 @@ def app(cfg: DictConfig) -> float:
     raw = {str(k): v for k, v in container.items() if k != "hydra"}
     for key in ("reference", "estimate"):
         if not raw.get(key):
-            raise DataError(f"give the {key} trajectory: sgf-eval reference=<file> estimate=<file>")
+            raise DataError(f"give the {key} trajectory: {USAGE} (or reference=<file> estimate=<file>)")
     options: EvalOptions = validate_options("sgf-eval", EvalOptions, raw)
     report = evaluate(options)
     output = Path(options.output)
@@ -163,8 +165,8 @@ def app(cfg: DictConfig) -> float:
     return float(report["ate"]["rmse"])
 
 
-#: The ``sgf-eval`` console script.
-main = console(app)
+#: The ``sgf-eval`` console script: ``sgf-eval REFERENCE ESTIMATE`` or ``reference=... estimate=...``.
+main = console(app, positional=("reference", "estimate"), usage=USAGE)
 
 if __name__ == "__main__":
     main()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import hydra
@@ -11,27 +10,27 @@ from omegaconf import DictConfig
 from sgf_pipeline.cli.common import console, friendly_errors
 from sgf_pipeline.config import config_dir
 from sgf_pipeline.errors import ConfigError
-from sgf_pipeline.report import write_report
+from sgf_pipeline.report import report_path, write_report
+
+#: The command line with the directory given as a path.
+USAGE = "sgf-report DIR [out=OTHER_DIR]"
 
 
 @hydra.main(config_path=str(config_dir()), config_name="sgf_report", version_base="1.3")
 @friendly_errors
 def _app(cfg: DictConfig) -> None:
     if not cfg.get("dir"):
-        raise ConfigError("which runs? pass a run or multirun directory: `sgf-report outputs/multirun/<time>`")
+        raise ConfigError(f"which runs? pass a run or multirun directory: {USAGE} (or dir=DIR)")
     root = Path(str(cfg.dir))
     out = Path(str(cfg.out)) if cfg.get("out") else root
+    report = report_path(out)  # beside a run's own report.md, never over it
     write_report(root, out)
-    print((out / "report.md").read_text(), end="")
-    print(f"\nwrote {out / 'report.md'}, {out / 'runs.csv'}, {out / 'tables.json'}")
+    print(report.read_text(), end="")
+    print(f"\nwrote {report}, {out / 'runs.csv'}, {out / 'tables.json'}")
 
 
-def main() -> None:
-    """Accept ``sgf-report DIR`` as well as ``sgf-report dir=DIR``."""
-    args = sys.argv[1:]
-    if args and "=" not in args[0] and not args[0].startswith("-"):
-        sys.argv = [sys.argv[0], f"dir={args[0]}", *args[1:]]
-    console(_app)()
+#: The ``sgf-report`` console script: ``sgf-report DIR`` or ``sgf-report dir=DIR``.
+main = console(_app, positional=("dir",), usage=USAGE)
 
 
 if __name__ == "__main__":

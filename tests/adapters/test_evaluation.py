@@ -306,3 +306,53 @@ def test_a_transform_stamped_topic_is_a_trajectory(tmp_path: Path):
     truth = read_bag_trajectory(bag, "/ground_truth")
     np.testing.assert_allclose(truth.poses, [f.ground_truth for f in frames], atol=1e-12)
     np.testing.assert_allclose(truth.timestamps, [f.t for f in frames], atol=1e-6)
+
+
+def test_bag_topics_are_found_with_or_without_the_leading_slash(shared_data: Path, tmp_path: Path):
+    """A ROS 1 bag naming its topics without a slash, as evo's ROS_example.bag does: both spellings work."""
+    from sgf_pipeline.bags import find_topic, read_bag_trajectory, split_bag_source
+    from sgf_pipeline.trajectory import _ns_from_seconds
+
+    from .recordings import pose_stamped, typestore, write_messages
+
+    evo = shared_data / "evo"
+    types = typestore("ros1").types
+    msgs: list[tuple[str, str, int, object]] = []
+    for topic, trajectory in (
+        ("groundtruth", read_trajectory(evo / "V102_groundtruth.csv")),
+        ("S-PTAM", read_trajectory(evo / "V102.txt", duplicates="keep")),
+    ):
+        for t, pose in zip(trajectory.timestamps, trajectory.poses, strict=True):
+            ns = _ns_from_seconds(float(t))
+            msgs.append((topic, "geometry_msgs/msg/PoseStamped", ns, pose_stamped(types, ns, "world", pose, True)))
+    bag = write_messages(tmp_path / "example.bag", msgs, "ros1")
+    assert split_bag_source(f"{bag}:groundtruth") == (bag, "groundtruth")
+    assert split_bag_source(f"{bag}:/groundtruth") == (bag, "/groundtruth")
+    assert split_bag_source(f"{tmp_path}:v2.tum") is None  # a folder that is no bag: a file name with a colon
+    slash, bare = read_bag_trajectory(bag, "/groundtruth"), read_bag_trajectory(bag, "groundtruth")
+    assert len(slash) == len(bare) == 16702  # V1_02's ground truth
+    np.testing.assert_array_equal(slash.poses, bare.poses)
+    # the console script, paths given positionally: evo's figure for V1_02 (798 pairs, repeated stamps kept)
+    proc = _eval_cli(tmp_path, f"{bag}:/groundtruth", f"{bag}:S-PTAM", "duplicates=keep")
+    assert proc.returncode == 0, proc.stderr
+    assert "0.091727" in proc.stdout and "798 pose pairs matched" in proc.stdout
+    report = json.loads((tmp_path / "out" / "eval.json").read_text())
+    assert report["reference"] == f"{bag.resolve()}:/groundtruth" and report["ate"]["pairs"] == 798
+    # a name two topics answer to, and one no topic answers to
+    assert find_topic(["groundtruth", "/groundtruth"], "/groundtruth", bag) == "/groundtruth"  # spelled exactly
+    with pytest.raises(DataError, match=r"example.bag: //groundtruth is ambiguous: the bag has /groundtruth and "):
+        find_topic(["groundtruth", "/groundtruth"], "//groundtruth", bag)
+    assert find_topic(["/odom"], "odom", bag) == "/odom" and find_topic(["/odom"], "odometry", bag) is None
+    with pytest.raises(DataError, match=r"no topic /nothing; topics with poses .*: S-PTAM, groundtruth"):
+        read_bag_trajectory(bag, "/nothing")
+
+
+def test_evo_s_ros_example_bag_by_its_topic_names(shared_data: Path, tmp_path: Path):
+    """evo 1.38.1 `evo_ape bag ROS_example.bag groundtruth S-PTAM -a`: RMSE 6.316710 m over 1667 pairs."""
+    bag = shared_data / "evo" / "ROS_example.bag"
+    if not bag.is_file():
+        pytest.skip(f"{bag} (evo's test/data/ROS_example.bag) is not in the real data folder")
+    for reference, estimate in ((f"{bag}:groundtruth", f"{bag}:/S-PTAM"), (f"{bag}:/groundtruth", f"{bag}:S-PTAM")):
+        proc = _eval_cli(tmp_path, reference, estimate)
+        assert proc.returncode == 0, proc.stderr
+        assert "  ATE (m)                 6.316710" in proc.stdout and "1667 pose pairs matched" in proc.stdout

@@ -236,3 +236,26 @@ def test_imu_roll_pitch_from_gyro_and_accelerometer_when_no_orientation(tmp_path
     assert len(got) == 10
     for f in got:
         assert f.imu_roll_pitch == pytest.approx((roll, pitch), abs=1e-9)
+
+
+def test_topics_are_found_without_their_leading_slash(tmp_path: Path):
+    """dataset.<role>_topic=camera/image_raw finds /camera/image_raw: the same frames as with the slash."""
+    bag = write_bag(tmp_path / "drive.bag", make_frames(4, seed=3), calibration(), "ros1")
+    given = dict(
+        path=str(bag),
+        image_topic="/camera/image_raw",
+        odometry_topic="/odom",
+        ground_truth_topic="/ground_truth",
+        camera_info_topic="/camera/camera_info",
+        camera_height=HEIGHT_M,
+        camera_tilt=TILT,
+    )
+    exact = RosbagDataset(RosbagParams(**given))
+    bare = RosbagDataset(RosbagParams(**{k: v.lstrip("/") if k.endswith("_topic") else v for k, v in given.items()}))
+    assert bare.params.image_topic == "/camera/image_raw" and bare.params.odometry_topic == "/odom"
+    ours, theirs = list(exact.frames()), list(bare.frames())
+    assert [f.index for f in theirs] == [f.index for f in ours] == [0, 1, 2, 3]
+    for a, b in zip(ours, theirs, strict=True):
+        np.testing.assert_array_equal(a.odometry, b.odometry)
+        np.testing.assert_array_equal(a.ground_truth, b.ground_truth)
+        np.testing.assert_array_equal(a.image, b.image)

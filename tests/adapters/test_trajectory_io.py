@@ -139,3 +139,131 @@ def test_kitti_times_must_match_and_duplicates_can_be_dropped(tmp_path: Path):
     (tmp_path / "back.tum").write_text("0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 1\n0.5 2 0 0 0 0 0 1\n")
     with pytest.raises(TrajectoryError, match=r"back.tum:3: timestamp 0.5 is out of order"):
         read_trajectory(tmp_path / "back.tum", duplicates="keep")  # keep admits equal stamps, never disorder
+
+
+# -- cut-off and corrupt files: unit quaternions, orthonormal rotations, a last line that ends -------------
+
+
+def _last_line_cut(text: str, keep: int) -> str:
+    """``text`` cut ``keep`` characters into its last line's last (space-separated) field, no line end after it."""
+    body, last = text.rstrip("\n").rsplit("\n", 1)
+    return body + "\n" + last[: last.rfind(" ") + 1 + keep]
+
+
+def test_evo_s_example_files_pass_the_quaternion_and_rotation_checks(shared_data: Path):
+    from sgf_pipeline.trajectory import QUATERNION_TOLERANCE, ROTATION_TOLERANCE
+
+    evo = shared_data / "evo"
+    counts = {
+        "freiburg1_xyz-groundtruth.txt": 3000,
+        "freiburg1_xyz-rgbdslam.txt": 788,
+        "fr2_desk_groundtruth.txt": 20957,
+        "fr2_desk_ORB.txt": 2893,
+        "V102.txt": 807,
+    }
+    for name, count in counts.items():
+        assert len(read_tum(evo / name, duplicates="keep")) == count, name
+    assert len(read_euroc_csv(evo / "V102_groundtruth.csv", duplicates="keep")) == 16702
+    for name in ("KITTI_00_gt.txt", "KITTI_00_ORB.txt"):
+        assert len(read_kitti(evo / name)) == 4541
+    # the tolerances leave a margin over the real files' worst values (EuRoC's 6-decimal quaternions)
+    worst = max(
+        float(np.abs(np.linalg.norm(np.loadtxt(evo / n, usecols=(4, 5, 6, 7)), axis=1) - 1).max()) for n in counts
+    )
+    csv = np.loadtxt(evo / "V102_groundtruth.csv", delimiter=",", usecols=(4, 5, 6, 7))
+    worst = max(worst, float(np.abs(np.linalg.norm(csv, axis=1) - 1).max()))
+    assert worst < QUATERNION_TOLERANCE / 5
+    kitti = np.loadtxt(evo / "KITTI_00_ORB.txt").reshape(-1, 3, 4)[:, :, :3]
+    assert np.abs(kitti @ kitti.transpose(0, 2, 1) - np.eye(3)).max() < ROTATION_TOLERANCE / 100
+
+
+def test_a_tum_file_whose_last_quaternion_was_cut_is_refused(shared_data: Path, tmp_path: Path):
+    text = (shared_data / "evo" / "freiburg1_xyz-groundtruth.txt").read_text()
+    lines = text.split("\n")
+    last = len(lines) - 1  # the file ends with a line end: the last line's number
+    # cut mid-number: '-0.2336' became '-0.2', and the line end is gone
+    cut = tmp_path / "cut.txt"
+    cut.write_text(_last_line_cut(text, 4))
+    assert cut.read_text().endswith(" -0.2")
+    with pytest.raises(
+        TrajectoryError, match=rf"cut.txt:{last}: the last line has no line end, so the file may be cut"
+    ):
+        read_trajectory(cut)
+    # a qw mangled into another number, the line end kept ('-0.2336' read as '2.71'): length from the values
+    mangled = tmp_path / "mangled.txt"
+    mangled.write_text(text.rsplit(" ", 1)[0] + " 2.71\n")
+    q = np.array([0.6649, 0.6517, -0.2803, 2.71])
+    with pytest.raises(TrajectoryError) as error:
+        read_trajectory(mangled)
+    message = str(error.value)
+    assert message.startswith(f"{mangled}:{last}: the quaternion (qx qy qz qw) = (0.6649 0.6517 -0.2803 2.71)")
+    assert f"has length {np.linalg.norm(q):.6g}, off 1 by more than 0.001" in message
+
+
+def test_a_kitti_file_whose_last_value_was_cut_is_refused(shared_data: Path, tmp_path: Path):
+    text = (shared_data / "evo" / "KITTI_00_gt.txt").read_text()
+    cut = tmp_path / "cut.txt"
+    cut.write_text(_last_line_cut(text, 3))  # tz '9.696153e+01' cut to '9.6': a plausible number, no line end
+    assert cut.read_text().endswith(" 9.6")
+    with pytest.raises(TrajectoryError, match=r"cut.txt:4541: the last line has no line end"):
+        read_kitti(cut)
+    # r33 cut from '9.988336e-01' to '9.9' with the line end kept: R is no rotation any more
+    fields = text.rstrip("\n").rsplit("\n", 1)[1].split()
+    fields[10] = "9.9"
+    R = np.array([float(v) for v in fields]).reshape(3, 4)[:, :3]
+    mangled = tmp_path / "mangled.txt"
+    mangled.write_text(text.rstrip("\n").rsplit("\n", 1)[0] + "\n" + " ".join(fields) + "\n")
+    deviation = np.abs(R @ R.T - np.eye(3)).max()
+    with pytest.raises(
+        TrajectoryError,
+        match=rf"mangled.txt:4541: the pose's 3x3 block is not a rotation \(\|R R\^T - I\| = {deviation:.3g}, more than "
+        r"0.001",
+    ):
+        read_kitti(mangled)
+
+
+def test_an_euroc_csv_whose_last_quaternion_was_cut_is_refused(shared_data: Path, tmp_path: Path):
+    text = (shared_data / "evo" / "V102_groundtruth.csv").read_text()
+    body, last = text.rstrip("\n").rsplit("\n", 1)
+    fields = last.split(",")
+    fields[4] = "0.15"  # qw '0.159222' cut to '0.15' inside the line (the other columns follow)
+    mangled = tmp_path / "mangled.csv"
+    mangled.write_text(body + "\n" + ",".join(fields) + "\n")
+    number = text.count("\n")
+    q = np.array([float(v) for v in fields[4:8]])
+    with pytest.raises(TrajectoryError, match=rf"mangled.csv:{number}: the quaternion \(qw qx qy qz\)") as error:
+        read_euroc_csv(mangled, duplicates="keep")
+    assert f"has length {np.linalg.norm(q):.6g}" in str(error.value)
+    cut = tmp_path / "cut.csv"
+    cut.write_text(body + "\n" + last[:40])
+    with pytest.raises(TrajectoryError, match=rf"cut.csv:{number}: the last line has no line end"):
+        read_euroc_csv(cut, duplicates="keep")
+
+
+def test_the_quaternion_tolerance_admits_three_decimals(tmp_path: Path):
+    from sgf_pipeline.trajectory import QUATERNION_TOLERANCE
+
+    rng = np.random.default_rng(3)
+    q = rng.normal(size=(500, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    rows = [f"{i} 0 0 0 {a:.3f} {b:.3f} {c:.3f} {d:.3f}" for i, (a, b, c, d) in enumerate(q)]
+    (tmp_path / "three.tum").write_text("\n".join(rows) + "\n")
+    assert len(read_tum(tmp_path / "three.tum")) == 500  # rounding moves a length by at most sqrt(4) * 0.0005
+    for qw, refused in ((1 + 0.9 * QUATERNION_TOLERANCE, False), (1 + 1.1 * QUATERNION_TOLERANCE, True)):
+        path = tmp_path / f"{qw}.tum"
+        path.write_text(f"0 0 0 0 0 0 0 1\n1 0 0 0 0 0 0 {qw!r}\n")
+        if refused:
+            with pytest.raises(TrajectoryError, match=rf"{qw}.tum:2: the quaternion"):
+                read_tum(path)
+        else:
+            np.testing.assert_allclose(read_tum(path).poses[1], np.eye(4), atol=1e-15)
+
+
+def test_the_folder_reader_skips_a_pose_whose_quaternion_is_off_unit_length(tmp_path: Path):
+    from sgf_pipeline.trajectory import parse_tum
+
+    path = tmp_path / "odometry.tum"
+    path.write_text("0 0 0 0 0 0 0 1\n1 1 0 0 0 0 0 2.71\n2 2 0 0 0 0 0 1")  # a recording's file, cut or not
+    ts, poses, lines = parse_tum(path)
+    assert ts.tolist() == [0.0, 1.0, 2.0] and lines == [1, 2, 3]
+    assert np.isnan(poses[1, :3, :3]).all() and np.isfinite(poses[[0, 2]]).all()

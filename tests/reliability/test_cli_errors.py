@@ -39,6 +39,8 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     still.write_text("".join(f"{i}.0 1 2 0 0 0 0 1\n" for i in range(6)))
     fine = base / "fine.tum"
     fine.write_text("".join(f"{i}.0 {i} {i % 2} 0 0 0 0 1\n" for i in range(6)))
+    cut = base / "cut.tum"
+    cut.write_text(fine.read_text()[:-3])
     bag = base / "garbage.bag"
     bag.write_bytes(b"#ROSBAG V2.0\n" + bytes(range(256)) * 4)
     empty = base / "empty"
@@ -71,6 +73,7 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         "binary": binary,
         "still": still,
         "fine": fine,
+        "cut": cut,
         "bag": bag,
         "empty": empty,
         "corrupt_runs": corrupt_run.parent,
@@ -85,7 +88,14 @@ def files(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
 RUN = ["dataset=folder", "pipeline=[dataset]", "run.progress=false"]
 
 CASES: list[tuple[str, str, list[str], str]] = [
-    ("unknown key", "sgf-run", [*RUN, "foo=1"], r"Could not override 'foo'\.\n  To append to your config use \+foo=1"),
+    ("unknown key", "sgf-run", [*RUN, "foo=1"], r"^error: foo: no such key \(top-level keys: dataset, .*, run, "),
+    (
+        "a misspelt key",
+        "sgf-run",
+        ["dataset=rosbag", "dataset.image_topc=/cam"],
+        r"^error: dataset.image_topc: no such key; did you mean dataset.image_topic or dataset.imu_topic\? \(keys of "
+        r"dataset: name, path, .*image_topic, ",
+    ),
     ("unknown variant", "sgf-run", [*RUN, "ipm=nope"], r"Could not find 'ipm/nope'\n  Available options in 'ipm':"),
     ("bad override syntax", "sgf-run", [*RUN, "enhance.clip_limit=["], r"no viable alternative at input '\['"),
     ("missing dataset path", "sgf-run", RUN, r"dataset=folder cannot start: dataset=folder needs the sequence folder"),
@@ -98,7 +108,20 @@ CASES: list[tuple[str, str, list[str], str]] = [
     ("a _target_", "sgf-run", [*RUN, "+enhance._target_=os.system"], r"enhance._target_: `_target_` is refused"),
     ("a pickle rerun", "sgf-run", ["--experimental-rerun=config.pickle"], r"--experimental-rerun is not supported: "),
     ("broken calibration", "sgf-run", [*RUN, "dataset.path={broken}"], r"calibration.yaml:\d+: not valid YAML"),
-    ("no trajectories", "sgf-eval", [], r"give the reference trajectory: sgf-eval reference=<file> estimate=<file>"),
+    (
+        "no trajectories",
+        "sgf-eval",
+        [],
+        r"give the reference trajectory: sgf-eval REFERENCE ESTIMATE \[key=value ...\] \(or reference=<file> estimate=",
+    ),
+    (
+        "three paths",
+        "sgf-eval",
+        ["{fine}", "{fine}", "{still}", "align=none"],
+        r"too many paths \('.*still.tum' left over\): sgf-eval REFERENCE ESTIMATE \[key=value ...\]; other options",
+    ),
+    ("a path given twice", "sgf-eval", ["{fine}", "reference={fine}"], r"reference is given twice, as the path '"),
+    ("a cut trajectory", "sgf-eval", ["{cut}", "{fine}"], r"reference: .*cut.tum:6: the last line has no line end"),
     (
         "binary trajectory",
         "sgf-eval",
@@ -112,7 +135,7 @@ CASES: list[tuple[str, str, list[str], str]] = [
         r"se3 alignment is not possible .*one point or one line .*use align=none",
     ),
     ("unknown alignment", "sgf-eval", ["reference={fine}", "estimate={fine}", "align=affine"], r"sgf-eval.align: "),
-    ("garbage bag", "sgf-bag-info", ["path={bag}"], r"cannot open bag .*garbage.bag: .*truncated or corrupt"),
+    ("garbage bag", "sgf-bag-info", ["{bag}"], r"cannot open bag .*garbage.bag: .*truncated or corrupt"),
     ("a folder that is no bag", "sgf-bag-info", ["path={empty}"], r"empty is a folder without metadata.yaml"),
     ("no run directory", "sgf-report", [], r"which runs\? pass a run or multirun directory"),
     (
@@ -227,3 +250,68 @@ def test_sgf_report_refuses_metrics_of_another_shape(tmp_path: Path, metrics: di
     (run / "metrics.json").write_text(json.dumps({"status": "finished", **metrics}))
     with pytest.raises(DataError, match=rf"r1/metrics.json: {message}"):
         find_runs(tmp_path)
+
+
+def test_positional_paths_become_overrides():
+    from sgf_pipeline.cli.common import positional_overrides
+    from sgf_pipeline.errors import ConfigError
+
+    keys, usage = ("reference", "estimate"), "sgf-eval REFERENCE ESTIMATE"
+    assert positional_overrides(["a.txt", "b c.txt", "align=sim3"], keys, usage) == [
+        "reference=a.txt",
+        "estimate='b c.txt'",
+        "align=sim3",
+    ]
+    assert positional_overrides(["d.bag:/gt", "1.5", "-m"], keys, usage) == [
+        "reference=d.bag:/gt",
+        "estimate='1.5'",
+        "-m",
+    ]
+    assert positional_overrides(["-m", "a.txt"], keys, usage) == ["-m", "a.txt"]  # only leading paths
+    assert positional_overrides(["reference=a", "estimate=b"], keys, usage) == ["reference=a", "estimate=b"]
+    with pytest.raises(
+        ConfigError, match=r"^estimate is given twice, as the path 'b' and as estimate=...; give it once"
+    ):
+        positional_overrides(["a", "b", "estimate=c"], keys, usage)
+
+
+@pytest.mark.parametrize(
+    ("script", "forms"),
+    [
+        (
+            "sgf-eval",
+            [
+                "sgf-eval REFERENCE ESTIMATE [key=value ...]",
+                "sgf-eval reference=REFERENCE estimate=ESTIMATE [key=value ...]",
+            ],
+        ),
+        ("sgf-bag-info", ["sgf-bag-info BAG [key=value ...]", "sgf-bag-info path=BAG [key=value ...]"]),
+        ("sgf-report", ["sgf-report DIR [out=OTHER_DIR]", "sgf-report dir=DIR [out=OTHER_DIR]"]),
+    ],
+)
+def test_help_shows_both_forms(script: str, forms: list[str]):
+    result = run_cli(script, "--help")
+    assert result.returncode == 0 and result.stderr == ""
+    usage = result.stdout.split("Usage:\n", 1)[1].split("\n\n", 1)[0].splitlines()
+    assert [line.strip() for line in usage] == forms
+
+
+def test_a_closed_stdout_ends_quietly(files: dict[str, Path]):
+    """`sgf-bag-info BAG | head -1` with head gone before the first line: no traceback, status 0."""
+    import os
+    import subprocess
+    import sys
+
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone: every write to the pipe fails (EPIPE)
+    try:
+        proc = subprocess.run(
+            [str(Path(sys.executable).parent / "sgf-bag-info"), str(files["tf_bag"])],
+            stdout=write,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=120,
+        )
+    finally:
+        os.close(write)
+    assert proc.returncode == 0 and proc.stderr == ""

@@ -240,10 +240,30 @@ def test_a_finalize_error_names_the_stage_and_every_stage_still_finalizes(plugin
     assert len(read_tum(tmp_path / "trajectory_sgf.partial.tum")) == 20  # published by the backend's finalize
     assert len(read_tum(tmp_path / "trajectory_gt.partial.tum")) == 20
     assert not (tmp_path / "metrics.json").exists() and leftovers(tmp_path) == []
-    # The lock is released: the directory takes a new run, which replaces the failure record.
-    Pipeline.from_config(config(), run_dir=tmp_path, plugins=plugins).run()
+    # The lock is released and its file gone; a new run is refused: the failed run's files are kept
+    assert not (tmp_path / LOCK_FILE).exists()
+    kept = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    assert sorted(kept) == [
+        "failure.json",
+        "trajectory_gt.partial.tum",
+        "trajectory_odometry.partial.tum",
+        "trajectory_sgf.partial.tum",
+    ]
+    with pytest.raises(
+        ConfigError,
+        match=rf"^{re.escape(str(tmp_path))} holds a run that did not finish \(failure.json, trajectory_gt.partial.tum, "
+        r"trajectory_odometry.partial.tum, trajectory_sgf.partial.tum\); its files are kept. Choose another output "
+        r"directory \(hydra.run.dir=...\), or pass run.overwrite=true to replace them$",
+    ):
+        Pipeline.from_config(config(), run_dir=tmp_path, plugins=plugins)
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == kept
+    # run.overwrite=true replaces the failure record and everything partial
+    rerun = config()
+    rerun["run"]["overwrite"] = True
+    Pipeline.from_config(rerun, run_dir=tmp_path, plugins=plugins).run()
     assert not (tmp_path / "failure.json").exists() and not list(tmp_path.glob("*.partial.tum"))
     assert json.loads((tmp_path / "metrics.json").read_text())["status"] == "finished"
+    assert not (tmp_path / LOCK_FILE).exists()
 
 
 def test_a_settle_error_is_reported_first_and_every_stage_still_finalizes(plugins, tmp_path: Path):
@@ -310,8 +330,9 @@ def test_a_second_run_into_a_directory_in_use_is_refused(plugins, tmp_path: Path
         second.run()
     for frame in frames:
         first.process(frame)
+    assert (tmp_path / LOCK_FILE).read_text().strip() == str(os.getpid())  # the running one's id
     first.finish()
-    assert (tmp_path / LOCK_FILE).read_text().strip() == str(os.getpid())
+    assert not (tmp_path / LOCK_FILE).exists()  # gone with the run
     with pytest.raises(ConfigError, match=r"already holds a finished run"):
         Pipeline.from_config(config(frames=6), run_dir=tmp_path, plugins=plugins)
     assert not (tmp_path / "failure.json").exists()  # the refused run wrote nothing
@@ -426,8 +447,17 @@ def test_sigterm_keeps_the_pose_estimate_and_the_sgf_map_so_far(tmp_path: Path):
         assert abs(sgf.timestamps[row] - view.timestamp) < 1e-6
         np.testing.assert_allclose(view.pose, sgf.poses[row], atol=1e-6)
     assert not (tmp_path / "metrics.json").exists() and leftovers(tmp_path) == []
-    # a new run into the directory replaces the record and everything partial
-    rerun = Pipeline.from_config(config(frames=5), run_dir=tmp_path, plugins=load_plugins(extra=[("toy", ToyPlugin())]))
+    # a new run into the directory is refused; with run.overwrite=true it replaces the record and everything partial
+    with pytest.raises(
+        ConfigError,
+        match=r"holds a run that did not finish \(failure.json, sgf_map.partial.safetensors, trajectory_gt.partial.tum, "
+        r"trajectory_odometry.partial.tum and 1 more\); its files are kept",
+    ):
+        Pipeline.from_config(config(frames=5), run_dir=tmp_path, plugins=load_plugins(extra=[("toy", ToyPlugin())]))
+    assert json.loads((tmp_path / "failure.json").read_text())["frames_processed"] == 100
+    overwrite = config(frames=5)
+    overwrite["run"]["overwrite"] = True
+    rerun = Pipeline.from_config(overwrite, run_dir=tmp_path, plugins=load_plugins(extra=[("toy", ToyPlugin())]))
     rerun.run()
     assert not list(tmp_path.glob("*.partial.*")) and not (tmp_path / "failure.json").exists()
 

@@ -334,6 +334,42 @@ class PoseGraph:
             graph.push_back(f)
         return graph
 
+    # -- exchange -----------------------------------------------------------------------------
+
+    def g2o(self) -> tuple[str, int, int]:
+        """The graph at its current estimate as g2o text, with its numbers of vertices and edges.
+
+        ``VERTEX_SE2 <frame index> x y theta`` per node (the estimate) and ``EDGE_SE2 <from> <to>
+        dx dy dtheta`` plus the upper triangle of the information matrix per between factor (odometry
+        and loops), then ``FIX <first node>``: the prior that holds the first pose has no g2o line.
+        A loop under a robust kernel carries its information scaled by the kernel's weight at the
+        estimate, so that the read-back graph (Gaussian, as g2o's edges are) has the same optimum.
+        """
+        import gtsam
+
+        if self.pose3 or self.map_poses:
+            raise ValueError("a g2o file holds a Pose2 graph of one session: pose=pose2 without a prior map")
+        lines = []
+        for frame in self.nodes:
+            pose = self.values.atPose2(X(frame))
+            lines.append(f"VERTEX_SE2 {frame} {pose.x()!r} {pose.y()!r} {pose.theta()!r}")
+        edges = 0
+        for factor in self.factors:
+            if isinstance(factor, gtsam.PriorFactorPose2):
+                continue
+            if not isinstance(factor, gtsam.BetweenFactorPose2):  # pragma: no cover - the graph has no other
+                raise ValueError(f"a {type(factor).__name__} has no g2o edge")
+            keys = factor.keys()
+            a, b = gtsam.Symbol(keys[0]).index(), gtsam.Symbol(keys[1]).index()
+            m = factor.measured()
+            info = _information(factor, self.values)
+            upper = " ".join(repr(float(info[i, j])) for i in range(3) for j in range(i, 3))
+            lines.append(f"EDGE_SE2 {a} {b} {m.x()!r} {m.y()!r} {m.theta()!r} {upper}")
+            edges += 1
+        if self.nodes:
+            lines.append(f"FIX {self.nodes[0]}")
+        return "\n".join(lines) + "\n", len(self.nodes), edges
+
     # -- estimates --------------------------------------------------------------------------
 
     def session_poses(self, values: Any) -> np.ndarray:
@@ -357,3 +393,23 @@ class PoseGraph:
     def error(self, values: Any | None = None) -> float:
         """The total error of eq. 11 (robust kernels applied) at ``values`` (default: the current estimate)."""
         return float(self.graph().error(self.values if values is None else values))
+
+
+def _information(factor: Any, values: Any) -> np.ndarray:
+    """A factor's information matrix; under a robust kernel, scaled by the kernel's weight at ``values``.
+
+    At an optimum of the robust graph, the Gaussian graph of these weights is stationary too
+    (iteratively reweighted least squares), so both have the same optimum.
+    """
+    import gtsam
+
+    model = factor.noiseModel()
+    weight = 1.0
+    if isinstance(model, gtsam.noiseModel.Robust):
+        gaussian = model.noise()
+        whitened = gaussian.whiten(factor.unwhitenedError(values))
+        kernel = model.robust()
+        weight = float(kernel.weight(float(np.linalg.norm(whitened))))  # type: ignore[attr-defined]
+        model = gaussian
+    sqrt_information = np.asarray(model.R(), dtype=np.float64)
+    return weight * sqrt_information.T @ sqrt_information

@@ -3,7 +3,8 @@
 Every variant adds each processed frame's odometry, publishes a :class:`PoseEstimate` of every
 processed frame on every frame (online), writes the final trajectory as ``trajectory_sgf.tum``
 and, with ``save_map``, the run's SGF map (``sgf_map.safetensors``: the groups seen by the loop
-stage, from the optimized poses). With ``prior_map`` the run is localized on an earlier run's
+stage, from the optimized poses). With ``graph=g2o`` the graph back-ends also write the final
+pose graph (``pose_graph.g2o``). With ``prior_map`` the run is localized on an earlier run's
 map: SGFs matched to it give inter-session factors to the map's frames, held by priors at their
 map poses, and the run's trajectory ends in the map's frame.
 
@@ -22,10 +23,11 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from sgf_pipeline import RunContext, Stage, StageParams, StageRegistry, hookimpl
 from sgf_pipeline.calibration import Calibration
+from sgf_pipeline.io import atomic_write_text
 from sgf_pipeline.sgf_map import SgfMap, build_map, load_map, save_map
 from sgf_pipeline.stage import Settlement
 from sgf_pipeline.trajectory import Trajectory
@@ -35,6 +37,8 @@ from sgf_plugins.backend.pose_graph import PoseGraph
 from sgf_plugins.backend.poses import PoseStore
 
 log = logging.getLogger("sgf_pipeline")
+#: The file of the final pose graph (``graph=g2o``).
+GRAPH_FILE = "pose_graph.g2o"
 
 
 class BackendParams(StageParams):
@@ -100,6 +104,20 @@ class GraphParams(BackendParams):
         description="at the end of the run, take the final heading bias off the whole drive from its first frame "
         "(online it corrects only the drive after the loops that measured it) and solve the graph again in batch",
     )
+    graph: Literal["none", "g2o"] = Field(
+        "none",
+        description="write the final pose graph the back-end optimised: g2o (pose_graph.g2o, VERTEX_SE2 and EDGE_SE2 "
+        "lines that GTSAM and g2o read; pose2 without a prior map), or none",
+    )
+
+    @model_validator(mode="after")
+    def _graph_fits_g2o(self) -> GraphParams:
+        if self.graph == "g2o" and (self.pose == "pose3" or self.prior_map):
+            raise ValueError(
+                "graph=g2o writes the Pose2 graph of one session; the pose3 graph's IMU attitude factors and a prior "
+                "map's poses have no g2o edge: use pose=pose2 without a prior map, or graph=none"
+            )
+        return self
 
     def noise(self) -> NoiseSettings:
         """The noise models in the graph's units (radians)."""
@@ -314,6 +332,17 @@ class _GraphBackend(_Backend):
         self.loops_dropped = 0
         self.resolved = False  # settle re-solved in batch (an iSAM2 solver still holds the loops taken out)
         self.hindsight = False  # the final heading bias was taken off the whole drive
+
+    def finalize(self, context: RunContext) -> None:
+        """The trajectory, metrics and map (:meth:`_Backend.finalize`), then the final pose graph if asked."""
+        super().finalize(context)
+        params = self.params
+        assert isinstance(params, GraphParams)
+        if params.graph == "g2o" and context.run_dir is not None and self.graph.nodes:
+            text, vertices, edges = self.graph.g2o()
+            atomic_write_text(Path(context.run_dir) / GRAPH_FILE, text)
+            written = {"file": GRAPH_FILE, "format": "g2o", "vertices": vertices, "edges": edges}
+            context.metrics.setdefault("backend", {})["graph"] = written
 
     def _add(
         self, frame: Frame, loops: LoopConstraints | None, odometry_scale: OdometryScale | None

@@ -21,7 +21,7 @@ from omegaconf import DictConfig
 
 from sgf_pipeline import DataError
 from sgf_pipeline.bags import POSE_TYPES, TF_TYPES, TransformTree, open_bag, read_transform_tree, topic_rows
-from sgf_pipeline.cli.common import console, friendly_errors
+from sgf_pipeline.cli.common import console, friendly_errors, hydra_value
 from sgf_pipeline.config import config_dir
 from sgf_plugins.datasets.rosbag import (
     CAMERA_INFO_TYPES,
@@ -35,6 +35,8 @@ from sgf_plugins.datasets.rosbag import (
 TRUTH_WORDS = frozenset({"gt", "truth", "groundtruth", "vicon", "mocap", "optitrack", "leica", "reference"})
 #: Words of image topics that are no camera picture of the ground.
 NOT_A_PICTURE = frozenset({"depth", "disparity", "ir", "infra", "infra1", "infra2", "thermal", "mask", "segmentation"})
+#: The command line with the bag given as a path.
+USAGE = "sgf-bag-info BAG [format=json]"
 #: The roles of ``dataset=rosbag`` in the order the command names them.
 ROLES = ("image_topic", "camera_info_topic", "odometry_topic", "imu_topic", "ground_truth_topic")
 
@@ -89,13 +91,6 @@ def rank_candidates(rows: list[Any]) -> dict[str, list[str]]:
     }
 
 
-def _hydra_value(value: str) -> str:
-    """A value as a Hydra override takes it: plain when it is a simple word or path, else quoted."""
-    if re.fullmatch(r"[\w./~+\-@%]+", value):
-        return value
-    return "'" + value.replace("\\", "\\\\").replace("'", "\\'") + "'"
-
-
 def _shell_word(arg: str) -> str:
     """One shell word: as it is when plain, in double quotes when that suffices, else single-quoted."""
     if shlex.quote(arg) == arg:
@@ -105,8 +100,8 @@ def _shell_word(arg: str) -> str:
 
 def suggested_command(path: str, chosen: dict[str, str]) -> str:
     """The ``sgf-run`` command line that reads the bag with the chosen topics (shell-quoted)."""
-    args = ["sgf-run", "dataset=rosbag", f"dataset.path={_hydra_value(path)}"]
-    args += [f"dataset.{role}={_hydra_value(chosen[role])}" for role in ROLES if chosen.get(role)]
+    args = ["sgf-run", "dataset=rosbag", f"dataset.path={hydra_value(path)}"]
+    args += [f"dataset.{role}={hydra_value(chosen[role])}" for role in ROLES if chosen.get(role)]
     return " ".join(_shell_word(a) for a in args)
 
 
@@ -202,7 +197,9 @@ def render(summary: dict[str, Any]) -> str:
 def app(cfg: DictConfig) -> None:
     """Print the topics of the bag given as ``path=...``."""
     if not cfg.get("path"):
-        raise DataError("give the bag: sgf-bag-info path=<file.bag | ROS 2 bag folder | file.mcap>")
+        raise DataError(
+            f"give the bag: {USAGE} (or path=<bag>); a bag is a file.bag, a ROS 2 bag folder or a file.mcap"
+        )
     summary = bag_summary(str(cfg.path), str(cfg.get("typestore") or "ros2_humble"))
     if cfg.get("format") == "json":
         print(json.dumps(summary, indent=2))
@@ -210,8 +207,8 @@ def app(cfg: DictConfig) -> None:
         print(render(summary))
 
 
-#: The ``sgf-bag-info`` console script.
-main = console(app)
+#: The ``sgf-bag-info`` console script: ``sgf-bag-info BAG`` or ``sgf-bag-info path=BAG``.
+main = console(app, positional=("path",), usage=USAGE)
 
 if __name__ == "__main__":
     main()

@@ -185,7 +185,10 @@ class FolderDataset(RecordedDataset):
                 keep[i] = False
                 continue
             if not finite_pose(self.odometry[i]):
-                self.skips.problem("bad pose", f"{self.root}/odometry.tum: pose {i} is not finite (NaN or inf)")
+                self.skips.problem(
+                    "bad pose",
+                    f"{self.root}/odometry.tum: pose {i} is not finite (NaN or inf) or not of a unit quaternion",
+                )
                 keep[i] = False
                 continue
             if self.imu is not None and not np.all(np.isfinite(self.imu[i])):

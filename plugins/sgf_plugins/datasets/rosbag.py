@@ -36,6 +36,7 @@ from sgf_pipeline.bags import (
     TF_TYPES,
     TransformTree,
     describe_topics,
+    find_topic,
     frame_name,
     open_bag,
     pose_of_message,
@@ -228,6 +229,7 @@ class RosbagDataset(RecordedDataset):
         self.mounting_source = "config"
         reader = open_bag(self.path, params.typestore)
         try:
+            params = self.params = self._bag_spelling(reader, params)
             self.image_type = self._topic(reader, "image_topic", IMAGE_TYPES, required=True)
             self._topic(reader, "odometry_topic", POSE_TYPES, required=True)
             imu_type = self._topic(reader, "imu_topic", IMU_TYPES, required=False)
@@ -271,6 +273,17 @@ class RosbagDataset(RecordedDataset):
         return bool(p.calibration_file) or p.camera_to_base is not None or p.camera_height is not None
 
     # -- setup ------------------------------------------------------------------------------
+
+    def _bag_spelling(self, reader: Any, params: RosbagParams) -> RosbagParams:
+        """The params with each topic spelled as the bag does (``groundtruth`` for ``/groundtruth``)."""
+        keys = ("image_topic", "odometry_topic", "imu_topic", "ground_truth_topic", "camera_info_topic")
+        spelled = {}
+        for key in keys:
+            given = getattr(params, key)
+            found = find_topic(reader.topics, given, self.path) if given else None
+            if found is not None and found != given:
+                spelled[key] = found
+        return params.model_copy(update=spelled) if spelled else params
 
     def _topic(self, reader: Any, key: str, types: tuple[str, ...], required: bool) -> str | None:
         topic = getattr(self.params, key)
