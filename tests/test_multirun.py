@@ -165,10 +165,12 @@ def test_a_sweep_run_again_skips_its_finished_jobs(toy_plugin_site: Path, tmp_pa
     jobs = sorted(p for p in sweep.iterdir() if p.is_dir())
     stamps = [(j / "metrics.json").stat().st_mtime_ns for j in jobs]
     (jobs[1] / "metrics.json").unlink()  # as if the sweep had stopped during its second job
+    (jobs[1] / "failure.json").write_text('{"status": "interrupted"}')
     again = run_cli(*args, "run.progress=true", env=env)  # a result-neutral option may differ
     assert again.returncode == 0, again.stderr[-3000:]
     assert again.stdout.count("finished already; skipped") == 1
     assert (jobs[0] / "metrics.json").stat().st_mtime_ns == stamps[0]  # not run again
     assert json.loads((jobs[1] / "metrics.json").read_text())["status"] == "finished"
+    assert not (jobs[1] / "failure.json").exists()  # the interrupted job ran again, in place
     other = run_cli(*args[:-1], "enhance.tiles=4", f"hydra.sweep.dir={sweep}", env=env)  # another config
     assert "skipped" not in other.stdout

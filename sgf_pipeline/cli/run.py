@@ -19,6 +19,7 @@ from omegaconf import DictConfig, open_dict
 from sgf_pipeline.cli.common import console, friendly_errors, raise_terminated
 from sgf_pipeline.config import config_dir
 from sgf_pipeline.outputs import taken_back
+from sgf_pipeline.run_directory import RunDirectory
 from sgf_pipeline.runner import Pipeline, plain_config
 
 log = logging.getLogger("sgf_pipeline")
@@ -111,6 +112,10 @@ def app(cfg: DictConfig) -> float | None:
             print(f"sgf-run: {run_dir} finished already; skipped (run.overwrite=true runs it again)", flush=True)
             value = done.get("ate_rmse_m", {}).get("sgf")
             return float(value) if value is not None else None
+        if not (run_dir / "metrics.json").exists() and RunDirectory(run_dir, overwrite=True).interrupted_files():
+            log.warning("%s holds this job's run that did not finish; the sweep run again replaces it", run_dir)
+            with open_dict(cfg):
+                cfg.run.overwrite = True
     pipeline = Pipeline.from_config(cfg, run_dir=run_dir)
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, raise_terminated)
