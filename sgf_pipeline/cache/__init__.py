@@ -11,7 +11,7 @@ the core, the stage's own identity (a weights file's hash), and the numeric libr
 An entry is a folder ``<kind>/<key>/`` of the cache's folder (``run.cache_dir``, by default
 ``~/.cache/sgf_pipeline/stages``): ``manifest.json`` (the key's components, sizes and
 checksums: readable), ``records.jsonl`` (one JSON line per frame, :mod:`~sgf_pipeline.cache.codec`),
-``arrays.zip`` (the arrays, ``.npy`` members read without pickle) and ``effects.json`` (what the stage
+``arrays.zip`` (the arrays, zstd-compressed ``.npy`` members read without pickle) and ``effects.json`` (what the stage
 put into the run context at ``begin`` and ``finalize``). An entry is written in a temporary folder
 and renamed into place when its run has finished, so a reader sees whole entries only, and of two
 jobs filling the same key one entry stays. A damaged entry is removed with a warning and

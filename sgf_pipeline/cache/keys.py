@@ -18,7 +18,7 @@ from sgf_pipeline.run_info import StageNode
 from sgf_pipeline.stage import Stage
 
 #: Version of the entry format; part of every key.
-FORMAT = 1
+FORMAT = 2
 #: Distributions whose versions are part of every key (their numerics make the outputs).
 LIBRARIES = ("numpy", "torch", "opencv-python-headless", "kornia", "scipy", "onnxruntime", "pydantic")
 #: Files at most this large are identified by their content's hash, larger ones by size and time.
