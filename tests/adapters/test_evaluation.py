@@ -345,14 +345,3 @@ def test_bag_topics_are_found_with_or_without_the_leading_slash(shared_data: Pat
     assert find_topic(["/odom"], "odom", bag) == "/odom" and find_topic(["/odom"], "odometry", bag) is None
     with pytest.raises(DataError, match=r"no topic /nothing; topics with poses .*: S-PTAM, groundtruth"):
         read_bag_trajectory(bag, "/nothing")
-
-
-def test_evo_s_ros_example_bag_by_its_topic_names(shared_data: Path, tmp_path: Path):
-    """evo 1.38.1 `evo_ape bag ROS_example.bag groundtruth S-PTAM -a`: RMSE 6.316710 m over 1667 pairs."""
-    bag = shared_data / "evo" / "ROS_example.bag"
-    if not bag.is_file():
-        pytest.skip(f"{bag} (evo's test/data/ROS_example.bag) is not in the real data folder")
-    for reference, estimate in ((f"{bag}:groundtruth", f"{bag}:/S-PTAM"), (f"{bag}:/groundtruth", f"{bag}:S-PTAM")):
-        proc = _eval_cli(tmp_path, reference, estimate)
-        assert proc.returncode == 0, proc.stderr
-        assert "  ATE (m)                 6.316710" in proc.stdout and "1667 pose pairs matched" in proc.stdout
