@@ -155,8 +155,8 @@ def _params_of(node: StageNode) -> dict[str, Any]:
     return params.model_dump(mode="json") if hasattr(params, "model_dump") else {}
 
 
-def dataset_components(node: StageNode, options: RunOptions, read_ahead: float) -> dict[str, Any]:
-    """What the dataset's keyframes depend on: the dataset, its files and code, the runner's keyframe options."""
+def _node_components(node: StageNode) -> dict[str, Any]:
+    """What any stage's outputs depend on: its variant, parameters and the files they name, identity, code."""
     stage = node.stage
     params = _params_of(node)
     return {
@@ -167,32 +167,25 @@ def dataset_components(node: StageNode, options: RunOptions, read_ahead: float) 
         "identity": stage.cache_identity(),
         "code": code_fingerprint(type(stage).__module__),
         "core": core_fingerprint(),
-        "runner": {
-            "keyframe_distance": options.keyframe_distance,
-            "keyframe_angle": options.keyframe_angle,
-            "max_frames": options.max_frames,
-            "read_ahead": read_ahead,
-            "read_ahead_seconds": options.read_ahead_seconds if read_ahead > 0.0 else None,
-        },
         "libraries": library_versions(),
     }
+
+
+def dataset_components(node: StageNode, options: RunOptions, read_ahead: float) -> dict[str, Any]:
+    """What the dataset's keyframes depend on: the dataset, its files and code, the runner's keyframe options."""
+    runner = {
+        "keyframe_distance": options.keyframe_distance,
+        "keyframe_angle": options.keyframe_angle,
+        "max_frames": options.max_frames,
+        "read_ahead": read_ahead,
+        "read_ahead_seconds": options.read_ahead_seconds if read_ahead > 0.0 else None,
+    }
+    return {**_node_components(node), "runner": runner}
 
 
 def stage_components(node: StageNode, input_keys: Mapping[str, str | None]) -> dict[str, Any]:
     """What a cacheable stage's outputs depend on: its variant, parameters, code, identity and inputs' keys."""
-    stage = node.stage
-    params = _params_of(node)
-    return {
-        "format": FORMAT,
-        "stage": node.label,
-        "params": params,
-        "paths": param_paths(params),
-        "identity": stage.cache_identity(),
-        "code": code_fingerprint(type(stage).__module__),
-        "core": core_fingerprint(),
-        "inputs": dict(input_keys),
-        "libraries": library_versions(),
-    }
+    return {**_node_components(node), "inputs": dict(input_keys)}
 
 
 def cacheable_nodes(order: list[StageNode]) -> list[StageNode]:

@@ -147,31 +147,25 @@ class CachePlan:
 
     def begin(self, node: StageNode, context: RunContext) -> None:
         """The stage's ``begin``, or its recorded changes to the context on a hit."""
-        entry = self.frames_entry if isinstance(node.stage, Dataset) else self.hits.get(node.kind)
-        if entry is not None:
-            changes = entry.changes("begin")
-            if changes:
-                apply_changes(changes, context)
-            return
-        writer = self.frames_writer if isinstance(node.stage, Dataset) else self.writers.get(node.kind)
-        before = ContextSnapshot.of(context) if writer is not None else None
-        node.stage.begin(context)
-        if writer is not None and before is not None:
-            writer.record_effects("begin", before.changes(context))
+        self._run_or_replay(node, context, "begin")
 
     def finalize(self, node: StageNode, context: RunContext) -> None:
         """The stage's ``finalize``, or its recorded changes to the context on a hit."""
-        entry = self.frames_entry if isinstance(node.stage, Dataset) else self.hits.get(node.kind)
+        self._run_or_replay(node, context, "finalize")
+
+    def _run_or_replay(self, node: StageNode, context: RunContext, phase: str) -> None:
+        dataset = isinstance(node.stage, Dataset)
+        entry = self.frames_entry if dataset else self.hits.get(node.kind)
         if entry is not None:
-            changes = entry.changes("finalize")
+            changes = entry.changes(phase)
             if changes:
                 apply_changes(changes, context)
             return
-        writer = self.frames_writer if isinstance(node.stage, Dataset) else self.writers.get(node.kind)
+        writer = self.frames_writer if dataset else self.writers.get(node.kind)
         before = ContextSnapshot.of(context) if writer is not None else None
-        node.stage.finalize(context)
+        getattr(node.stage, phase)(context)
         if writer is not None and before is not None:
-            writer.record_effects("finalize", before.changes(context))
+            writer.record_effects(phase, before.changes(context))
 
     def cached_output(self, node: StageNode, frame: Frame, values: Mapping[str, Any]) -> tuple[bool, Any]:
         """``(True, output)`` of a stage that hits, read for this frame; ``(False, None)`` otherwise."""
