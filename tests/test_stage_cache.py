@@ -427,3 +427,17 @@ def test_a_run_that_skips_frames_keeps_no_entry(toy, tmp_path: Path) -> None:  #
             pipeline.process(frame)
     assert pipeline.finish()["cache"]["misses"] == ["consumer", "enhance", "gate", "measure"]
     assert StageCache(tmp_path / "cache", 10**12).entries() == []
+
+
+def test_the_run_summary_says_how_many_stages_came_from_the_cache() -> None:
+    from sgf_pipeline.cli.run import summary
+
+    metrics: dict[str, Any] = {"sequence": "toy", "ate_rmse_m": {"odometry": 2.0, "sgf": 0.5}}
+    metrics |= {"sgf": {"detected": 3, "total": 4}, "loops": dict.fromkeys(("pairs_found", "closed"), None)}
+    metrics["loops"] |= dict.fromkeys(("pairs_total", "pairs_found_reverse", "pairs_total_reverse"), None)
+    metrics["loops"] |= dict.fromkeys(("closed_reverse", "false_closed"), None)
+    assert "from the cache" not in summary(metrics, Path("nowhere"))
+    metrics["cache"] = {"hits": ["ipm", "saliency"], "misses": ["detector"], "dataset_from_cache": False}
+    assert "stages from the cache       2 of 3\n" in summary(metrics, Path("nowhere"))
+    metrics["cache"] = {"hits": ["ipm", "saliency"], "misses": [], "dataset_from_cache": True}
+    assert "stages from the cache       2 of 2, no image read" in summary(metrics, Path("nowhere"))

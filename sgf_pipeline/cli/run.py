@@ -56,6 +56,11 @@ def summary(metrics: dict[str, Any], run_dir: Path) -> str:
         ("frames/s, real-time factor", f"{_fmt(timing.get('fps'), '.1f')}, {_fmt(timing.get('realtime_factor'))}"),
         ("peak RSS (MiB)", _fmt(metrics.get("peak_rss_mb"), ".0f")),
     ]
+    cache = metrics.get("cache")
+    if cache:
+        hits, total = len(cache["hits"]), len(cache["hits"]) + len(cache["misses"])
+        unread = ", no image read" if cache["dataset_from_cache"] else ""
+        rows.append(("stages from the cache", f"{hits} of {total}{unread}"))
     width = max(len(k) for k, _ in rows)
     lines = [f"  {k:<{width}}  {v}" for k, v in rows]
     names = ("metrics.json", "report.md", "trajectory.png", "loops.csv")
