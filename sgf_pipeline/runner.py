@@ -116,7 +116,7 @@ class Pipeline:
         plugins: LoadedPlugins | None = None,
     ) -> Pipeline:
         """Build a pipeline from a composed config (a DictConfig or a plain mapping)."""
-        raw = _to_plain(cfg)
+        raw = plain_config(cfg)
         config = parse_config(raw)
         if plugins is None:
             plugins = load_plugins(allow=config.plugins.allow, block=config.plugins.block)
@@ -152,8 +152,10 @@ class Pipeline:
             store = StageCache(root, int(self.config.run.cache_max_gb * 1e9))
             self.cache = CachePlan.build(store, self.order, self.config.run, self.read_ahead)
             self.reader.load_images = not self.cache.hits
-        cached = self.cache is not None and self.cache.dataset_from_cache
-        self.info.total_frames = self.cache.reading["total_frames"] if self.cache and cached else len(self.dataset)
+        if self.cache is not None and self.cache.dataset_from_cache:
+            self.info.total_frames = self.cache.reading["total_frames"]
+        else:
+            self.info.total_frames = len(self.dataset)
         for node in self.order:
             if self.cache is not None:
                 self.cache.begin(node, self.context)
@@ -285,14 +287,11 @@ class Pipeline:
         distance = self.read_ahead
         self.begin(cache=True)
         cache = self.cache
-        source = (
-            self._cached_frames(cache)
-            if cache is not None and cache.dataset_from_cache
-            else self.reader.frames(distance)
-        )
+        filling = cache if cache is not None and not cache.dataset_from_cache else None
+        source = self.reader.frames(distance) if cache is None or filling else self._cached_frames(cache)
         for frame in source:
-            if cache is not None and not cache.dataset_from_cache:
-                cache.keep_frame(frame, self.context, self.info.frames_seen)
+            if filling is not None:
+                filling.keep_frame(frame, self.context, self.info.frames_seen)
             self._yielded = frame
             self._given += 1
             yield frame
@@ -455,10 +454,6 @@ class PoseLog:
 
 def plain_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
     """A composed config as the plain, resolved mapping a run saves as ``config.yaml`` (without ``hydra``)."""
-    return _to_plain(cfg)
-
-
-def _to_plain(cfg: Mapping[str, Any]) -> dict[str, Any]:
     from omegaconf import DictConfig, OmegaConf
     from omegaconf.errors import OmegaConfBaseException
 

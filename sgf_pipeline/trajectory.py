@@ -163,12 +163,18 @@ def _check_ended(path: Path, text: str) -> None:
         )
 
 
-def _check_quaternions(path: Path, quaternions: np.ndarray, lines: list[int], order: str) -> None:
-    """Refuse quaternions whose length is off 1 by more than :data:`QUATERNION_TOLERANCE` (zero or NaN: later)."""
+def _off_unit_length(quaternions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Which finite, non-zero quaternions are off unit length beyond :data:`QUATERNION_TOLERANCE`; their lengths."""
     with np.errstate(over="ignore", invalid="ignore"):
         norms = np.linalg.norm(quaternions, axis=1)
         off = np.abs(norms - 1.0)
-    bad = np.flatnonzero(np.isfinite(norms) & (norms > _MIN_QUATERNION_NORM) & (off > QUATERNION_TOLERANCE))
+    return np.isfinite(norms) & (norms > _MIN_QUATERNION_NORM) & (off > QUATERNION_TOLERANCE), norms
+
+
+def _check_quaternions(path: Path, quaternions: np.ndarray, lines: list[int], order: str) -> None:
+    """Refuse quaternions whose length is off 1 by more than :data:`QUATERNION_TOLERANCE` (zero or NaN: later)."""
+    mask, norms = _off_unit_length(quaternions)
+    bad = np.flatnonzero(mask)
     if bad.size:
         i = int(bad[0])
         values = " ".join(f"{v:.9g}" for v in quaternions[i])
@@ -259,9 +265,8 @@ def parse_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray, lis
     off unit length (beyond :data:`QUATERNION_TOLERANCE`) gives a NaN pose, as a zero one does.
     """
     data, lines = _tum_rows(Path(path), whole=False)
-    off = np.abs(np.linalg.norm(np.nan_to_num(data[:, 4:8], nan=0.0, posinf=0.0, neginf=0.0), axis=1) - 1.0)
-    poses = _tum_poses(data)
-    poses[off > QUATERNION_TOLERANCE, :3, :3] = np.nan
+    poses = _tum_poses(data)  # a zero or non-finite quaternion gives a NaN rotation already
+    poses[_off_unit_length(data[:, 4:8])[0], :3, :3] = np.nan
     return data[:, 0].copy(), poses, lines
 
 

@@ -95,7 +95,6 @@ class CachePlan:
     """
 
     cache: StageCache
-    keys: dict[str, str]
     hits: dict[str, Entry] = field(default_factory=dict)
     writers: dict[str, EntryWriter] = field(default_factory=dict)
     frames_entry: Entry | None = None
@@ -112,12 +111,12 @@ class CachePlan:
         keys = {dataset.kind: digest(data_components)}
         components: dict[str, dict[str, Any]] = {}
         producers = {n.output: n.kind for n in order}
-        for node in cacheable_nodes(order):
+        nodes = cacheable_nodes(order)
+        for node in nodes:
             inputs = {spec.parameter: keys.get(producers.get(source, "")) for spec, source in node.inputs}
             components[node.kind] = stage_components(node, inputs)
             keys[node.kind] = digest(components[node.kind])
-        plan = cls(cache, keys)
-        nodes = cacheable_nodes(order)
+        plan = cls(cache)
         found = {node.kind: cache.lookup(node.kind, keys[node.kind]) for node in nodes}
         for node in reversed(nodes):  # a stage's readers before the stage
             entry = found[node.kind]

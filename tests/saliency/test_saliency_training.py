@@ -157,7 +157,7 @@ def test_crops_and_fine_tuning_from_weights(toy_folder: Path, tmp_path: Path) ->
     tuned = train_model(
         "ldf", arch, 64, data, opts.model_copy(update={"init_weights": str(start), "lr": 1e-12}), tmp_path / "tuned"
     )
-    assert tuned["training"]["init_weights_sha256"] == training.file_sha256(start)
+    assert tuned["training"]["init_weights_sha256"] == training.file_hash(start)
     # the card keeps the first run's record: its command, epochs and history
     init = tuned["training"]["init_from"]
     assert init["epochs_run"] == 1 and init["options"]["crop"] == 32 and len(init["history"]) == 1

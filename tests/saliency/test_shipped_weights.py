@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 from sgf_plugins.saliency.metrics import SodMetrics
 from sgf_plugins.saliency.stages import LEARNED_VARIANTS, default_architecture
-from sgf_plugins.saliency.weights import default_weights_path, file_sha256
+from sgf_plugins.saliency.weights import default_weights_path
 
 from sgf_pipeline import load_plugins
+from sgf_pipeline.cache import file_hash
 from sgf_pipeline.types import Bev, SaliencyMap
 
 LEARNED = [cls.name for cls in LEARNED_VARIANTS]
@@ -26,7 +27,7 @@ def test_the_shipped_weights_match_their_model_card(model: str) -> None:
     assert weights.is_file(), f"{weights} is not shipped"
     card = json.loads(weights.with_suffix(".json").read_text())
     assert card["model"] == model and card["architecture"] == default_architecture(model)
-    assert card["weights_sha256"] == file_sha256(weights) and card["weights_bytes"] == weights.stat().st_size
+    assert card["weights_sha256"] == file_hash(weights) and card["weights_bytes"] == weights.stat().st_size
     assert card["data"]["train_used"] > 500 and card["training"]["epochs_run"] >= 3
     for split in ("val", "test", "test_heldout"):
         assert 0.0 < card["metrics"][split]["maxF"] <= 1.0 and 0.0 <= card["metrics"][split]["mae"] < 0.2

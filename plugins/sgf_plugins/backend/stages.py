@@ -338,9 +338,10 @@ class _GraphBackend(_Backend):
         super().finalize(context)
         params = self.params
         assert isinstance(params, GraphParams)
-        if params.graph == "g2o" and context.run_dir is not None and self.graph.nodes:
+        path = context.path(GRAPH_FILE)
+        if params.graph == "g2o" and path is not None and self.graph.nodes:
             text, vertices, edges = self.graph.g2o()
-            atomic_write_text(Path(context.run_dir) / GRAPH_FILE, text)
+            atomic_write_text(path, text)
             written = {"file": GRAPH_FILE, "format": "g2o", "vertices": vertices, "edges": edges}
             context.metrics.setdefault("backend", {})["graph"] = written
 

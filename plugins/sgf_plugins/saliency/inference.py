@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import cv2
 import numpy as np
 
-from sgf_pipeline.cache import caches_root
+from sgf_pipeline.cache import caches_root, file_hash
 from sgf_pipeline.errors import DataError
 from sgf_plugins.saliency.data import as_rgb, normalize_image
 
@@ -96,10 +96,8 @@ def onnx_cache_path(model: str, arch: Mapping[str, Any], weights: Path, input_si
     """A cache file name that changes with the weights' bytes, the architecture, the input size and torch."""
     import torch
 
-    from sgf_plugins.saliency.weights import file_sha256
-
     key = json.dumps(
-        {"arch": dict(arch), "weights": file_sha256(weights), "size": input_size, "torch": torch.__version__},
+        {"arch": dict(arch), "weights": file_hash(weights), "size": input_size, "torch": torch.__version__},
         sort_keys=True,
     )
     digest = hashlib.sha256(key.encode()).hexdigest()[:16]

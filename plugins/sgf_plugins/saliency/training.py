@@ -23,6 +23,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
+from sgf_pipeline.cache import file_hash
 from sgf_pipeline.errors import ConfigError, DataError
 from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text
 from sgf_plugins.saliency.data import (
@@ -39,7 +40,6 @@ from sgf_plugins.saliency.metrics import SodMetrics
 from sgf_plugins.saliency.models import build_model
 from sgf_plugins.saliency.weights import (
     describe_arch,
-    file_sha256,
     load_weights,
     read_metadata,
     save_weights,
@@ -456,7 +456,7 @@ def train_model(
         "parameters": parameters,
         "input_size": size,
         "weights": weights_path.name,
-        "weights_sha256": file_sha256(weights_path),
+        "weights_sha256": file_hash(weights_path),
         "weights_bytes": weights_path.stat().st_size,
         "weights_dtype": "float16 (large tensors), float32 (others)" if opts.half_weights else "float32",
         "command": command,
@@ -483,7 +483,7 @@ def train_model(
             "lr": opts.lr,
             "threads": torch.get_num_threads(),
             "options": opts.model_dump(),
-            "init_weights_sha256": file_sha256(Path(opts.init_weights)) if opts.init_weights else None,
+            "init_weights_sha256": file_hash(Path(opts.init_weights)) if opts.init_weights else None,
             "init_from": _init_provenance(opts.init_weights, model),
             "history": progress["history"],
         },

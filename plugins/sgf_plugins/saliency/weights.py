@@ -8,7 +8,6 @@ No pickle is ever read: tensors come from safetensors, everything else from JSON
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Mapping
 from pathlib import Path
@@ -50,15 +49,6 @@ def how_to_fix(model: str, arch: Mapping[str, Any]) -> str:
         f"`saliency.weights=<run dir>/{model}.safetensors` to it (or copy it to {default_weights_path(model)}), "
         f"or point `saliency.weights=` to a file trained for this architecture"
     )
-
-
-def file_sha256(path: Path) -> str:
-    """SHA-256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def save_weights(
