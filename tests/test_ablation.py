@@ -73,8 +73,8 @@ def test_the_leave_one_out_experiment_sweeps_every_ablation_on_the_evaluation_se
         cfg = compose("config", overrides=["+experiment=leave_one_out"], return_hydra_config=True)
         params = cfg.hydra.sweeper.params
         assert sorted(params["+ablate"].split(",")) == NAMES
-        assert params["dataset.seed"] == "201,202,203"  # the robustness suite's evaluation seeds
-        assert params["dataset"] == "campus_large_loop,campus_reverse_slope"
+        assert params["dataset.seed"] == "301,302,303"  # the robustness suite's evaluation seeds
+        assert params["dataset"] == "campus_reverse_slope,campus_large_loop"
         paper = compose("config", overrides=["+experiment=paper"])
         assert (
             paper.run.tag == "ablate/paper"

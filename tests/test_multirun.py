@@ -57,7 +57,9 @@ def test_sweep_over_a_stage_parameter(launcher: str, toy_plugin_site: Path, tmp_
     shutil.rmtree(ray_tmp, ignore_errors=True)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     jobs = sorted(p for p in sweep.iterdir() if p.is_dir() and (p / "metrics.json").exists())
-    assert [j.name.split("_")[0] for j in jobs] == ["0", "1"]
+    # a job's folder is named by its overrides alone (no job number): any sweep holding it finds it
+    assert ["enhance.clip_limit=1.0" in j.name for j in jobs] == [True, False]
+    assert ["enhance.clip_limit=3.0" in j.name for j in jobs] == [False, True]
     clip_limits = []
     for job in jobs:
         metrics = json.loads((job / "metrics.json").read_text())
@@ -172,5 +174,10 @@ def test_a_sweep_run_again_skips_its_finished_jobs(toy_plugin_site: Path, tmp_pa
     assert (jobs[0] / "metrics.json").stat().st_mtime_ns == stamps[0]  # not run again
     assert json.loads((jobs[1] / "metrics.json").read_text())["status"] == "finished"
     assert not (jobs[1] / "failure.json").exists()  # the interrupted job ran again, in place
+    # another sweep that holds one finished job, in another order, skips it and runs only the new one
+    wider = run_cli(*[a.replace("1.0,3.0", "5.0,3.0") for a in args], env=env)
+    assert wider.returncode == 0, wider.stderr[-3000:]
+    assert wider.stdout.count("finished already; skipped") == 1
+    assert len([p for p in sweep.iterdir() if (p / "metrics.json").exists()]) == 3
     other = run_cli(*args[:-1], "enhance.tiles=4", f"hydra.sweep.dir={sweep}", env=env)  # another config
     assert "skipped" not in other.stdout
