@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
+import queue
+import threading
 import time
 from collections import Counter, deque
 from collections.abc import Iterable, Iterator
@@ -162,6 +165,65 @@ class DatasetReader:
                     ) from exc
             self.info.dataset_seconds += time.perf_counter() - t0
             yield frame, key
+
+
+#: Keyframes the reading thread may hold ready ahead of the one being processed.
+READ_DEPTH = 4
+_COUNTS = ("frames_seen", "dataset_seconds", "first_timestamp", "last_timestamp")
+
+
+def read_in_background(reader: DatasetReader, distance: float, depth: int = READ_DEPTH) -> Iterator[Frame]:
+    """The reader's keyframes, read (decoded or rendered) by a thread up to ``depth`` keyframes ahead.
+
+    Reading and processing overlap on two cores; the keyframes, their order and their contents are
+    those of :meth:`DatasetReader.frames`. The thread counts into its own copy of the run's
+    counters, and each keyframe brings the counts as they stood when it was read, so the run sees
+    the counts of a reading in its own thread. The dataset is only touched by the thread.
+    """
+    own_info = dataclasses.replace(reader.info)
+    own_drops = FrameDrops()
+    own_drops.by_reason.update(reader.drops.by_reason)
+    own = DatasetReader(reader.dataset_node, own_info, reader.options, own_drops)
+    own.last_key, own.load_images = reader.last_key, reader.load_images
+    ready: queue.Queue[tuple[Any, dict[str, Any], Counter[str]]] = queue.Queue(maxsize=depth)
+    stop = threading.Event()
+    end = object()
+
+    def put(item: Any) -> bool:
+        counts = {name: getattr(own_info, name) for name in _COUNTS}
+        while not stop.is_set():
+            try:
+                ready.put((item, counts, Counter(own_drops.by_reason)), timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def read() -> None:
+        try:
+            for frame in own.frames(distance):
+                if not put(frame):
+                    return
+            put(end)
+        except BaseException as exc:  # handed to the caller, raised there
+            put(exc)
+
+    thread = threading.Thread(target=read, name="sgf-reading", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item, counts, drops = ready.get()
+            for name, value in counts.items():
+                setattr(reader.info, name, value)
+            reader.drops.by_reason = drops
+            if item is end:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        thread.join(timeout=10.0)
 
 
 def read_ahead(frames: Iterable[tuple[Frame, bool]], distance: float, max_seconds: float = math.inf) -> Iterator[Frame]:

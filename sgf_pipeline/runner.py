@@ -26,7 +26,7 @@ from sgf_pipeline.config import (
 )
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.errors import CacheError, ConfigError, StageError
-from sgf_pipeline.reading import DatasetReader, FrameDrops, frame_problem
+from sgf_pipeline.reading import DatasetReader, FrameDrops, frame_problem, read_in_background
 from sgf_pipeline.reading import read_ahead as read_ahead
 from sgf_pipeline.registry import LoadedPlugins, load_plugins
 from sgf_pipeline.run_directory import LOCK_FILE as LOCK_FILE
@@ -288,7 +288,12 @@ class Pipeline:
         self.begin(cache=True)
         cache = self.cache
         filling = cache if cache is not None and not cache.dataset_from_cache else None
-        source = self.reader.frames(distance) if cache is None or filling else self._cached_frames(cache)
+        if cache is not None and not filling:
+            source = self._cached_frames(cache)
+        elif self.reader.load_images:  # the images read by a thread while the stages work
+            source = read_in_background(self.reader, distance)
+        else:  # images loaded when a stage reads them, in this thread
+            source = self.reader.frames(distance)
         for frame in source:
             if filling is not None:
                 filling.keep_frame(frame, self.context, self.info.frames_seen)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import threading
 from dataclasses import replace
 from pathlib import Path
 
@@ -300,3 +301,72 @@ def test_the_run_files_are_written_from_a_read_only_view_of_the_pipeline(plugins
     metrics = outputs.collect_metrics(view, dict(view.recorded))
     assert metrics["stages"] == {"dataset": "figure_eight", "backend": "trust_odometry"}
     assert metrics["ate_rmse_m"]["odometry"] is not None and metrics["runner"] == view.dropped
+
+
+def _keyframes_as_read(pipeline: Pipeline) -> list[tuple[int, int, float, float, int]]:
+    """Each keyframe with the run's counts as it comes: index, frames seen, last time, first pixel, drops."""
+    return [
+        (
+            f.index,
+            pipeline.info.frames_seen,
+            pipeline.info.last_timestamp,
+            int(f.image[0, 0]),
+            sum(pipeline.drops.by_reason.values()),
+        )
+        for f in pipeline.frames()
+    ]
+
+
+def _with_a_bad_frame(frames, readers: list[str]):
+    """The figure eight with frame 5's timestamp non-finite (dropped by the reader), noting who read each frame."""
+    for frame in frames():
+        readers.append(threading.current_thread().name)
+        if frame.index == 5:
+            frame.timestamp = float("nan")
+        yield frame
+
+
+def test_a_thread_reads_the_keyframes_ahead_and_the_run_sees_what_a_reading_in_its_own_thread_sees(plugins):
+    cfg = config(enhance={"name": "none"})
+    cfg["dataset"]["frames"] = 120
+    cfg["run"]["keyframe_distance"] = 1.0
+    seen: dict[bool, list] = {}
+    readers: dict[bool, list[str]] = {True: [], False: []}
+    for threaded in (True, False):
+        pipeline = Pipeline.from_config(cfg, plugins=plugins)
+        frames = pipeline.dataset.frames
+        pipeline.dataset.frames = lambda frames=frames, r=readers[threaded]: _with_a_bad_frame(frames, r)  # type: ignore[method-assign]
+        pipeline.reader.load_images = threaded  # without images loaded as read, the reading stays in this thread
+        seen[threaded] = _keyframes_as_read(pipeline)
+        assert pipeline.info.frames_seen == 120 and pipeline.drops.by_reason == {"non-finite timestamp": 1}
+    assert seen[True] == seen[False]
+    assert 40 < len(seen[True]) < 120 and seen[True][0][:2] == (0, 1)
+    assert set(readers[True]) == {"sgf-reading"} and set(readers[False]) == {threading.current_thread().name}
+
+
+def test_a_dataset_failing_in_the_reading_thread_fails_the_run_with_its_message(plugins):
+    pipeline = Pipeline.from_config(config(enhance={"name": "none"}), plugins=plugins)
+    frames = pipeline.dataset.frames
+
+    def failing():
+        for frame in frames():
+            if frame.index == 7:
+                raise OSError("disk gone")
+            yield frame
+
+    pipeline.dataset.frames = failing  # type: ignore[method-assign]
+    with pytest.raises(StageError, match=r"failed after 7 frame\(s\): OSError: disk gone"):
+        pipeline.run()
+    assert not [t for t in threading.enumerate() if t.name == "sgf-reading"]
+
+
+def test_stopping_early_stops_the_reading_thread(plugins):
+    cfg = config(enhance={"name": "none"})
+    cfg["dataset"]["frames"] = 200
+    pipeline = Pipeline.from_config(cfg, plugins=plugins)
+    frames = pipeline.frames()
+    assert next(frames).index == 0
+    assert [t.name for t in threading.enumerate()].count("sgf-reading") == 1
+    frames.close()
+    assert not [t for t in threading.enumerate() if t.name == "sgf-reading"]
+    assert pipeline.info.frames_seen < 200  # the thread read at most its queue's depth ahead
