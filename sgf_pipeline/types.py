@@ -323,6 +323,8 @@ class OdometryScale:
     measurements behind it. The back-end multiplies each new odometry step's translation by ``factor``.
     ``yaw_bias`` (rad/m) is the odometry's heading bias (it turns that much more to the left per metre
     than the ground does) and ``yaw_bias_sigma`` its standard deviation (inf while unmeasured).
+    ``sigma_xy`` (m/sqrt(m)) and ``sigma_yaw`` (rad/sqrt(m)) are the odometry's distance and heading
+    random walks as measured, upper bounds with their uncertainty (inf while unmeasured).
     """
 
     factor: float
@@ -330,6 +332,22 @@ class OdometryScale:
     pairs: int
     yaw_bias: float = 0.0
     yaw_bias_sigma: float = math.inf
+    sigma_xy: float = math.inf
+    sigma_yaw: float = math.inf
+
+
+@dataclass(frozen=True)
+class OdometryDrift:
+    """The odometry's errors left in the back-end's estimate, as measured so far (None: not measured).
+
+    ``scale_error`` (a fraction of the distance) is the uncertainty of the scale factor the back-end
+    applies; ``sigma_xy`` (m/sqrt(m)) and ``sigma_yaw`` (rad/sqrt(m)) are the random walks of the
+    odometry's distance and heading. The gates size their drift by them, by their priors where None.
+    """
+
+    scale_error: float | None = None
+    sigma_xy: float | None = None
+    sigma_yaw: float | None = None
 
 
 @dataclass(frozen=True)
@@ -358,6 +376,8 @@ class PoseEstimate:
     poses: Mapping[int, np.ndarray]
     #: the back-end's correction of the odometry's heading bias, None while it makes none
     yaw_bias: YawBiasCorrection | None = None
+    #: the odometry's scale error and random walks as measured, None while nothing is
+    drift: OdometryDrift | None = None
 
     @property
     def latest(self) -> np.ndarray:

@@ -39,14 +39,23 @@ from sgf_plugins.loop.params import (
     SymmetricParams,
 )
 from sgf_plugins.loop.stage import IcpLoopClosing
-from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS, drift_covariance
+from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS, drift_covariance, measured_sigmas
 from sgf_plugins.sgf.association.stage import SgfGroup
 from sgf_plugins.sgf.polar import shifted_distances
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, wrap_angle, xy_yaw
 from sgf_pipeline.stage import Settlement
-from sgf_pipeline.types import Frame, GroupAssignment, GroupAssignments, LookAlike, LoopConstraint, PoseEstimate
+from sgf_pipeline.types import (
+    Frame,
+    GroupAssignment,
+    GroupAssignments,
+    LookAlike,
+    LoopConstraint,
+    OdometryDrift,
+    OdometryScale,
+    PoseEstimate,
+)
 
 
 @pytest.fixture(scope="module")
@@ -99,12 +108,13 @@ def test_true_revisits_become_constraints_at_the_true_relative_pose(world) -> No
     # a loop also needs a neighbouring marking that agrees: the toy world's first two revisits of a stretch
     # have none behind them, and lose their loops when only earlier SGFs may vouch for them, but keep them
     # when they wait for the markings seen after them (the default); a distinct marking (like nothing else
-    # seen) vouches for itself: one of the two is (five matches in all are judged distinct). The tolerance's
-    # heading-bias term (on by default) lets a neighbour farther along the toy world's drifting odometry agree
+    # seen) vouches for itself: one of the two is (four matches in all are judged distinct under the gate's
+    # wide priors: the toy robot has no camera to measure its noise). The tolerance's heading-bias term (on by
+    # default) lets a neighbour farther along the toy world's drifting odometry agree
     cases = [
         (False, None, False, (6, 0, 2, 0)),
         (True, None, False, (8, 0, 0, 0)),
-        (False, 0, False, (7, 0, 1, 5)),
+        (False, 0, False, (7, 0, 1, 4)),
         (False, None, True, (7, 0, 1, 0)),
         (True, None, True, (8, 0, 0, 0)),
     ]
@@ -367,7 +377,7 @@ def test_anchored_distance_shrinks_once_the_estimate_has_absorbed_a_loop(world) 
 
 
 def test_the_prediction_covariance_starts_at_the_floors_and_grows_with_distance() -> None:
-    p = IcpLoopParams(gate=GateParams(sigma_yaw_deg=0.5))
+    p = IcpLoopParams(gate=GateParams(sigma_yaw_deg=0.5, scale_error=0.02))
     zero = drift_covariance(0.0, p.gate, 0.0)
     assert np.allclose(np.sqrt(np.diag(zero)), [0.5, 0.5, math.radians(3.0)])
     sigmas = [np.sqrt(np.diag(drift_covariance(d, p.gate, 0.0))) for d in (10.0, 100.0, 1000.0)]
@@ -379,6 +389,39 @@ def test_the_prediction_covariance_starts_at_the_floors_and_grows_with_distance(
     biased = np.sqrt(np.diag(drift_covariance(1000.0, p.gate, math.radians(0.07))))
     assert math.degrees(biased[2]) == pytest.approx(math.hypot(15.9, 70.0), abs=0.3)
     assert biased[0] == pytest.approx(math.hypot(161.0, 0.5 * math.radians(0.07) * 1000.0**2), abs=3.0)
+
+
+def test_the_gate_sizes_its_drift_by_the_odometrys_errors_as_measured_and_by_its_priors_before() -> None:
+    prior = GateParams()
+    assert measured_sigmas(prior, None) is prior
+    assert measured_sigmas(prior, PoseEstimate(0, {})) is prior  # a back-end that measured nothing
+    drift = OdometryDrift(scale_error=0.001, sigma_xy=0.01, sigma_yaw=math.radians(0.04))
+    measured = measured_sigmas(prior, PoseEstimate(0, {}, drift=drift))
+    assert (measured.scale_error, measured.sigma_xy) == (0.001, 0.01)
+    assert measured.sigma_yaw_deg == pytest.approx(0.04, rel=1e-12)
+    assert (measured.floor_xy, measured.floor_yaw_deg) == (
+        prior.floor_xy,
+        prior.floor_yaw_deg,
+    )  # the fit's, not the robot's
+    # the scale measured, the walks not yet: the priors for the walks
+    partly = measured_sigmas(prior, PoseEstimate(0, {}, drift=OdometryDrift(scale_error=0.001)))
+    assert (partly.scale_error, partly.sigma_xy, partly.sigma_yaw_deg) == (0.001, prior.sigma_xy, prior.sigma_yaw_deg)
+    # 100 m from the last anchor, no bias: the variance is the floor's plus each measured term's
+    d = 100.0
+    expected = 0.5**2 + (0.001 * d) ** 2 + 0.01**2 * d + math.radians(0.04) ** 2 * d**3 / 3.0
+    assert drift_covariance(d, measured, 0.0)[0, 0] == pytest.approx(expected, rel=1e-12)
+
+
+def test_the_graph_back_end_hands_the_cameras_measurements_to_the_gates() -> None:
+    backend = GtsamLmBackend(LmParams(save_map=False))
+    backend.begin(RunContext(run_dir=None))
+    assert backend._drift() is None  # no camera
+    backend.camera = OdometryScale(1.0, math.inf, 3)
+    assert backend._drift() is None  # the camera has not measured yet
+    backend.camera = OdometryScale(0.99, 0.002, 40, 0.001, 0.0005)
+    assert backend._drift() == OdometryDrift(0.002, None, None)  # the scale measured, the walks not
+    backend.camera = OdometryScale(0.99, 0.002, 40, 0.001, 0.0005, 0.01, 0.0007)
+    assert backend._drift() == OdometryDrift(0.002, 0.01, 0.0007)
 
 
 def test_the_heading_bias_bends_only_the_drive_after_the_loop_that_bridges_the_matched_frame(world) -> None:  # type: ignore[no-untyped-def]
@@ -639,7 +682,15 @@ MEASURED_BIAS = 0.07
 #: the gate's position sigma at the revisit of :func:`_revisit_with_neighbours`: 78 m of travel since frame 28
 #: (11 m to the end of the first pass, 39 m back to its start, 28 m to the arrow), by the drift model with the
 #: measured heading bias (4.14 m)
-REVISIT_GATE_SIGMA = math.sqrt(drift_covariance(78.0, IcpLoopParams().gate, math.radians(MEASURED_BIAS))[0, 0])
+#: The odometry's noise as these scenarios' camera measured it (scale error, m/sqrt(m), rad/sqrt(m)).
+MEASURED_DRIFT = OdometryDrift(0.02, 0.05, math.radians(0.1))
+REVISIT_GATE_SIGMA = math.sqrt(
+    drift_covariance(
+        78.0,
+        measured_sigmas(IcpLoopParams().gate, PoseEstimate(0, {}, drift=MEASURED_DRIFT)),
+        math.radians(MEASURED_BIAS),
+    )[0, 0]
+)
 
 
 def _measured(frames: list[Frame]) -> Callable[[Frame], PoseEstimate]:
@@ -840,12 +891,15 @@ def test_the_consensus_tolerance_counts_the_odometrys_heading_bias() -> None:
 
 
 def _bias_model(frames: list[Frame], uncorrected_deg_per_m: float) -> Callable[[Frame], PoseEstimate]:
-    """Estimates at the odometry whose back-end model measured a heading bias and took none of it off."""
+    """Estimates at the odometry whose back-end model measured a heading bias and took none of it off.
+
+    The camera measured the odometry's noise at ``MEASURED_DRIFT``.
+    """
     from sgf_pipeline.types import PoseEstimate, YawBiasCorrection
 
     model = YawBiasCorrection(None, math.inf, math.radians(uncorrected_deg_per_m))
     poses = {f.index: f.odometry for f in frames}
-    return lambda f: PoseEstimate(f.index, {k: v for k, v in poses.items() if k <= f.index}, model)
+    return lambda f: PoseEstimate(f.index, {k: v for k, v in poses.items() if k <= f.index}, model, MEASURED_DRIFT)
 
 
 def _repeated_arrows(matched_x: float):  # type: ignore[no-untyped-def]

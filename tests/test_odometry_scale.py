@@ -69,12 +69,39 @@ def test_the_estimate_is_the_median_once_enough_measurements_agree() -> None:
     stage = BevMotionScale(BevMotionParams(min_pairs=5))
     stage.begin(RunContext(run_dir=None))
     stage.errors = [0.012, 0.011, 0.013]
+    stage.yaw_rates, stage.lengths = [0.0] * 3, [1.0] * 3
+    stage._measured_from, stage._travelled = 0.0, 3.0
     assert stage.estimate() == OdometryScale(1.0, math.inf, 3)  # too few: the odometry as it is
     stage.errors += [0.012, 0.5, 0.010]  # one bad fit among them does not move the median
+    stage.yaw_rates += [0.0] * 3
+    stage.lengths += [1.0] * 3
+    stage._travelled = 6.0
     final = stage.estimate()
     assert final.factor == pytest.approx(1.0 / 1.012)
     assert 0.0 < final.sigma < 0.002
     assert final.pairs == 6
+
+
+def test_the_odometrys_random_walks_are_read_from_the_spread_of_the_measurements() -> None:
+    """Errors over L metres spread by sigma sqrt(L): the walks come back as upper bounds within their own error."""
+    rng = np.random.default_rng(7)
+    n, sigma_xy, sigma_yaw = 2000, 0.01, math.radians(0.05)
+    lengths = rng.uniform(1.0, 1.6, n)
+    stage = BevMotionScale(BevMotionParams())
+    stage.begin(RunContext(run_dir=None))
+    stage.errors = list(0.012 + rng.normal(0.0, 1.0, n) * sigma_xy / np.sqrt(lengths))
+    stage.yaw_rates = list(math.radians(0.07) + rng.normal(0.0, 1.0, n) * sigma_yaw / np.sqrt(lengths))
+    stage.lengths = list(lengths)
+    stage._measured_from, stage._travelled = 0.0, float(n)  # n independent stretches one baseline long
+    estimate = stage.estimate()
+    raised = 1.0 + 2.0 * 1.1664 / math.sqrt(n)  # the spread raised by twice its standard error
+    tolerance = 4.0 * 1.1664 / math.sqrt(n)  # four standard errors of a spread from n values
+    assert estimate.sigma_xy / raised == pytest.approx(sigma_xy, rel=tolerance)
+    assert estimate.sigma_yaw / raised == pytest.approx(sigma_yaw, rel=tolerance)
+    assert estimate.factor == pytest.approx(1.0 / 1.012, abs=4.0 * 1.2533 * sigma_xy / math.sqrt(n))
+    # views one baseline apart overlap: a quarter of the stretches leaves twice the factor's uncertainty
+    stage._travelled = n / 4.0
+    assert stage.estimate().sigma == pytest.approx(2.0 * estimate.sigma, rel=1e-12)
 
 
 def test_bad_parameters_are_refused_before_any_frame() -> None:

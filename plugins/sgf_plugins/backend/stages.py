@@ -31,7 +31,14 @@ from sgf_pipeline.io import atomic_write_text
 from sgf_pipeline.sgf_map import SgfMap, build_map, load_map, save_map
 from sgf_pipeline.stage import Settlement
 from sgf_pipeline.trajectory import Trajectory
-from sgf_pipeline.types import Frame, LoopConstraints, OdometryScale, PoseEstimate, YawBiasCorrection
+from sgf_pipeline.types import (
+    Frame,
+    LoopConstraints,
+    OdometryDrift,
+    OdometryScale,
+    PoseEstimate,
+    YawBiasCorrection,
+)
 from sgf_plugins.backend.factors import FRAME_SYMBOL, MAP_SYMBOL, NoiseSettings, X
 from sgf_plugins.backend.pose_graph import PoseGraph
 from sgf_plugins.backend.poses import PoseStore
@@ -332,6 +339,7 @@ class _GraphBackend(_Backend):
         self.loops_dropped = 0
         self.resolved = False  # settle re-solved in batch (an iSAM2 solver still holds the loops taken out)
         self.hindsight = False  # the final heading bias was taken off the whole drive
+        self.camera: OdometryScale | None = None  # the camera's newest measurement of the odometry's errors
 
     def finalize(self, context: RunContext) -> None:
         """The trajectory, metrics and map (:meth:`_Backend.finalize`), then the final pose graph if asked."""
@@ -356,6 +364,7 @@ class _GraphBackend(_Backend):
         if odometry_scale is None:
             self.graph.add_frame(frame)
         else:
+            self.camera = odometry_scale
             camera = (odometry_scale.yaw_bias, odometry_scale.yaw_bias_sigma)
             self.graph.add_frame(frame, odometry_scale.factor, camera)
         return self._add_loops(loops)
@@ -415,7 +424,7 @@ class _GraphBackend(_Backend):
 
     def estimate(self) -> PoseEstimate:
         """The current estimate of every processed frame."""
-        return PoseEstimate(self.graph.store.frames[-1], self.graph.store.snapshot(), self._yaw_bias())
+        return PoseEstimate(self.graph.store.frames[-1], self.graph.store.snapshot(), self._yaw_bias(), self._drift())
 
     def _yaw_bias(self) -> YawBiasCorrection | None:
         """The heading bias model: where it is taken off the odometry, and its uncertainty; None when not estimated."""
@@ -424,12 +433,24 @@ class _GraphBackend(_Backend):
             return None
         return YawBiasCorrection(bias.since, bias.residual_sigma, bias.uncorrected_sigma)
 
+    def _drift(self) -> OdometryDrift | None:
+        """The odometry's errors left in the estimate: the camera's, once it has measured them (else None).
+
+        The graph scales each odometry step by the camera's factor, so the scale error left is that
+        factor's uncertainty.
+        """
+        camera = self.camera
+        if camera is None or not math.isfinite(camera.sigma):
+            return None
+        walks = math.isfinite(camera.sigma_xy) and math.isfinite(camera.sigma_yaw)
+        return OdometryDrift(camera.sigma, camera.sigma_xy if walks else None, camera.sigma_yaw if walks else None)
+
     def poses(self) -> tuple[list[float], np.ndarray, PoseEstimate | None]:
         """Timestamps, poses and the latest estimate of the processed frames."""
         if not self.graph.timestamps:
             return [], np.zeros((0, 4, 4)), None
         table = self.graph.store.snapshot()
-        estimate = PoseEstimate(self.graph.store.frames[-1], table, self._yaw_bias())
+        estimate = PoseEstimate(self.graph.store.frames[-1], table, self._yaw_bias(), self._drift())
         return self.graph.timestamps, table.array(), estimate
 
     def batch_optimize(self) -> None:

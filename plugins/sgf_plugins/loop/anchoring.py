@@ -5,7 +5,8 @@ in a graph where each accepted loop that the estimate satisfies (the back-end ha
 joins its two frames at no cost; a loop that the back-end did not absorb (``backend=none``, batch
 optimisation only at the end, a loop down-weighted by the robust kernel) anchors nothing, so the
 gate stays as loose as the dead-reckoned drift. The heading bias in the drift is the back-end's
-model of it (:mod:`sgf_plugins.odometry.drift`).
+model of it, the random walks and scale error the camera's measurement of them where it has one
+(:mod:`sgf_plugins.odometry.drift`).
 
 On a prior SGF map (``matched`` is a :class:`~sgf_pipeline.sgf_map.MapDescriptor`), a match is
 an inter-session constraint (``from_map``). Before the run is anchored in the map frame there is
@@ -31,6 +32,7 @@ from sgf_plugins.odometry.drift import (
     corrected_yaw_bias,
     drift_covariance,
     mahalanobis2,
+    measured_sigmas,
     pose_error,
     uncorrected_yaw_bias,
 )
@@ -72,8 +74,9 @@ class LoopAnchoring:
         bias left when the back-end corrected the odometry over all of that (the drive from its
         ``since`` frame to ``newest``), else the bias as the back-end's model holds it.
         """
+        sigmas = measured_sigmas(self.p, estimate)
         if not self.p.bias_from_backend:
-            return drift_covariance(distance, self.p, EXPECTED_YAW_BIAS, bias_distance)
+            return drift_covariance(distance, sigmas, EXPECTED_YAW_BIAS, bias_distance)
         biased = distance if bias_distance is None else bias_distance
         bias = uncorrected_yaw_bias(estimate)
         corrected = corrected_yaw_bias(estimate)
@@ -81,7 +84,7 @@ class LoopAnchoring:
             start = self.frames.get_distance(corrected[0])
             if start is not None and self.frames.distance(newest) - start >= biased:
                 bias = corrected[1]
-        return drift_covariance(distance, self.p, bias, bias_distance)
+        return drift_covariance(distance, sigmas, bias, bias_distance)
 
     def bias_distance(self, i: int, j: int, distance: float, estimate: PoseEstimate | None) -> float | None:
         """The part of the path from frame ``i`` to the newer ``j`` that the odometry's heading bias bends.

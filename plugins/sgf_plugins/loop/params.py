@@ -91,14 +91,20 @@ class GateParams(StageParams):
     probability: float = Field(0.999, gt=0.0, lt=1.0, description="chi-square (3 dof) acceptance probability")
     floor_xy: float = Field(0.5, gt=0.0, description="prediction sigma when freshly anchored (m)")
     floor_yaw_deg: float = Field(3.0, gt=0.0, description="prediction sigma when freshly anchored (deg)")
-    sigma_xy: float = Field(0.05, ge=0.0, description="translation random walk of the drift (m per sqrt(m))")
-    sigma_yaw_deg: float = Field(
-        0.1,
+    sigma_xy: float = Field(
+        0.05,
         ge=0.0,
-        description="heading random walk of the drift (deg per sqrt(m)); the campus robot's odometry, with margin "
-        "(a robot whose heading wanders more sets its own)",
+        description="translation random walk of the drift (m per sqrt(m)) until the camera measures it "
+        "(odometry_scale, PoseEstimate.drift); a wide prior for wheel odometry",
     )
-    scale_error: float = Field(0.02, ge=0.0, description="odometry scale error (fraction of distance)")
+    sigma_yaw_deg: float = Field(
+        0.5,
+        ge=0.0,
+        description="heading random walk of the drift (deg per sqrt(m)) until the camera measures it; a wide prior",
+    )
+    scale_error: float = Field(
+        0.05, ge=0.0, description="odometry scale error (fraction of distance) until the camera measures it; wide prior"
+    )
     bias_from_backend: bool = Field(
         True,
         description="the gate counts the heading bias as the back-end's model holds it (the uncertainty left where "

@@ -7,12 +7,15 @@ heading bias ``b`` (rad/m) that bends the drive (``b d^2 / 2`` of position, ``b 
 over floors that hold right after an anchor (:func:`drift_covariance`, the loop gate). The
 association's spatial gate is the same drift as a radius, ``floor + rate d + q d^2`` with ``q`` a
 share of the bias's ``b / 2`` (:func:`drift_radius`, :func:`bias_growth`). Both gates read the
-heading bias from the back-end's model (``PoseEstimate.yaw_bias``) when it publishes one.
+heading bias from the back-end's model (``PoseEstimate.yaw_bias``) when it publishes one, and the
+loop gate its random walks and scale error as the camera measured them (``PoseEstimate.drift``,
+:func:`measured_sigmas`), its priors until then.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -48,6 +51,31 @@ class DriftSigmas(Protocol):
     @property
     def scale_error(self) -> float:
         """Odometry scale error, a fraction of the distance."""
+
+
+@dataclass(frozen=True)
+class Sigmas:
+    """Drift sigmas (:class:`DriftSigmas`) as values."""
+
+    floor_xy: float
+    floor_yaw_deg: float
+    sigma_xy: float
+    sigma_yaw_deg: float
+    scale_error: float
+
+
+def measured_sigmas(prior: DriftSigmas, estimate: PoseEstimate | None) -> DriftSigmas:
+    """The drift sigmas with the odometry's errors as measured (``PoseEstimate.drift``), the priors elsewhere."""
+    drift = None if estimate is None else estimate.drift
+    if drift is None:
+        return prior
+    return Sigmas(
+        prior.floor_xy,
+        prior.floor_yaw_deg,
+        prior.sigma_xy if drift.sigma_xy is None else drift.sigma_xy,
+        prior.sigma_yaw_deg if drift.sigma_yaw is None else math.degrees(drift.sigma_yaw),
+        prior.scale_error if drift.scale_error is None else drift.scale_error,
+    )
 
 
 def drift_covariance(

@@ -127,6 +127,8 @@ class BevMotionScale(Stage):
         self._last: np.ndarray | None = None
         self.errors: list[float] = []
         self.yaw_rates: list[float] = []
+        self.lengths: list[float] = []  # m driven between the two views of each measurement
+        self._walks: tuple[int, float, float] = (0, math.inf, math.inf)  # measurements behind, sigma_xy, sigma_yaw
         self._measured_from: float | None = None  # travel at the first measurement
         self.refused = 0
         self._flat = None
@@ -147,32 +149,51 @@ class BevMotionScale(Stage):
                 break
         self._views.append((self._travelled, odometry, view))
         if earlier is not None:
-            error = self.measure(view, earlier[1], np.linalg.inv(earlier[0]) @ odometry)
+            motion = np.linalg.inv(earlier[0]) @ odometry
+            error = self.measure(view, earlier[1], motion)
             if error is None:
                 self.refused += 1
             else:
                 self.errors.append(error.scale)
                 self.yaw_rates.append(error.yaw_rate)
+                self.lengths.append(float(np.hypot(motion[0, 2], motion[1, 2])))
                 if self._measured_from is None:
                     self._measured_from = self._travelled - self.p.baseline
         return self.estimate()
 
     def estimate(self) -> OdometryScale:
-        """The running medians of the measured errors: a factor on the odometry, and its heading bias per metre.
+        """The measured errors so far: a factor on the odometry, its heading bias per metre, its random walks.
 
-        Both are neutral (factor 1, no bias, infinite sigma) before ``min_pairs`` measurements.
+        All are neutral (factor 1, no bias, infinite sigmas) before ``min_pairs`` measurements.
         """
         n = len(self.errors)
-        if n < self.p.min_pairs:
+        if n < self.p.min_pairs or self._measured_from is None:
             return OdometryScale(1.0, math.inf, n)
-        median, sigma = _median(np.asarray(self.errors), n)
-        scale = OdometryScale(1.0 / (1.0 + median), sigma / (1.0 + median) ** 2, n)
-        if not self.p.heading or self._measured_from is None:
-            return scale
         # pairs of views overlap along the drive: count the independent stretches one baseline long
         independent = min(n, max(1.0, (self._travelled - self._measured_from) / self.p.baseline))
+        median, sigma = _median(np.asarray(self.errors), independent)
+        factor, factor_sigma = 1.0 / (1.0 + median), sigma / (1.0 + median) ** 2
+        sigma_xy, sigma_yaw = self._random_walks(independent)
+        if not self.p.heading:
+            return OdometryScale(factor, factor_sigma, n, sigma_xy=sigma_xy, sigma_yaw=sigma_yaw)
         bias, bias_sigma = _median(np.asarray(self.yaw_rates), independent)
-        return OdometryScale(scale.factor, scale.sigma, n, bias, bias_sigma)
+        return OdometryScale(factor, factor_sigma, n, bias, bias_sigma, sigma_xy, sigma_yaw)
+
+    def _random_walks(self, independent: float) -> tuple[float, float]:
+        """The odometry's distance (m/sqrt(m)) and heading (rad/sqrt(m)) random walks, upper bounds.
+
+        A measurement over ``L`` m has an error of ``sigma sqrt(L)``, so its error per metre times
+        ``sqrt(L)`` spreads by ``sigma`` (with the camera's own noise: an upper bound); the spread
+        from the median absolute deviation, raised by twice its standard error. Recomputed each
+        ``min_pairs`` measurements: the walks change slowly.
+        """
+        n = len(self.errors)
+        if n - self._walks[0] >= self.p.min_pairs or not math.isfinite(self._walks[1]):
+            root = np.sqrt(np.asarray(self.lengths))
+            upper = 1.0 + 2.0 * _MAD_SPREAD_ERROR / math.sqrt(independent)
+            walks = (_spread(np.asarray(self.errors) * root), _spread(np.asarray(self.yaw_rates) * root))
+            self._walks = (n, walks[0] * upper, walks[1] * upper)
+        return self._walks[1], self._walks[2]
 
     def measure(self, view: np.ndarray, earlier: np.ndarray, motion: np.ndarray) -> MotionError | None:
         """The odometry's errors over ``motion`` (this view's pose in the earlier one's); None if unfit."""
@@ -259,6 +280,7 @@ class BevMotionScale(Stage):
         """Write the estimate into ``metrics.json`` (``odometry_scale``)."""
         final = self.estimate()
         known = math.isfinite(final.yaw_bias_sigma)
+        walks = math.isfinite(final.sigma_xy)
         context.metrics["odometry_scale"] = {
             "factor": final.factor,
             "sigma": final.sigma if math.isfinite(final.sigma) else None,
@@ -266,6 +288,8 @@ class BevMotionScale(Stage):
             "refused": self.refused,
             "yaw_bias_deg_per_m": math.degrees(final.yaw_bias) if known else None,
             "yaw_bias_sigma_deg_per_m": math.degrees(final.yaw_bias_sigma) if known else None,
+            "sigma_xy": final.sigma_xy if walks else None,
+            "sigma_yaw_deg": math.degrees(final.sigma_yaw) if walks else None,
         }
         if self.grid != self.configured:
             g = self.grid
@@ -277,13 +301,21 @@ class BevMotionScale(Stage):
             }
 
 
+#: The standard error of a spread from the median absolute deviation, per spread and sqrt(n) (normal errors).
+_MAD_SPREAD_ERROR = 1.1664
+
+
+def _spread(values: np.ndarray) -> float:
+    """The standard deviation of ``values`` from their median absolute deviation."""
+    return 1.4826 * float(np.median(np.abs(values - np.median(values))))
+
+
 def _median(values: np.ndarray, independent: float) -> tuple[float, float]:
     """The median of ``values`` and its standard error over ``independent`` measurements.
 
     The standard error is 1.2533 sigma / sqrt(n), sigma from the median absolute deviation.
     """
-    median = float(np.median(values))
-    return median, 1.2533 * 1.4826 * float(np.median(np.abs(values - median))) / math.sqrt(independent)
+    return float(np.median(values)), 1.2533 * _spread(values) / math.sqrt(independent)
 
 
 class NoOdometryScale(Stage):
