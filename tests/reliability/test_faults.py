@@ -498,10 +498,13 @@ def test_a_sweep_with_one_failing_job_runs_the_others_and_names_the_failure(tmp_
     output = result.stdout + result.stderr
     assert result.returncode == 2, output
     assert re.search(
-        r"job 0 \(dataset=folder .*dataset.strict=True .*\) in \S*sweep/0_\S* failed: dataset=folder: frame 1", output
+        r"job 0 \(dataset=folder .*dataset.strict=True .*\) in \S*sweep/\S*strict=True\S* failed: dataset=folder: frame 1",
+        output,
     )
     assert "error: dataset=folder: frame 1 (000001.png): image" in result.stderr and "Traceback" not in output
-    failed, finished = sorted(p for p in sweep.iterdir() if p.is_dir())
+    jobs = {p.name: p for p in sweep.iterdir() if p.is_dir()}  # named by their overrides
+    (failed,) = [p for name, p in jobs.items() if "dataset.strict=True" in name]
+    (finished,) = [p for name, p in jobs.items() if "dataset.strict=False" in name]
     failure = json.loads((failed / "failure.json").read_text())
     assert failure["status"] == "failed" and "the PNG has no end chunk (truncated)" in failure["error"]
     assert failure["frames_processed"] == 1 and not (failed / "metrics.json").exists()
