@@ -98,7 +98,8 @@ def config(backend: dict[str, Any], association: dict[str, Any] | None = None, p
         "pipeline": ["dataset", "association", "loop", "backend"],
         "dataset": {"name": "toy_world"},
         "association": {"name": "oracle", **(association or {})},
-        "loop": {"name": "icp"},
+        # the toy robot has no camera to measure its odometry's noise: its datasheet's (backend_world.make_world)
+        "loop": {"name": "icp", "gate": {"sigma_xy": 0.01, "sigma_yaw_deg": 0.3, "scale_error": 0.01}},
         "backend": backend,
         "run": {"progress": False, "plots": plots},
     }

@@ -125,8 +125,8 @@ def test_the_suite_config_names_its_seeds_and_perturbations() -> None:
         evaluation = compose("config", overrides=["+experiment=robustness"], return_hydra_config=True)
         development = compose("config", overrides=["+experiment=robustness_development"], return_hydra_config=True)
         params = evaluation.hydra.sweeper.params
-        assert params["dataset.seed"] == "201,202,203"
-        assert development.hydra.sweeper.params["dataset.seed"] == "0,1,2"
+        assert params["dataset.seed"] == "301,302,303"
+        assert development.hydra.sweeper.params["dataset.seed"] == "0,1,2,201,202,203"
         names = params["+perturbation"].split(",")
         on_disk = sorted(p.stem for p in (config_dir() / "perturbation").glob("*.yaml"))
         assert sorted(names) == on_disk  # every perturbation is in the suite
