@@ -288,7 +288,7 @@ class Pipeline:
         self.begin(cache=True)
         cache = self.cache
         filling = cache if cache is not None and not cache.dataset_from_cache else None
-        if cache is not None and not filling:
+        if cache is not None and cache.dataset_from_cache:
             source = self._cached_frames(cache)
         elif self.reader.load_images:  # the images read by a thread while the stages work
             source = read_in_background(self.reader, distance)

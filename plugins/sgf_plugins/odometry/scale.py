@@ -47,10 +47,11 @@ _PARAMS = 5
 
 
 class MotionError(NamedTuple):
-    """The odometry's errors over one pair of views: relative distance error, and heading error per metre (rad/m)."""
+    """The odometry's errors over one pair of views ``length`` m apart: relative distance, heading per metre (rad/m)."""
 
     scale: float
     yaw_rate: float
+    length: float
 
 
 class BevMotionParams(StageParams):
@@ -149,14 +150,13 @@ class BevMotionScale(Stage):
                 break
         self._views.append((self._travelled, odometry, view))
         if earlier is not None:
-            motion = np.linalg.inv(earlier[0]) @ odometry
-            error = self.measure(view, earlier[1], motion)
+            error = self.measure(view, earlier[1], np.linalg.inv(earlier[0]) @ odometry)
             if error is None:
                 self.refused += 1
             else:
                 self.errors.append(error.scale)
                 self.yaw_rates.append(error.yaw_rate)
-                self.lengths.append(float(np.hypot(motion[0, 2], motion[1, 2])))
+                self.lengths.append(error.length)
                 if self._measured_from is None:
                     self._measured_from = self._travelled - self.p.baseline
         return self.estimate()
@@ -188,7 +188,7 @@ class BevMotionScale(Stage):
         ``min_pairs`` measurements: the walks change slowly.
         """
         n = len(self.errors)
-        if n - self._walks[0] >= self.p.min_pairs or not math.isfinite(self._walks[1]):
+        if n - self._walks[0] >= self.p.min_pairs:
             root = np.sqrt(np.asarray(self.lengths))
             upper = 1.0 + 2.0 * _MAD_SPREAD_ERROR / math.sqrt(independent)
             walks = (_spread(np.asarray(self.errors) * root), _spread(np.asarray(self.yaw_rates) * root))
@@ -221,7 +221,7 @@ class BevMotionScale(Stage):
         # The earlier view sampled at motion (p + shift) matches: the true motion is the odometry's less R shift,
         # and the true turn the odometry's plus the fit's.
         error = -float(xi[:2] @ (motion[:2, :2].T @ motion[:2, 2])) / length**2
-        return MotionError(error, -float(xi[2]) / length) if abs(error) <= self.p.max_error else None
+        return MotionError(error, -float(xi[2]) / length, length) if abs(error) <= self.p.max_error else None
 
     def _view(self, calibration: Calibration, pixels: np.ndarray) -> np.ndarray:
         """The near ground by plain IPM, its fine texture only (log grey, band-passed), NaN outside the view."""
