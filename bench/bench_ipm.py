@@ -34,7 +34,7 @@ from sgf_plugins.ipm import (
     bev_to_image_homography,
     visible_mask,
 )
-from sgf_plugins.ipm.accuracy import AHEAD_MC
+from sgf_plugins.ipm.stages import AHEAD_MC
 
 from sgf_pipeline.calibration import Calibration, Intrinsics, camera_to_base_from_mounting
 from sgf_pipeline.io import atomic_write_text

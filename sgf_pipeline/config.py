@@ -57,8 +57,8 @@ class RunOptions(BaseModel):
     ate_max_time_diff: float = Field(0.01, gt=0.0, description="timestamp association tolerance for ATE (s)")
     tag: str | None = Field(
         None,
-        description="a label of the run for reports; `<variant>/<severity>` for a perturbation of the robot or "
-        "world (conf/perturbation), which sgf-report's robustness table reads",
+        description="a label of the run for reports (a perturbed robot or world of the robustness suite: "
+        "`<variant>/<severity>`)",
     )
     cache: bool = Field(
         True,

@@ -18,7 +18,8 @@ class RunContext:
 
     ``metrics`` entries are merged into ``metrics.json``; ``trajectories`` named ``sgf`` (and any
     other name) are written as ``trajectory_<name>.tum``; ``artifacts`` carries objects for
-    reports (loop list, selected SGFs) between stages and observers.
+    reports (loop list, selected SGFs) between stages and observers; ``report_sections`` are
+    Markdown sections appended to the run's ``report.md``.
     """
 
     run_dir: Path | None
@@ -29,6 +30,7 @@ class RunContext:
     metrics: dict[str, Any] = field(default_factory=dict)
     trajectories: dict[str, Trajectory] = field(default_factory=dict)
     artifacts: dict[str, Any] = field(default_factory=dict)
+    report_sections: list[str] = field(default_factory=list)
 
     def path(self, name: str) -> Path | None:
         """Path of a file in the run directory, or ``None`` when the run writes no files."""

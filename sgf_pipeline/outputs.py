@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import csv
-import io
 import logging
-import math
 import traceback
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -35,49 +33,6 @@ METRIC_SKELETON: dict[str, Any] = {
         "false_closed": None,
     },
 }
-
-
-#: Columns of ``loops.csv``: one row per accepted loop, from the loop stage's ``artifacts["loops"]`` records.
-LOOP_COLUMNS = (
-    "frame_from",
-    "frame_to",
-    "time_from",
-    "time_to",
-    "reverse",
-    "from_map",
-    "position_only",
-    "group_id",
-    "x",
-    "y",
-    "yaw_deg",
-    "fitness",
-    "inlier_ratio",
-    "instance_from",
-    "instance_to",
-    "truth_error_m",
-    "truth_error_deg",
-    "true",
-)
-
-#: Columns of ``loop_candidates.csv``: every match the loop stage decided on (``artifacts["loop_candidates"]``).
-CANDIDATE_COLUMNS = (
-    "frame_from",
-    "frame_to",
-    "time_from",
-    "time_to",
-    "group_id",
-    "from_map",
-    "outcome",
-    "instance_from",
-    "instance_to",
-    "anchored_distance",
-    "gate_sigma_xy",
-    "gate_chi2",
-    "detail",
-)
-
-#: Rows of the loop table in ``report.md`` (``loops.csv`` has them all).
-REPORT_LOOP_ROWS = 30
 
 
 def _merge(base: dict[str, Any], extra: dict[str, Any]) -> dict[str, Any]:
@@ -127,15 +82,9 @@ def write_run(run: RunView, trajectories: dict[str, Trajectory], metrics: dict[s
         write_tum(run_dir / f"trajectory_{name}.tum", trajectory)
     if run.effective_config is not None:
         atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(run.effective_config, sort_keys=False))
-    loops = run.context.artifacts.get("loops")
-    if loops is not None:
-        atomic_write_text(run_dir / "loops.csv", render_loops_csv(loops))
-    candidates = run.context.artifacts.get("loop_candidates")
-    if candidates is not None:
-        atomic_write_text(run_dir / "loop_candidates.csv", render_candidates_csv(candidates))
     if run.options.plots:
-        plot_trajectories(run_dir / "trajectory.png", trajectories, metrics, loops)
-        atomic_write_text(run_dir / "report.md", render_report(metrics, loops))
+        plot_trajectories(run_dir / "trajectory.png", trajectories, metrics, run.context.artifacts.get("loops"))
+        atomic_write_text(run_dir / "report.md", render_report(metrics, run.context.report_sections))
     atomic_write_json(run_dir / "metrics.json", metrics)
 
 
@@ -181,50 +130,6 @@ def write_failure(run: RunView, status: str, exc: BaseException) -> None:
         atomic_write_json(run_dir / "failure.json", payload)
     except Exception:  # pragma: no cover - best effort while failing
         log.exception("could not record the failed run")
-
-
-def _loop_row(loop: dict[str, Any]) -> dict[str, Any]:
-    x, y, yaw = loop.get("relative_xy_yaw") or (None, None, None)
-    ids = loop.get("instance_ids") or (None, None)
-    return {
-        **{k: loop.get(k) for k in LOOP_COLUMNS},
-        "x": x,
-        "y": y,
-        "yaw_deg": None if yaw is None else math.degrees(yaw),
-        "instance_from": ids[0],
-        "instance_to": ids[1],
-    }
-
-
-def render_loops_csv(loops: list[dict[str, Any]]) -> str:
-    """``loops.csv``: the accepted loops, one per row (empty cells: unknown, e.g. no ground truth)."""
-    return _render_csv([_loop_row(loop) for loop in loops], LOOP_COLUMNS)
-
-
-def _render_csv(rows: list[dict[str, Any]], columns: tuple[str, ...]) -> str:
-    """CSV text of ``rows`` over ``columns``: empty cells for None (unknown), floats to 6 significant digits."""
-    out = io.StringIO()
-    writer = csv.DictWriter(out, fieldnames=columns, lineterminator="\n")
-    writer.writeheader()
-    for row in rows:
-        cells = {k: row.get(k) for k in columns}
-        writer.writerow({k: "" if v is None else (f"{v:.6g}" if isinstance(v, float) else v) for k, v in cells.items()})
-    return out.getvalue()
-
-
-def render_candidates_csv(candidates: list[dict[str, Any]]) -> str:
-    """``loop_candidates.csv``: each match the loop stage decided on, and its outcome.
-
-    The outcome is ``accepted`` or the test that refused it, named as in ``loops.rejected`` of
-    ``metrics.json``; a map match held for confirmation is ``map_unconfirmed`` (and has a second
-    row when it is confirmed later); an accepted loop taken back at the end, since the other loops
-    contradict it, is ``inconsistent``. A match that reached the gate also has what the gate saw:
-    the travel since a loop last anchored its two frames (m), the predicted position's sigma (m)
-    and the best fit's chi-square (3 dof; the gate passes up to ``chi2(loop.gate.probability)``).
-    ``detail`` says more where a test has parts: what the best ICP fit missed, why a match was
-    ambiguous, or how many agreeing neighbours each option of a consensus had against the number needed.
-    """
-    return _render_csv(candidates, CANDIDATE_COLUMNS)
 
 
 LoopSegment = tuple[np.ndarray, np.ndarray, bool | None]
@@ -310,8 +215,8 @@ def _fmt(value: Any, digits: int = 3) -> str:
     return str(value)
 
 
-def render_report(metrics: dict[str, Any], accepted: list[dict[str, Any]] | None = None) -> str:
-    """A short Markdown report of one run (with the ``accepted`` loops when the run has a loop stage)."""
+def render_report(metrics: dict[str, Any], sections: Sequence[str] = ()) -> str:
+    """A short Markdown report of one run, then the ``sections`` the stages added (``RunContext.report_sections``)."""
     ate = metrics.get("ate_rmse_m", {})
     sgf = metrics.get("sgf", {})
     loops = metrics.get("loops", {})
@@ -346,52 +251,4 @@ def render_report(metrics: dict[str, Any], accepted: list[dict[str, Any]] | None
         "![trajectories](trajectory.png)",
         "",
     ]
-    if accepted is not None:
-        lines += _loop_table(accepted)
-    lines += _taken_back(loops)
-    return "\n".join(lines)
-
-
-def taken_back(loops: dict[str, Any]) -> list[list[int]]:
-    """The accepted loops the consistency test took back at the end (``loops.consistency``), as frame pairs."""
-    consistency = loops.get("consistency") or {}
-    return list(consistency.get("outside_largest_set", [])) if consistency.get("dropped") else []
-
-
-def _taken_back(loops: dict[str, Any]) -> list[str]:
-    pairs = taken_back(loops)
-    if not pairs:
-        return []
-    false = loops["consistency"].get("false_outside")
-    judged = "" if false is None else f" ({false} of them false by the ground truth)"
-    listed = ", ".join(f"{a} -> {b}" for a, b in pairs)
-    return [
-        f"Taken back at the end, since the other loops contradict them through the odometry{judged}: "
-        f"frames {listed} (`loop_candidates.csv`, outcome `inconsistent`).",
-        "",
-    ]
-
-
-def _loop_table(loops: list[dict[str, Any]]) -> list[str]:
-    lines = [f"## Accepted loops ({len(loops)}; all in `loops.csv`)", ""]
-    if not loops:
-        return [*lines, "None.", ""]
-    lines += [
-        "| frames | reverse | map | x, y (m), yaw (deg) | fitness | inliers | off the truth (m, deg) | true |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for loop in loops[:REPORT_LOOP_ROWS]:
-        row = _loop_row(loop)
-        pose = "-" if row["x"] is None else f"{row['x']:.2f}, {row['y']:.2f}, {row['yaw_deg']:.1f}"
-        off = "-" if row["truth_error_m"] is None else f"{row['truth_error_m']:.2f}, {row['truth_error_deg']:.1f}"
-        if row.get("position_only"):  # a round marking's loop: its place, the turn left free
-            pose += " (place only)"
-            off = "-" if row["truth_error_m"] is None else f"{row['truth_error_m']:.2f} at its marking"
-        lines.append(
-            f"| {row['frame_from']} -> {row['frame_to']} | {'yes' if row['reverse'] else 'no'} "
-            f"| {'yes' if row['from_map'] else 'no'} | {pose} | {_fmt(row['fitness'])} "
-            f"| {_fmt(row['inlier_ratio'], 2)} | {off} | {_fmt(row['true'])} |"
-        )
-    if len(loops) > REPORT_LOOP_ROWS:
-        lines.append(f"| ... and {len(loops) - REPORT_LOOP_ROWS} more | | | | | | | |")
-    return [*lines, ""]
+    return "\n".join([*lines, *sections])

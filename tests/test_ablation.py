@@ -10,14 +10,15 @@ import pytest
 import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from sgf_experiments import CONF as EXPERIMENTS_CONF
+from sgf_experiments.ablation import ablation_name, ablation_table
+from sgf_experiments.report import write_report
 from sgf_testing import run_cli
 
 from sgf_pipeline import load_plugins
-from sgf_pipeline.ablation import ablation_name, ablation_table
 from sgf_pipeline.config import config_dir
-from sgf_pipeline.report import write_report
 
-NAMES = sorted(p.stem for p in (config_dir() / "ablate").glob("*.yaml"))
+NAMES = sorted(p.stem for p in (EXPERIMENTS_CONF / "ablate").glob("*.yaml"))
 STAGES = ("ipm", "saliency", "detector", "descriptor", "association", "loop", "odometry_scale", "backend")
 
 
@@ -111,7 +112,7 @@ def sweep(tmp_path: Path) -> Path:
 
 
 def test_an_extension_earns_its_place_by_a_false_loop_a_closed_pair_or_ate_beyond_the_spread(sweep: Path) -> None:
-    from sgf_pipeline.report import find_runs
+    from sgf_experiments.report import find_runs
 
     table = ablation_table(find_runs(sweep))
     assert [r["name"] for r in table["rows"]] == ["none", "paper", "consensus", "drifts", "final_pass", "idle"]

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from sgf_experiments import CONF as EXPERIMENTS_CONF
 from sgf_plugins.backend.stages import Isam2Params
 from sgf_plugins.loop.params import IcpLoopParams
 
@@ -18,8 +19,8 @@ from sgf_pipeline.config import RESERVED_KEYS, config_dir
 
 CONF = config_dir()
 APP_CONFIGS = {"config", "sgf_plugins"}
-#: groups that are no stage (perturbation and ablate: tests/test_robustness_report.py, tests/test_ablation.py)
-NON_STAGE_GROUPS = {"experiment", "local", "hydra", "perturbation", "ablate"}
+#: groups that are no stage
+NON_STAGE_GROUPS = {"local", "hydra"}
 
 
 def stage_options() -> list[tuple[str, Path]]:
@@ -87,9 +88,9 @@ def test_the_loop_consistency_test_takes_the_back_ends_heading_bias_sigmas():
     }
 
 
-@pytest.mark.parametrize("name", sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")))
+@pytest.mark.parametrize("name", sorted(p.stem for p in (EXPERIMENTS_CONF / "experiment").glob("*.yaml")))
 def test_each_experiment_composes(name: str):
-    text = (CONF / "experiment" / f"{name}.yaml").read_text()
+    text = (EXPERIMENTS_CONF / "experiment" / f"{name}.yaml").read_text()
     app = "sgf_sod_eval" if "# app: sgf-sod-eval" in text else "config"
     with initialize_config_dir(str(CONF), version_base="1.3"):
         cfg = compose(app, overrides=[f"+experiment={name}"], return_hydra_config=True)
@@ -102,7 +103,7 @@ def test_each_experiment_composes(name: str):
         assert cfg.hydra.sweeper.params, "an experiment sweeps something"
         for key in cfg.hydra.sweeper.params:
             if key.startswith("+"):  # a config group added per job (conf/perturbation)
-                assert (CONF / key[1:]).is_dir(), key
+                assert (EXPERIMENTS_CONF / key[1:]).is_dir(), key
                 continue
             assert key.split(".")[0] in cfg or key.split(".")[0] in cfg.pipeline
     else:
@@ -138,6 +139,8 @@ def test_conf_is_inside_the_package_and_the_wheel(tmp_path: Path):
     assert "sgf_pipeline/conf/.sgf_pipeline_conf" in names
     assert "hydra_plugins/sgf_pipeline_searchpath/searchpath.py" in names
     assert any(n.startswith("sgf_plugins/") for n in names)
+    for conf_file in EXPERIMENTS_CONF.rglob("*.yaml"):
+        assert f"sgf_experiments/conf/{conf_file.relative_to(EXPERIMENTS_CONF).as_posix()}" in names
 
 
 def test_design_weights_are_set_from_the_command_line():

@@ -7,8 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from sgf_plugins.ipm import InversePerspectiveMapping, IpmParams
-from sgf_plugins.ipm.accuracy import (
+from sgf_experiments.ipm_accuracy import (
     AHEAD_MC,
     BevSamples,
     IpmAccuracy,
@@ -18,6 +17,7 @@ from sgf_plugins.ipm.accuracy import (
     ground_kind,
     main,
 )
+from sgf_plugins.ipm import InversePerspectiveMapping, IpmParams
 from sgf_plugins.ipm.stages import PlaneMotionCompensatedIPM, PlaneMotionCompensatedIpmParams
 from sgf_plugins.world import CampusWorld, build_world
 

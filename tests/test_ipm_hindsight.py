@@ -12,8 +12,8 @@ from sgf_plugins.ipm import (
     MotionCompensatedIPM,
     MotionCompensatedIpmParams,
 )
-from sgf_plugins.ipm.accuracy import AHEAD_MC
 from sgf_plugins.ipm.hindsight import AttitudeWindow, ground_ahead, path_profile
+from sgf_plugins.ipm.stages import AHEAD_MC
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.calibration import Calibration, Intrinsics
@@ -158,7 +158,7 @@ def test_the_stage_compensates_the_robot_against_the_plane_of_the_path_it_drove_
 def test_the_accuracy_tool_gives_each_frame_the_path_the_runner_reads_ahead() -> None:
     from itertools import islice
 
-    from sgf_plugins.ipm.accuracy import path_ahead
+    from sgf_experiments.ipm_accuracy import path_ahead
     from sgf_plugins.world import build_world
 
     from sgf_pipeline.runner import read_ahead

@@ -71,7 +71,7 @@ def test_configs_list_every_parameter_with_its_default(name: str, params) -> Non
 
 
 def test_mc_ahead_config_is_mc_with_its_extensions() -> None:
-    from sgf_plugins.ipm.accuracy import AHEAD_MC
+    from sgf_plugins.ipm.stages import AHEAD_MC
 
     node = yaml.safe_load((ROOT / "conf" / "ipm" / "mc_ahead.yaml").read_text())
     assert node.pop("name") == "mc"

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 import yaml
+from sgf_experiments.report import build_tables, find_runs, write_report
 from sgf_testing import run_cli
 
 from sgf_pipeline.errors import DataError
-from sgf_pipeline.report import build_tables, find_runs, write_report
 
 
 def fake_run(

@@ -9,11 +9,12 @@ import pytest
 import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
+from sgf_experiments import CONF as EXPERIMENTS_CONF
+from sgf_experiments.report import find_runs, write_report
+from sgf_experiments.robustness import perturbed_runs, robustness_table, split_tag
 
 from sgf_pipeline import load_plugins
 from sgf_pipeline.config import config_dir
-from sgf_pipeline.report import find_runs, write_report
-from sgf_pipeline.robustness import perturbed_runs, robustness_table, split_tag
 
 
 def _run(
@@ -128,7 +129,7 @@ def test_the_suite_config_names_its_seeds_and_perturbations() -> None:
         assert params["dataset.seed"] == "301,302,303"
         assert development.hydra.sweeper.params["dataset.seed"] == "0,1,2,201,202,203"
         names = params["+perturbation"].split(",")
-        on_disk = sorted(p.stem for p in (config_dir() / "perturbation").glob("*.yaml"))
+        on_disk = sorted(p.stem for p in (EXPERIMENTS_CONF / "perturbation").glob("*.yaml"))
         assert sorted(names) == on_disk  # every perturbation is in the suite
         registry = load_plugins().registry
         for name in names:

@@ -7,8 +7,9 @@ import io
 import math
 
 import numpy as np
+from sgf_plugins.loop.files import REPORT_LOOP_ROWS, render_loops_csv, report_section
 
-from sgf_pipeline.outputs import REPORT_LOOP_ROWS, loop_segments, render_loops_csv, render_report
+from sgf_pipeline.outputs import loop_segments, render_report
 from sgf_pipeline.trajectory import Trajectory
 
 
@@ -31,6 +32,11 @@ def loop(frame_from: int, frame_to: int, **extra: object) -> dict[str, object]:
     }
     entry.update(extra)
     return entry
+
+
+def with_loops(metrics: dict[str, object], accepted: list[dict[str, object]]) -> str:
+    """report.md of a run whose loop stage accepted ``accepted``."""
+    return render_report(metrics, [report_section(metrics.get("loops", {}), accepted)])  # type: ignore[arg-type]
 
 
 def line(n: int) -> Trajectory:
@@ -69,20 +75,20 @@ def test_loop_segments_join_the_two_frames_on_the_trajectory_and_skip_map_loops(
 
 def test_the_report_lists_the_loops_up_to_its_row_limit() -> None:
     metrics = {"sequence": "toy", "ate_rmse_m": {"odometry": 2.0, "sgf": 0.5}}
-    report = render_report(metrics, [loop(1, 80), loop(2, 81, true=False, truth_error_m=1.25, truth_error_deg=7.0)])
+    report = with_loops(metrics, [loop(1, 80), loop(2, 81, true=False, truth_error_m=1.25, truth_error_deg=7.0)])
     assert "## Accepted loops (2; all in `loops.csv`)" in report
     assert "| 1 -> 80 | yes | no | 0.50, -0.25, 180.0 | 0.012 | 0.95 | 0.04, 0.5 | True |" in report
     assert "| 2 -> 81 | yes | no | 0.50, -0.25, 180.0 | 0.012 | 0.95 | 1.25, 7.0 | False |" in report
-    round_marking = render_report(metrics, [loop(3, 82, position_only=True, truth_error_m=0.03, truth_error_deg=0.0)])
+    round_marking = with_loops(metrics, [loop(3, 82, position_only=True, truth_error_m=0.03, truth_error_deg=0.0)])
     assert "| 3 -> 82 | yes | no | 0.50, -0.25, 180.0 (place only) | 0.012 | 0.95 | 0.03 at its marking | True |" in (
         round_marking
     )
     row = next(csv.DictReader(io.StringIO(render_loops_csv([loop(3, 82, position_only=True)]))))
     assert row["position_only"] == "True"
-    many = render_report(metrics, [loop(i, i + 50) for i in range(REPORT_LOOP_ROWS + 4)])
+    many = with_loops(metrics, [loop(i, i + 50) for i in range(REPORT_LOOP_ROWS + 4)])
     assert many.count(" -> ") == REPORT_LOOP_ROWS
     assert "| ... and 4 more |" in many
-    assert "None." in render_report(metrics, [])
+    assert "None." in with_loops(metrics, [])
     assert "Accepted loops" not in render_report(metrics)  # a run without a loop stage
 
 
@@ -96,10 +102,10 @@ def test_the_report_and_the_summary_name_the_loops_taken_back() -> None:
     loops |= {"closed": 5, "closed_reverse": 0, "false_closed": 0, "consistency": consistency | {"false_outside": 2}}
     metrics = {"sequence": "toy", "ate_rmse_m": {"odometry": 2.0, "sgf": 0.5}, "sgf": {"detected": 3, "total": 4}}
     metrics["loops"] = loops
-    report = render_report(metrics, [loop(1, 80)])
+    report = with_loops(metrics, [loop(1, 80)])
     assert "(2 of them false by the ground truth): frames 343 -> 3274, 816 -> 3734" in report
     assert "  5 (0), 0; 2 taken back" in summary(metrics, Path("nowhere"))
     # listed only (loop.consistency.drop_inconsistent=false): the loops stayed in, nothing was taken back
     loops["consistency"] = consistency | {"dropped": False, "false_outside": None}
-    assert "Taken back" not in render_report(metrics, [loop(1, 80)])
+    assert "Taken back" not in with_loops(metrics, [loop(1, 80)])
     assert "taken back" not in summary(metrics, Path("nowhere"))

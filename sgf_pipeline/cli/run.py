@@ -18,7 +18,6 @@ from omegaconf import DictConfig, open_dict
 
 from sgf_pipeline.cli.common import console, friendly_errors, raise_terminated
 from sgf_pipeline.config import config_dir
-from sgf_pipeline.outputs import taken_back
 from sgf_pipeline.run_directory import RunDirectory
 from sgf_pipeline.runner import Pipeline, plain_config
 
@@ -30,6 +29,12 @@ RESULT_NEUTRAL_OPTIONS = ("progress", "torch_threads", "overwrite", "cache", "ca
 
 def _fmt(value: Any, spec: str = ".2f") -> str:
     return "-" if value is None else format(value, spec)
+
+
+def _taken_back(loops: dict[str, Any]) -> list[Any]:
+    """The loops the loop stage took back at the end (its ``consistency`` metrics), if it did."""
+    consistency = loops.get("consistency") or {}
+    return list(consistency.get("outside_largest_set", [])) if consistency.get("dropped") else []
 
 
 def summary(metrics: dict[str, Any], run_dir: Path) -> str:
@@ -50,7 +55,7 @@ def summary(metrics: dict[str, Any], run_dir: Path) -> str:
         (
             "loops closed (rev.), false",
             f"{_fmt(loops['closed'], 'd')} ({_fmt(loops['closed_reverse'], 'd')}), {_fmt(loops['false_closed'], 'd')}"
-            + (f"; {len(back)} taken back" if (back := taken_back(loops)) else ""),
+            + (f"; {len(back)} taken back" if (back := _taken_back(loops)) else ""),
         ),
         ("frames processed / seen", f"{timing.get('frames', '-')}/{timing.get('dataset_frames', '-')}"),
         ("frames/s, real-time factor", f"{_fmt(timing.get('fps'), '.1f')}, {_fmt(timing.get('realtime_factor'))}"),

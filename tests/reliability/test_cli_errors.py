@@ -242,8 +242,9 @@ def test_a_traceback_on_request(files: dict[str, Path]):
     ],
 )
 def test_sgf_report_refuses_metrics_of_another_shape(tmp_path: Path, metrics: dict, message: str):
+    from sgf_experiments.report import find_runs
+
     from sgf_pipeline.errors import DataError
-    from sgf_pipeline.report import find_runs
 
     run = tmp_path / "r1"
     run.mkdir()

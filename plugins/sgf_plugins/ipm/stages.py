@@ -245,6 +245,10 @@ class MotionCompensatedIpmParams(IpmParams):
         return self
 
 
+#: The extensions ``ipm=mc_ahead`` (conf/ipm/mc_ahead.yaml) turns on over the paper's MC-IPM (``ipm=mc``).
+AHEAD_MC: dict[str, Any] = {"reference_fit": "line", "lookahead": 2.0, "attitude_noise": 0.005}
+
+
 class MotionCompensatedIPM(InversePerspectiveMapping):
     """MC-IPM: IPM compensated by the roll and pitch of the robot relative to a reference attitude (eq. 1-4).
 

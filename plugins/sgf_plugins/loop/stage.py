@@ -46,6 +46,7 @@ from sgf_plugins.loop.consensus import NeighbourConsensus, Waiting, support_deta
 from sgf_plugins.loop.consistency import LoopConsistency
 from sgf_plugins.loop.decisions import DecisionLog
 from sgf_plugins.loop.evaluation import evaluate_loops
+from sgf_plugins.loop.files import write_loop_files
 from sgf_plugins.loop.final_pass import FinalPass
 from sgf_plugins.loop.fitting import IcpFitting
 from sgf_plugins.loop.gate import LoopGate
@@ -373,6 +374,7 @@ class IcpLoopClosing(Stage):
         context.metrics.setdefault("loops", {}).update(loops)
         context.artifacts["loops"] = records
         context.artifacts["loop_candidates"] = list(self.decisions)
+        write_loop_files(context, records, context.artifacts["loop_candidates"])
 
     def partial(self, context: RunContext, settlement: Settlement) -> Settlement:
         """The group assignments so far, for the SGF map of a run that stopped early."""

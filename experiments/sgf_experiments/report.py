@@ -13,33 +13,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sgf_pipeline.ablation import ablation_table, render_ablation
+from sgf_experiments.ablation import ablation_table, render_ablation
+from sgf_experiments.paper import PAPER_TABLE2, PAPER_TABLE3, PAPER_TABLE4, SEQUENCE_ORDER
+from sgf_experiments.robustness import plot_robustness, render_robustness, robustness_table
 from sgf_pipeline.errors import DataError
 from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text, read_text, read_yaml
-from sgf_pipeline.robustness import plot_robustness, render_robustness, robustness_table
 
-#: The paper's Table 2 (ATE in m) per sequence: (odometry, ORB-SLAM3, odometry + SGF).
-PAPER_TABLE2 = {
-    "campus_large_loop": (292.966, 28.422, 9.482),
-    "campus_reverse_slope": (140.532, 48.546, 14.384),
-    "campus_delivery": (71.147, 19.828, 12.365),
-    "campus_large_loop_night": (295.106, None, 11.540),
-}
-#: The paper's Table 3: detection, loop pairs found (reverse), loops closed (reverse).
-PAPER_TABLE3 = {
-    "campus_large_loop": ("79/94", "33/34 (3/3)", "31 (1)"),
-    "campus_reverse_slope": ("37/46", "11/16 (11/16)", "7 (7)"),
-    "campus_delivery": ("19/23", "1/1 (1/1)", "1 (1)"),
-}
-#: The paper's Table 4: ATE (m) with MC-IPM and with plain IPM.
-PAPER_TABLE4 = {"campus_large_loop": (9.482, 12.567), "campus_reverse_slope": (14.384, 67.625)}
-#: The paper's Table 1: MaxF, MAE, MeanF, S-measure.
-PAPER_TABLE1 = {
-    "SelfReformer*": (0.953, 0.032, 0.908, 0.920),
-    "SelfReformer": (0.463, 0.259, 0.310, 0.575),
-    "LDF": (0.545, 0.179, 0.422, 0.664),
-    "U2Net": (0.580, 0.140, 0.565, 0.679),
-}
 METRIC_LOOP_KEYS = (
     "pairs_found",
     "pairs_total",
@@ -49,7 +28,6 @@ METRIC_LOOP_KEYS = (
     "closed_reverse",
     "false_closed",
 )
-SEQUENCE_ORDER = ["campus_large_loop", "campus_reverse_slope", "campus_delivery", "campus_large_loop_night"]
 IGNORED_KEYS = ("run.progress", "run.torch_threads", "run.overwrite", "plugins.")
 
 

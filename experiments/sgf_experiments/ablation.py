@@ -14,7 +14,7 @@ from collections import defaultdict
 from collections.abc import Iterable
 from typing import Any
 
-from sgf_pipeline.robustness import RunRecord, mean_std, metric
+from sgf_experiments.robustness import RunRecord, mean_std, metric
 
 #: The ``run.tag`` prefix of the leave-one-out runs, and the names of the two reference rows.
 PREFIX = "ablate/"

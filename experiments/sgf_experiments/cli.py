@@ -7,16 +7,15 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
+from sgf_experiments.report import report_path, write_report
 from sgf_pipeline.cli.common import console, friendly_errors
-from sgf_pipeline.config import config_dir
 from sgf_pipeline.errors import ConfigError
-from sgf_pipeline.report import report_path, write_report
 
 #: The command line with the directory given as a path.
 USAGE = "sgf-report DIR [out=OTHER_DIR]"
 
 
-@hydra.main(config_path=str(config_dir()), config_name="sgf_report", version_base="1.3")
+@hydra.main(config_path=str(Path(__file__).resolve().parent / "conf"), config_name="sgf_report", version_base="1.3")
 @friendly_errors
 def _app(cfg: DictConfig) -> None:
     if not cfg.get("dir"):

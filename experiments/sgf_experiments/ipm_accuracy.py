@@ -13,7 +13,7 @@ Frames are sorted by the ground under and ahead of the robot (from the world's e
 ``transition`` (the smooth ground's grade changes within the BEV's reach), ``slope`` (a steady
 grade) and ``flat``.
 
-``python -m sgf_plugins.ipm.accuracy --preset campus_reverse_slope --scale 0.3 --out DIR`` writes
+``python -m sgf_experiments.ipm_accuracy --preset campus_reverse_slope --scale 0.3 --out DIR`` writes
 the table (``ipm_accuracy.md``, ``ipm_accuracy.csv``) and a plot of the error along the route.
 """
 
@@ -32,12 +32,8 @@ from typing import Any, Literal
 import cv2
 import numpy as np
 import yaml
-
-from sgf_pipeline import RunContext, SgfError
-from sgf_pipeline.geometry import rpy_from_rotation
-from sgf_pipeline.io import atomic_write_bytes, atomic_write_text
-from sgf_pipeline.types import BevGrid, PathAhead
 from sgf_plugins.ipm.stages import (
+    AHEAD_MC,
     HindsightMotionCompensatedIPM,
     HindsightMotionCompensatedIpmParams,
     InversePerspectiveMapping,
@@ -47,6 +43,11 @@ from sgf_plugins.ipm.stages import (
     PlaneMotionCompensatedIPM,
     PlaneMotionCompensatedIpmParams,
 )
+
+from sgf_pipeline import RunContext, SgfError
+from sgf_pipeline.geometry import rpy_from_rotation
+from sgf_pipeline.io import atomic_write_bytes, atomic_write_text
+from sgf_pipeline.types import BevGrid, PathAhead
 
 GroundKind = Literal["flat", "slope", "transition", "bump"]
 KINDS: tuple[GroundKind, ...] = ("flat", "slope", "transition", "bump")
@@ -169,10 +170,6 @@ class IpmAccuracy:
         return out.getvalue()
 
 
-#: The extensions ``ipm=mc_ahead`` (conf/ipm/mc_ahead.yaml) turns on over the paper's MC-IPM (``ipm=mc``).
-AHEAD_MC: dict[str, Any] = {"reference_fit": "line", "lookahead": 2.0, "attitude_noise": 0.005}
-
-
 def default_variants() -> dict[str, InversePerspectiveMapping]:
     """Plain IPM, the paper's MC-IPM (``ipm=mc``), and ``ipm=mc_ahead``, ``mc_plane`` and ``mc_hindsight``."""
     return {
@@ -277,7 +274,7 @@ def plot(result: IpmAccuracy, title: str) -> bytes:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line: measure plain IPM and MC-IPM on a world preset and write the table, CSV and plot."""
-    parser = argparse.ArgumentParser(prog="python -m sgf_plugins.ipm.accuracy", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m sgf_experiments.ipm_accuracy", description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="campus_reverse_slope", help="world preset (default: the hilly one)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--scale", type=float, default=0.3, help="route length scale")
