@@ -7,6 +7,11 @@ pose (``marking_layout``), drives the preset's route (``frames()``) and holds it
 :mod:`sgf_plugins.world.dataset`. Names are imported on first use, so that loading the plugin
 (``sgf-plugins``) does not import the renderer.
 
+The campus is a :class:`~sgf_plugins.world.layout.CampusLayout` (``layout``) laid out by
+``layout_generator`` with ``marking_placement`` and ``agent_placement``. Its markings are the
+``designs`` of the library, drawn on a ``canvas`` by ``road_markings`` and ``campus_markings``
+and rasterised by ``marking_raster``.
+
 The camera (:mod:`~sgf_plugins.world.render`) composes its collaborators: the rays on the
 terrain (``raycast``), the ground's tile mosaics and grain (``ground``, tiles from ``texture``
 with ``paving``, ``clutter`` and ``ground_shadows`` under the ``sun``), ``sky`` and light, the

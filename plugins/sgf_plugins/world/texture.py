@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 
 from sgf_plugins.world.clutter import GroundClutter
-from sgf_plugins.world.designs import Raster, rasterise
 from sgf_plugins.world.ground_shadows import GroundShadows
 from sgf_plugins.world.layout import CampusLayout, MarkingInstance
+from sgf_plugins.world.marking_raster import Raster, rasterise
 from sgf_plugins.world.noise import fbm, lattice_noise, rng_for
 from sgf_plugins.world.paving import Paving, periodic_cover
 from sgf_plugins.world.sun import Sun

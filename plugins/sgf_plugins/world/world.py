@@ -16,7 +16,8 @@ from sgf_pipeline.types import BevGrid, Frame, SequenceTruth
 from sgf_plugins.world.conditions import RenderConditions
 from sgf_plugins.world.designs import allowed_designs
 from sgf_plugins.world.drive import DriveLog, OdometryModel, SensorLog, build_legs, drive, simulate_sensors
-from sgf_plugins.world.layout import CampusLayout, LayoutOptions, build_layout
+from sgf_plugins.world.layout import CampusLayout
+from sgf_plugins.world.layout_generator import LayoutOptions, build_layout
 from sgf_plugins.world.noise import lattice_noise, rng_for
 from sgf_plugins.world.params import WorldParams
 from sgf_plugins.world.presets import PRESETS, Preset
