@@ -26,18 +26,12 @@ from torch import nn
 from sgf_pipeline.cache import file_hash
 from sgf_pipeline.errors import ConfigError, DataError
 from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text
-from sgf_plugins.saliency.data import (
-    Augmentation,
-    SodFolder,
-    SplitSpec,
-    make_splits,
-    normalize_image,
-    resize_mask,
-    salient_crop,
-)
+from sgf_plugins.saliency.augment import Augmentation, salient_crop
+from sgf_plugins.saliency.data import SodFolder, SplitSpec, make_splits
 from sgf_plugins.saliency.inference import probability_module
 from sgf_plugins.saliency.metrics import SodMetrics
 from sgf_plugins.saliency.models import build_model
+from sgf_plugins.saliency.preprocess import normalize_image, resize_mask
 from sgf_plugins.saliency.weights import (
     describe_arch,
     load_weights,
