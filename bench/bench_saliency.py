@@ -27,9 +27,10 @@ from pathlib import Path
 import numpy as np
 import torch
 from sgf_plugins.saliency import procedural
+from sgf_plugins.saliency.augment import Augmentation
 from sgf_plugins.saliency.cli_sod_eval import bev_of
-from sgf_plugins.saliency.data import Augmentation, normalize_image, resize_mask
 from sgf_plugins.saliency.models import ARCHITECTURES, build_model
+from sgf_plugins.saliency.preprocess import normalize_image, resize_mask
 from sgf_plugins.saliency.stages import (
     LEARNED_VARIANTS,
     ClassicalParams,

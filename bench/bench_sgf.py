@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams
-from sgf_plugins.sgf.detector import HuMomentDetector, HuWindowParams, border_band
+from sgf_plugins.sgf.detector import HuMomentDetector, HuWindowParams
 from sgf_plugins.sgf.hu import HuScale, hu_distance, hu_moments
 from sgf_plugins.sgf.polar import (
     BinValue,
@@ -31,6 +31,7 @@ from sgf_plugins.sgf.polar import (
     symmetry_spread,
     voxel_downsample,
 )
+from sgf_plugins.sgf.regions import border_band
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test suite's synthetic drive
 from sgf_synthetic import (

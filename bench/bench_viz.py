@@ -34,6 +34,9 @@ from typing import Any
 import numpy as np
 import sgf_plugins.viz.rerun as rerun_viz
 from hydra import compose, initialize_config_dir
+from sgf_plugins.viz.rerun.options import RECORDING, RerunOptions
+from sgf_plugins.viz.rerun.recording import Keyframe, Recording
+from sgf_plugins.viz.rerun.worker import RecordingWorker
 
 from sgf_pipeline import Pipeline
 from sgf_pipeline.config import config_dir
@@ -44,8 +47,8 @@ from sgf_pipeline.types import Bev, BevGrid, CameraImage, PoseEstimate, Saliency
 def observer_clock() -> list[float]:
     """Wrap the recording's methods so that their wall times add up: [recording thread, pipeline thread]."""
     spent = [0.0, 0.0]
-    methods: list[tuple[type, str, int]] = [(rerun_viz._Recording, n, 0) for n in ("log_frame", "log_end", "close")]
-    methods += [(rerun_viz._Recorder, n, 1) for n in ("__init__", "stage_done", "frame_done")]
+    methods: list[tuple[type, str, int]] = [(Recording, n, 0) for n in ("log_frame", "log_end", "close")]
+    methods += [(RecordingWorker, n, 1) for n in ("__init__", "stage_done", "frame_done")]
     for cls, name, cell in methods:
         original = getattr(cls, name)
 
@@ -68,7 +71,7 @@ def run(overrides: list[str], viz: bool, out: Path, spent: list[float]) -> dict[
     t0, cpu0 = time.perf_counter(), time.process_time()
     metrics = Pipeline.from_config(cfg, run_dir=out).run()
     wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
-    recording = out / rerun_viz.RECORDING
+    recording = out / RECORDING
     return {
         "wall": wall,
         "cpu": cpu,
@@ -100,18 +103,16 @@ def replay(frames: int) -> None:
         poses[i] = odometry
         outputs = {CameraImage: CameraImage(camera, i), Bev: bev, SaliencyMap: saliency}
         outputs[PoseEstimate] = PoseEstimate(i, dict(poses))
-        keys.append(
-            rerun_viz._Keyframe(i, 0.1 * i, camera, odometry, odometry, outputs, dict.fromkeys(stages, 1e-3), 0, [])
-        )
+        keys.append(Keyframe(i, 0.1 * i, camera, odometry, odometry, outputs, dict.fromkeys(stages, 1e-3), 0, []))
     with tempfile.TemporaryDirectory() as tmp:
         run = RunInfo(run_dir=Path(tmp), stages=[], sequence="replay", total_frames=frames)
         t0 = time.process_time()  # every thread of the process: the SDK's own ones too
-        recording = rerun_viz._Recording(run, rerun_viz.RerunOptions())
+        recording = Recording(run, RerunOptions())
         for key in keys:
             recording.log_frame(key)
         recording.close(finished=True)
         spent = time.process_time() - t0
-        size = (Path(tmp) / rerun_viz.RECORDING).stat().st_size
+        size = (Path(tmp) / RECORDING).stat().st_size
     print(f"recording alone: {1000 * spent / frames:.2f} ms of CPU per keyframe, {size / frames / 1024:.0f} KiB each")
 
 
@@ -131,10 +132,10 @@ def lockstep(overrides: list[str]) -> None:
         spent = {False: 0.0, True: 0.0}
 
         def drained(pipeline: Pipeline) -> None:
-            recorder = rerun_viz._OBSERVER._runs.get(id(pipeline.info))
-            if recorder is not None:
+            worker = rerun_viz._OBSERVER._runs.get(id(pipeline.info))
+            if worker is not None:
                 done = threading.Event()
-                recorder.jobs.put(done.set)
+                worker.jobs.put(done.set)
                 done.wait()
 
         streams = zip(pipelines[False].frames(), pipelines[True].frames(), strict=True)

@@ -32,7 +32,9 @@ if os.environ.get("CI") == "true":
 else:
     pytest.importorskip("rerun")
 
-from sgf_plugins.viz.rerun import PARTIAL_RECORDING, RECORDING, nanoseconds, outcome_colour
+from sgf_plugins.loop.outcomes import OUTCOMES
+from sgf_plugins.viz.rerun.drawing import OUTCOME_COLOURS, nanoseconds, outcome_colour
+from sgf_plugins.viz.rerun.options import PARTIAL_RECORDING, RECORDING
 
 BIN = Path(sys.executable).parent
 #: The main job, short: a tenth of campus_delivery (220 keyframes, loops accepted and refused), a
@@ -207,6 +209,11 @@ def test_loop_candidates_equal_loop_candidates_csv(campus: dict[str, Any]) -> No
         assert any(t.startswith(said) for t in texts), said
     levels = {r["TextLog:level"][0] for r in temporal(rows, "/log/loops")}
     assert outcomes <= levels
+
+
+def test_every_loop_outcome_has_a_colour_of_its_own() -> None:
+    assert set(OUTCOME_COLOURS) == set(OUTCOMES)
+    assert len(set(OUTCOME_COLOURS.values())) == len(OUTCOMES)
 
 
 def test_stage_times_sum_to_the_metrics(campus: dict[str, Any]) -> None:

@@ -7,7 +7,9 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from sgf_plugins.sgf.detector import FeatureTrack, FeatureView, HuMomentDetector, HuWindowParams, Region, border_band
+from sgf_plugins.sgf.detector import HuMomentDetector, HuWindowParams
+from sgf_plugins.sgf.regions import Region, border_band
+from sgf_plugins.sgf.tracking import FeatureTrack, FeatureView
 from sgf_synthetic import (
     DEFAULT_GRID,
     Annulus,

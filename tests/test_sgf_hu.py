@@ -7,8 +7,10 @@ import math
 import cv2
 import numpy as np
 import pytest
-from sgf_plugins.sgf.detector import FeatureView, Region, border_band, group_views, majority_instance
+from sgf_plugins.sgf.best_view import group_views
 from sgf_plugins.sgf.hu import hu_distance, hu_moments, scale_hu
+from sgf_plugins.sgf.regions import Region, border_band, majority_instance
+from sgf_plugins.sgf.tracking import FeatureView
 
 
 def pixels_of(mask: np.ndarray) -> np.ndarray:

@@ -199,7 +199,8 @@ def test_compact_shaped_markings_are_not_flagged_symmetric(design: str, spread: 
 
     A round manhole, filled by the saliency network (a disc), stays flagged (above).
     """
-    from sgf_plugins.world.designs import DESIGNS, rasterise
+    from sgf_plugins.world.designs import DESIGNS
+    from sgf_plugins.world.marking_raster import rasterise
 
     d = DESIGNS[design]
     raster = rasterise(d, *d.size, 0.02, d.colours[0], content_seed=0)

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 from sgf_plugins.datasets._common import decode_image_bytes
-from sgf_plugins.datasets.rosbag import decode_compressed_image, decode_raw_image
+from sgf_plugins.datasets.rosbag_messages import decode_compressed_image, decode_raw_image
 
 from sgf_pipeline import DataError
 

@@ -9,18 +9,10 @@ import cv2
 import numpy as np
 import pytest
 from sgf_plugins.saliency import procedural
-from sgf_plugins.saliency.data import (
-    Augmentation,
-    SodFolder,
-    SplitSpec,
-    make_splits,
-    normalize_image,
-    resize_mask,
-    rotate_hue,
-    salient_crop,
-    samples_from_bevs,
-    write_sod_folder,
-)
+from sgf_plugins.saliency.augment import Augmentation, rotate_hue, salient_crop
+from sgf_plugins.saliency.data import SodFolder, SplitSpec, make_splits, write_sod_folder
+from sgf_plugins.saliency.preprocess import normalize_image, resize_mask
+from sgf_plugins.saliency.synthetic_data import samples_from_bevs
 
 from sgf_pipeline.errors import DataError
 from sgf_pipeline.types import Bev, BevGrid, MarkingPass, MarkingTruth, SequenceTruth

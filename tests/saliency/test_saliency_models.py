@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 from sgf_plugins.saliency import procedural
-from sgf_plugins.saliency.data import normalize_image
 from sgf_plugins.saliency.models import ARCHITECTURES, build_model
 from sgf_plugins.saliency.models.ldf import decouple_label, iou_loss
 from sgf_plugins.saliency.models.pvt_v2 import PVT_V2_SIZES
 from sgf_plugins.saliency.models.selfreformer import boundary_weight, confidence_loss, weighted_bce
 from sgf_plugins.saliency.models.u2net import U2NET_STAGES, U2NETP_STAGES
+from sgf_plugins.saliency.preprocess import normalize_image
 from sgf_plugins.saliency.stages import default_architecture
 
 DEFAULT_ARCH = {m: default_architecture(m) for m in ARCHITECTURES}

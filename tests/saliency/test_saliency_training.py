@@ -12,11 +12,13 @@ from omegaconf import OmegaConf
 from sgf_plugins.saliency import procedural, training
 from sgf_plugins.saliency.cli_sod_eval import bev_of
 from sgf_plugins.saliency.cli_train import run as train_run
-from sgf_plugins.saliency.data import SplitSpec, write_sod_folder
+from sgf_plugins.saliency.data import SodFolder, SplitSpec, write_sod_folder
 from sgf_plugins.saliency.stages import LdfParams, LdfSaliency, default_architecture
 from sgf_plugins.saliency.training import DataOptions, TrainOptions, train_model
+from sgf_plugins.saliency.training_set import SodTrainingSet
 from sgf_plugins.saliency.weights import read_weights
 
+from sgf_pipeline.cache import file_hash
 from sgf_pipeline.config import config_dir
 from sgf_pipeline.errors import ConfigError, DataError
 
@@ -84,7 +86,7 @@ def test_resume_continues_exactly(toy_folder: Path, tmp_path: Path, monkeypatch:
     data = DataOptions(root=str(toy_folder), max_train=8, max_val=4)
     straight = train_model("u2net", arch, 32, data, opts, tmp_path / "straight")
 
-    real_save = training._save_checkpoint
+    real_save = training.save_checkpoint
     calls = []
 
     def crash_after_first_epoch(*args, **kwargs):
@@ -92,10 +94,10 @@ def test_resume_continues_exactly(toy_folder: Path, tmp_path: Path, monkeypatch:
         calls.append(1)
         raise KeyboardInterrupt  # the run dies right after its first checkpoint
 
-    monkeypatch.setattr(training, "_save_checkpoint", crash_after_first_epoch)
+    monkeypatch.setattr(training, "save_checkpoint", crash_after_first_epoch)
     with pytest.raises(KeyboardInterrupt):
         train_model("u2net", arch, 32, data, opts, tmp_path / "first")
-    monkeypatch.setattr(training, "_save_checkpoint", real_save)
+    monkeypatch.setattr(training, "save_checkpoint", real_save)
     resumed = train_model(
         "u2net", arch, 32, data, opts.model_copy(update={"resume": str(tmp_path / "first")}), tmp_path / "second"
     )
@@ -144,9 +146,7 @@ def test_crops_and_fine_tuning_from_weights(toy_folder: Path, tmp_path: Path) ->
     arch = default_architecture("ldf")
     data = DataOptions(root=str(toy_folder), max_train=8, max_val=4)
     # crops: full-resolution windows of the input, the validation on whole images
-    crops = training.SodTrainingSet(
-        training.SodFolder(str(toy_folder)), data_names(toy_folder)[:4], 64, None, 0, None, 32, 1.0
-    )
+    crops = SodTrainingSet(SodFolder(str(toy_folder)), data_names(toy_folder)[:4], 64, None, 0, None, 32, 1.0)
     x, targets = crops[0]
     assert x.shape == (3, 32, 32) and targets["mask"].shape == (1, 32, 32) and float(targets["mask"].sum()) > 0
     opts = TrainOptions(epochs=1, input_size=64, crop=32, hue=0.5, **QUICK)
@@ -157,7 +157,7 @@ def test_crops_and_fine_tuning_from_weights(toy_folder: Path, tmp_path: Path) ->
     tuned = train_model(
         "ldf", arch, 64, data, opts.model_copy(update={"init_weights": str(start), "lr": 1e-12}), tmp_path / "tuned"
     )
-    assert tuned["training"]["init_weights_sha256"] == training.file_hash(start)
+    assert tuned["training"]["init_weights_sha256"] == file_hash(start)
     # the card keeps the first run's record: its command, epochs and history
     init = tuned["training"]["init_from"]
     assert init["epochs_run"] == 1 and init["options"]["crop"] == 32 and len(init["history"]) == 1
@@ -204,5 +204,5 @@ def test_crops_and_fine_tuning_from_weights(toy_folder: Path, tmp_path: Path) ->
 
 def data_names(root: Path) -> list[str]:
     """The training names of a SOD folder whose masks hold a salient pixel."""
-    folder = training.SodFolder(str(root))
+    folder = SodFolder(str(root))
     return [n for n in folder.splits()["train"] if folder.mask(n).max() > 128]

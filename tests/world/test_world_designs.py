@@ -5,10 +5,10 @@ from sgf_plugins.world.designs import (
     HELD_OUT_FAMILIES,
     allowed_designs,
     families,
-    hangul_strokes,
-    rasterise,
     resolve_designs,
 )
+from sgf_plugins.world.hangul_font import hangul_strokes
+from sgf_plugins.world.marking_raster import rasterise
 
 from sgf_pipeline.errors import ConfigError
 
@@ -153,7 +153,7 @@ def test_unknown_design_names_are_a_clear_error():
 
 
 def test_random_shapes_are_painted_only_when_a_world_asks():
-    from sgf_plugins.world.layout import LayoutOptions, build_layout
+    from sgf_plugins.world.layout_generator import LayoutOptions, build_layout
     from sgf_plugins.world.params import WorldParams
 
     assert DESIGNS["random_shape"].weight == 0.0

@@ -23,7 +23,7 @@ from sgf_pipeline import DataError
 from sgf_pipeline.bags import POSE_TYPES, TF_TYPES, TransformTree, open_bag, read_transform_tree, topic_rows
 from sgf_pipeline.cli.common import console, friendly_errors, hydra_value
 from sgf_pipeline.config import config_dir
-from sgf_plugins.datasets.rosbag import (
+from sgf_plugins.datasets.rosbag_messages import (
     CAMERA_INFO_TYPES,
     IMAGE_TYPES,
     IMU_TYPES,

@@ -10,6 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from sgf_pipeline.types import GroupAssignment, LoopConstraint, PoseEstimate
+from sgf_plugins.loop import outcomes
 from sgf_plugins.loop.anchoring import LoopAnchoring
 from sgf_plugins.loop.candidate import match_closest
 from sgf_plugins.loop.decisions import DecisionLog
@@ -71,14 +72,14 @@ class FinalPass:
                 ends = (a.matched.sgf.frame_index, j)
                 ids = (a.matched.sgf.instance_id, query.sgf.instance_id)
                 if isinstance(candidate, str):
-                    detail = "final pass" + (f": {self.gate.fitting.detail}" if candidate == "icp" else "")
+                    detail = "final pass" + (f": {self.gate.fitting.detail}" if candidate == outcomes.ICP else "")
                     self.log.add(ends, ids, group.group_id, False, candidate, self.gate.reading, detail)
                 elif not self.gate.decides(a, candidate, estimate):
                     detail = f"final pass: {self.gate.refusal}"
-                    self.log.add(ends, ids, group.group_id, False, "consensus", candidate.gate, detail)
+                    self.log.add(ends, ids, group.group_id, False, outcomes.CONSENSUS, candidate.gate, detail)
                 else:
                     self.anchoring.accepted.append(candidate)
-                    self.log.add(ends, ids, group.group_id, False, "accepted", candidate.gate, "final pass")
+                    self.log.add(ends, ids, group.group_id, False, outcomes.ACCEPTED, candidate.gate, "final pass")
                     out.append(candidate.constraint)
         return out
 

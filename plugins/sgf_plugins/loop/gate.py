@@ -24,6 +24,7 @@ import numpy as np
 from sgf_pipeline.geometry import invert, xy_yaw
 from sgf_pipeline.sgf_map import MapDescriptor
 from sgf_pipeline.types import GroupAssignment, PoseEstimate
+from sgf_plugins.loop import outcomes
 from sgf_plugins.loop.anchoring import MAP, LoopAnchoring
 from sgf_plugins.loop.candidate import Candidate, GateReading, match_closest
 from sgf_plugins.loop.fitting import IcpFitting
@@ -75,13 +76,13 @@ class LoopGate:
         if not from_map:
             self.known(i)
             if not self.separated(i, j):
-                return "separation"
+                return outcomes.SEPARATION
         if min(len(query.points), len(matched.points)) < self.p.icp.min_points:
-            return "too_few_points"
+            return outcomes.TOO_FEW_POINTS
         position_only = a.symmetric and self.p.symmetric.position_only
         results, probed = self.fitting.align(a, position_only)
         if not results:
-            return "icp"
+            return outcomes.ICP
         map_pose = np.asarray(matched.map_pose, dtype=np.float64) if isinstance(matched, MapDescriptor) else None
         map_truth = matched.ground_truth if isinstance(matched, MapDescriptor) else None
         anchored = from_map and self.anchoring.map_anchored(estimate)
@@ -101,7 +102,7 @@ class LoopGate:
         points = np.asarray(query.points, dtype=np.float64)
         fits = self.fitting.centred(results, query) if position_only else self.fitting.fits(results, points, probed)
         if not fits:
-            return "icp"
+            return outcomes.ICP
         turn = None  # a position-only loop turns about its marking as the estimate predicts (ICP's heading when none)
         if position_only:
             turn = xy_yaw(predicted[0])[2] if predicted is not None else se2_params(fits[0].transform)[2]
@@ -114,7 +115,7 @@ class LoopGate:
             # several distinct fits (a twofold symmetric shape, a row one period on): the gate must pick one
             passing = [r for r, value in zip(fits, chi2, strict=True) if value <= self.threshold]
             if len(passing) != 1:
-                return "not_unique" if passing else "gate"
+                return outcomes.NOT_UNIQUE if passing else outcomes.GATE
             best = passing[0]
         constraint = self.fitting.constraint(a, best, from_map, turn)
         return Candidate(constraint, map_pose, map_truth, a.group_id, anchored, self.reading)
@@ -209,7 +210,7 @@ class LoopGate:
         saved = self.reading, self.fitting.detail
         outcome = self.evaluate(alternative, estimate)
         self.reading, self.fitting.detail = saved
-        return outcome not in ("icp", "gate")
+        return outcome not in (outcomes.ICP, outcomes.GATE)
 
     def estimate_xy(self, frame_index: int, centroid: np.ndarray, estimate: PoseEstimate | None) -> np.ndarray:
         """An SGF's centroid (x, y) in the current estimate (odometry before the first)."""

@@ -20,7 +20,8 @@ decides it (``symmetric.position_only``). At the end of the run the loops the ot
 through the odometry are taken back (:mod:`~sgf_plugins.loop.consistency`), the final groups'
 unjoined drive-bys are matched once more (:mod:`~sgf_plugins.loop.final_pass`), and the loops are
 scored against the ground truth (:mod:`~sgf_plugins.loop.evaluation`). Every decision is a row of
-``loop_candidates.csv`` (:mod:`~sgf_plugins.loop.decisions`).
+``loop_candidates.csv`` (:mod:`~sgf_plugins.loop.decisions`), its outcome one of
+:mod:`~sgf_plugins.loop.outcomes`.
 """
 
 from __future__ import annotations
@@ -40,6 +41,7 @@ from sgf_pipeline.types import (
     PoseEstimate,
     SequenceTruth,
 )
+from sgf_plugins.loop import outcomes
 from sgf_plugins.loop.anchoring import LoopAnchoring
 from sgf_plugins.loop.candidate import Candidate
 from sgf_plugins.loop.consensus import NeighbourConsensus, Waiting, support_detail
@@ -128,7 +130,7 @@ class IcpLoopClosing(Stage):
         self.counts["candidates"] += 1
         if a.symmetric:
             if not self.p.symmetric.position_only:
-                self.log.refuse(a, "symmetric")
+                self.log.refuse(a, outcomes.SYMMETRIC)
                 return []
             return self._close_position_only(a, estimate)
         if a.ambiguous:
@@ -149,7 +151,7 @@ class IcpLoopClosing(Stage):
             need, basis = 0, "the gate decides"
             self.gate_decided += 1
         if need > 0 and candidate.map_pose is None:
-            return self._consensus(((a, candidate),), need, False, "consensus", None, estimate)
+            return self._consensus(((a, candidate),), need, False, outcomes.CONSENSUS, None, estimate)
         return self._accept(candidate, estimate, basis)
 
     def _evaluate_or_earlier(
@@ -157,13 +159,13 @@ class IcpLoopClosing(Stage):
     ) -> tuple[GroupAssignment, Candidate | None]:
         """The gate's evaluation, redone with an earlier pass's member when the match is of one pass; None: refused."""
         candidate = self.gate.evaluate(a, estimate)
-        if candidate == "separation":
+        if candidate == outcomes.SEPARATION:
             earlier = self.gate.earlier_member(a, self.assignments)
             if earlier is not None:
                 a, candidate = earlier, self.gate.evaluate(earlier, estimate)
                 self.earlier_members += 1
         if isinstance(candidate, str):
-            self.log.refuse(a, candidate, self.gate.reading, self.fitting.detail if candidate == "icp" else "")
+            self.log.refuse(a, candidate, self.gate.reading, self.fitting.detail if candidate == outcomes.ICP else "")
             return a, None
         return a, candidate
 
@@ -175,16 +177,16 @@ class IcpLoopClosing(Stage):
         its reach. Such loops are not matched against a prior map, whose anchoring needs a heading.
         """
         if isinstance(a.matched, MapDescriptor):
-            self.log.refuse(a, "symmetric", detail="no position-only loop into a prior map")
+            self.log.refuse(a, outcomes.SYMMETRIC, detail="no position-only loop into a prior map")
             return []
         if a.ambiguous:
-            self.log.refuse(a, "ambiguous", detail="a tie of symmetric groups")
+            self.log.refuse(a, outcomes.AMBIGUOUS, detail="a tie of symmetric groups")
             return []
         a, candidate = self._evaluate_or_earlier(a, estimate)
         if candidate is None:
             return []
         if not self.gate.decides(a, candidate, estimate):
-            self.log.refuse(a, "consensus", candidate.gate, f"position only: {self.gate.refusal}")
+            self.log.refuse(a, outcomes.CONSENSUS, candidate.gate, f"position only: {self.gate.refusal}")
             return []
         self.gate_decided += 1
         self.position_only += 1
@@ -197,20 +199,20 @@ class IcpLoopClosing(Stage):
             for alt in a.alternatives
         ]
         if any(isinstance(o.matched, MapDescriptor) for o in options):
-            self.log.refuse(a, "ambiguous", detail="tie with a map group")
+            self.log.refuse(a, outcomes.AMBIGUOUS, detail="tie with a map group")
             return []
         if a.aliased and not a.alternatives and self.p.consensus.aliased_support > 0:
             # a repeated pattern: only markings unlike the query may vouch for which copy it is
             candidate = self.gate.evaluate(a, estimate)
             if isinstance(candidate, str):
-                self.log.refuse(a, "ambiguous", detail=f"aliased: {self._failure(candidate)}")
+                self.log.refuse(a, outcomes.AMBIGUOUS, detail=f"aliased: {self._failure(candidate)}")
                 return []
             return self._consensus(
-                ((a, candidate),), self.p.consensus.aliased_support, True, "ambiguous", "aliases", estimate
+                ((a, candidate),), self.p.consensus.aliased_support, True, outcomes.AMBIGUOUS, "aliases", estimate
             )
         if a.aliased or not a.alternatives or self.p.consensus.tie_support == 0:
             why = "aliased" if a.aliased else "tie with an aliased group" if not a.alternatives else "tie_support 0"
-            self.log.refuse(a, "ambiguous", detail=why)
+            self.log.refuse(a, outcomes.AMBIGUOUS, detail=why)
             return []
         passed, failed = [], []
         for option in options:
@@ -220,14 +222,14 @@ class IcpLoopClosing(Stage):
             else:
                 passed.append((option, candidate))
         if not passed:
-            self.log.refuse(a, "ambiguous", detail="tie: every option failed (" + "; ".join(failed) + ")")
+            self.log.refuse(a, outcomes.AMBIGUOUS, detail="tie: every option failed (" + "; ".join(failed) + ")")
             return []
         if len(passed) == 1 and self.gate.decides(*passed[0], estimate):
             self.gate_decided += 1
             self.ties_resolved += 1
             return self._accept(passed[0][1], estimate, "the gate decides the tie")
         need = max(self.p.consensus.tie_support, self.p.consensus.min_support)
-        return self._consensus(tuple(passed), need, False, "ambiguous", "ties", estimate)
+        return self._consensus(tuple(passed), need, False, outcomes.AMBIGUOUS, "ties", estimate)
 
     def _consensus(
         self,
@@ -258,7 +260,7 @@ class IcpLoopClosing(Stage):
                 self.aliases_resolved += 1
             return self._accept(supported[0], estimate, support_detail(support, w.need))
         if len(supported) > 1 or final:
-            outcome = "ambiguous" if len(supported) > 1 else w.refused
+            outcome = outcomes.AMBIGUOUS if len(supported) > 1 else w.refused
             self.log.refuse(w.options[0][0], outcome, w.options[0][1].gate, support_detail(support, w.need))
             return []
         return None
@@ -291,20 +293,20 @@ class IcpLoopClosing(Stage):
         if candidate.map_pose is not None and not candidate.anchored:
             confirmed = self.anchoring.confirm_map(candidate, estimate)
             if not confirmed:
-                self.counts["map_unconfirmed"] += 1
-                self.log.decided(candidate.constraint, candidate.group_id, "map_unconfirmed", candidate.gate)
+                self.counts[outcomes.MAP_UNCONFIRMED] += 1
+                self.log.decided(candidate.constraint, candidate.group_id, outcomes.MAP_UNCONFIRMED, candidate.gate)
                 return []
-            self.counts["map_unconfirmed"] -= len(confirmed) - 1
+            self.counts[outcomes.MAP_UNCONFIRMED] -= len(confirmed) - 1
             for c in confirmed:
-                self.log.decided(c.constraint, c.group_id, "accepted", c.gate)
+                self.log.decided(c.constraint, c.group_id, outcomes.ACCEPTED, c.gate)
             return [c.constraint for c in confirmed]
         self.anchoring.accepted.append(candidate)
-        self.log.decided(candidate.constraint, candidate.group_id, "accepted", candidate.gate, basis)
+        self.log.decided(candidate.constraint, candidate.group_id, outcomes.ACCEPTED, candidate.gate, basis)
         return [candidate.constraint]
 
     def _failure(self, test: str) -> str:
         """A failed test's name, with what ICP's best fit missed when it was ICP."""
-        return f"icp, {self.fitting.detail}" if test == "icp" else test
+        return f"{outcomes.ICP}, {self.fitting.detail}" if test == outcomes.ICP else test
 
     # -- end of the run ---------------------------------------------------------------------
 

@@ -16,7 +16,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-from sgf_plugins.saliency.data import as_rgb
+from sgf_plugins.saliency.preprocess import as_rgb
 
 
 def _odd(n: float) -> int:

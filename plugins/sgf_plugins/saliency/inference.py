@@ -14,7 +14,7 @@ import numpy as np
 
 from sgf_pipeline.cache import caches_root, file_hash
 from sgf_pipeline.errors import DataError
-from sgf_plugins.saliency.data import as_rgb, normalize_image
+from sgf_plugins.saliency.preprocess import as_rgb, normalize_image
 
 if TYPE_CHECKING:
     import torch

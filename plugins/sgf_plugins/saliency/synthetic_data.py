@@ -10,7 +10,7 @@ one split, and every sample showing a held-out design goes to ``test_heldout``.
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +20,51 @@ import numpy as np
 
 from sgf_pipeline import Pipeline
 from sgf_pipeline.errors import ConfigError
-from sgf_plugins.saliency.data import SplitSpec, WriteReport, samples_from_bevs, write_sod_folder
+from sgf_pipeline.types import Bev, SequenceTruth
+from sgf_plugins.saliency.data import SplitSpec, WriteReport, write_sod_folder
+
+
+def samples_from_bevs(
+    bevs: Iterable[Bev],
+    truth: SequenceTruth | None,
+    sequence: str,
+    blank_group_frames: int = 50,
+    min_pixels: int = 20,
+) -> Iterator[tuple[np.ndarray, np.ndarray, dict[str, Any]]]:
+    """``(bev_rgb, mask, meta)`` samples from BEVs that carry ground-truth marking instances (a synthetic world).
+
+    The mask is every pixel of a marking instance (``Bev.instance_ids > 0``); ``meta`` holds the
+    frame, the designs and categories (standard/custom) of the instances with at least
+    ``min_pixels`` pixels in view, the validity mask, and a ``group``: the sequence, instance and
+    pass of the first marking in view (so that the frames of one pass never straddle splits), or a
+    block of ``blank_group_frames`` frames when none is. BEVs without instance ids are skipped.
+    """
+    for bev in bevs:
+        if bev.instance_ids is None:
+            continue
+        found_ids, counts = np.unique(bev.instance_ids[bev.instance_ids > 0], return_counts=True)
+        ids = [int(i) for i, c in zip(found_ids, counts, strict=True) if c >= min_pixels]
+        markings = [truth.markings[i] for i in ids if truth is not None and i in truth.markings]
+        group = f"{sequence}:blank:{bev.frame_index // blank_group_frames}"
+        for i in ids:
+            found = truth.pass_of(i, bev.frame_index) if truth is not None else None
+            if found is not None:
+                group = f"{sequence}:{i}:{found.number}"
+                break
+        else:
+            if ids:
+                group = f"{sequence}:{ids[0]}:{bev.frame_index // blank_group_frames}"
+        meta = {
+            "name": f"{sequence}_{bev.frame_index:06d}",
+            "sequence": sequence,
+            "frame": bev.frame_index,
+            "instances": ids,
+            "designs": sorted({m.design for m in markings}),
+            "categories": sorted({m.category for m in markings}),
+            "group": group,
+            "valid": bev.valid,
+        }
+        yield bev.image, bev.instance_ids > 0, meta
 
 
 @dataclass(frozen=True)

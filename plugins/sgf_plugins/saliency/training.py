@@ -8,12 +8,11 @@ progress in safetensors and JSON, never pickle.
 
 from __future__ import annotations
 
-import json
 import math
 import platform
 import shutil
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Mapping
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal
@@ -25,30 +24,15 @@ from torch import nn
 
 from sgf_pipeline.cache import file_hash
 from sgf_pipeline.errors import ConfigError, DataError
-from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text
-from sgf_plugins.saliency.data import (
-    Augmentation,
-    SodFolder,
-    SplitSpec,
-    make_splits,
-    normalize_image,
-    resize_mask,
-    salient_crop,
-)
-from sgf_plugins.saliency.inference import probability_module
-from sgf_plugins.saliency.metrics import SodMetrics
+from sgf_pipeline.io import atomic_write_json, atomic_write_text
+from sgf_plugins.saliency.augment import Augmentation
+from sgf_plugins.saliency.checkpoint import BEST, load_checkpoint, save_checkpoint
+from sgf_plugins.saliency.data import SodFolder, SplitSpec, make_splits
+from sgf_plugins.saliency.model_card import cpu_name, init_provenance, model_card_markdown
 from sgf_plugins.saliency.models import build_model
-from sgf_plugins.saliency.weights import (
-    describe_arch,
-    load_weights,
-    read_metadata,
-    save_weights,
-    trained_input_size,
-)
-
-CHECKPOINT = "checkpoint.safetensors"
-CHECKPOINT_STATE = "checkpoint.json"
-BEST = "best.safetensors"
+from sgf_plugins.saliency.training_set import SodTrainingSet, collate
+from sgf_plugins.saliency.validation import evaluate_network
+from sgf_plugins.saliency.weights import load_weights, save_weights
 
 
 class DataOptions(BaseModel):
@@ -109,86 +93,6 @@ def _lower_is_better(metric: str) -> bool:
     return metric == "mae"
 
 
-class SodTrainingSet(torch.utils.data.Dataset[tuple[torch.Tensor, dict[str, torch.Tensor]]]):
-    """Samples of a SOD folder as network inputs and targets, augmented reproducibly per epoch."""
-
-    def __init__(
-        self,
-        folder: SodFolder,
-        names: Sequence[str],
-        size: int,
-        augment: Augmentation | None,
-        seed: int,
-        extra_targets: Callable[[np.ndarray], dict[str, np.ndarray]] | None = None,
-        crop: int | None = None,
-        crop_on_marking: float = 0.8,
-    ) -> None:
-        self.folder = folder
-        self.crop = crop
-        self.crop_on_marking = crop_on_marking
-        self.names = list(names)
-        self.size = size
-        self.augment = augment
-        self.seed = seed
-        self.epoch = 0
-        self.extra_targets = extra_targets
-
-    def __len__(self) -> int:
-        return len(self.names)
-
-    def __getitem__(self, index: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        name = self.names[index]
-        import cv2
-
-        rgb = self.folder.image(name)
-        mask = resize_mask(self.folder.mask(name), self.size)
-        if rgb.shape[:2] != (self.size, self.size):
-            rgb = cv2.resize(rgb, (self.size, self.size), interpolation=cv2.INTER_AREA)
-        rng = np.random.default_rng([self.seed, self.epoch, index])
-        if self.augment is not None:
-            rgb, mask = self.augment(rgb, mask, rng)
-        if self.crop is not None and self.crop < self.size:
-            rgb, mask = salient_crop(rgb, mask, self.crop, self.crop_on_marking, rng)
-        targets = {"mask": torch.from_numpy(mask[None].copy())}
-        if self.extra_targets is not None:
-            for key, value in self.extra_targets(mask).items():
-                targets[key] = torch.from_numpy(value[None].copy())
-        return torch.from_numpy(normalize_image(rgb, rgb.shape[0])), targets
-
-
-def _collate(batch: list[tuple[torch.Tensor, dict[str, torch.Tensor]]]) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    images = torch.stack([b[0] for b in batch])
-    targets = {k: torch.stack([b[1][k] for b in batch]) for k in batch[0][1]}
-    return images, targets
-
-
-def predict_folder(
-    net: nn.Module, folder: SodFolder, names: Sequence[str], size: int, batch_size: int = 8
-) -> Iterator[tuple[str, np.ndarray]]:
-    """``(name, probability at the mask's resolution)`` for each sample, the network in eval mode."""
-    import cv2
-
-    module = probability_module(net)
-    for start in range(0, len(names), batch_size):
-        chunk = names[start : start + batch_size]
-        x = np.stack([normalize_image(folder.image(n), size) for n in chunk])
-        with torch.inference_mode():
-            probs = module(torch.from_numpy(x)).numpy()[:, 0]
-        for name, prob in zip(chunk, probs, strict=True):
-            h, w = folder.mask(name).shape
-            if prob.shape != (h, w):
-                prob = cv2.resize(prob, (w, h), interpolation=cv2.INTER_LINEAR)
-            yield name, np.clip(prob, 0.0, 1.0)
-
-
-def evaluate_network(net: nn.Module, folder: SodFolder, names: Sequence[str], size: int) -> dict[str, float]:
-    """SOD metrics of a network on some samples of a folder (PySODMetrics conventions)."""
-    acc = SodMetrics()
-    for name, prob in predict_folder(net, folder, names, size):
-        acc.add_probability(prob, folder.mask(name))
-    return acc.results()
-
-
 def _learning_rate(step: int, total: int, opts: TrainOptions) -> float:
     """Linear warm-up then cosine decay to 1% of the peak."""
     if opts.warmup_steps and step < opts.warmup_steps:
@@ -196,110 +100,6 @@ def _learning_rate(step: int, total: int, opts: TrainOptions) -> float:
     span = max(1, total - opts.warmup_steps)
     t = min(1.0, (step - opts.warmup_steps) / span)
     return opts.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * t)))
-
-
-def _save_checkpoint(
-    out: Path, net: nn.Module, optimizer: torch.optim.Optimizer, state: dict[str, Any], name: str, arch: Mapping
-) -> None:
-    """Network and optimizer tensors in safetensors, progress and optimizer settings in JSON."""
-    from safetensors.torch import save_file
-
-    tensors = {f"model.{k}": v.detach().contiguous() for k, v in net.state_dict().items()}
-    opt = optimizer.state_dict()
-    for index, values in opt["state"].items():
-        for key, value in values.items():
-            t = value if isinstance(value, torch.Tensor) else torch.tensor(value)
-            tensors[f"optim.{index}.{key}"] = t.detach().contiguous()
-    with atomic_path(out / CHECKPOINT) as tmp:
-        save_file(tensors, str(tmp), metadata={"model": name, "architecture": json.dumps(dict(arch))})
-    atomic_write_json(out / CHECKPOINT_STATE, {**state, "param_groups": opt["param_groups"]})
-
-
-def _load_checkpoint(
-    where: Path, net: nn.Module, optimizer: torch.optim.Optimizer, name: str, arch: Mapping
-) -> dict[str, Any]:
-    """Restore a checkpoint written by :func:`_save_checkpoint`; returns the saved progress."""
-    from safetensors import safe_open
-
-    path, state_path = where / CHECKPOINT, where / CHECKPOINT_STATE
-    if not path.is_file() or not state_path.is_file():
-        raise DataError(f"train.resume={where}: no {CHECKPOINT} and {CHECKPOINT_STATE} there")
-    with safe_open(str(path), framework="pt") as fh:
-        meta = fh.metadata() or {}
-        if meta.get("model") != name or json.loads(meta.get("architecture", "{}")) != dict(arch):
-            raise DataError(
-                f"train.resume={where}: the checkpoint is {meta.get('model')} "
-                f"({meta.get('architecture')}), not {name} ({describe_arch(arch)})"
-            )
-        tensors = {k: fh.get_tensor(k) for k in fh.keys()}  # noqa: SIM118
-    net.load_state_dict({k[len("model.") :]: v for k, v in tensors.items() if k.startswith("model.")})
-    saved = json.loads(state_path.read_text())
-    optim_state: dict[int, dict[str, torch.Tensor]] = {}
-    for key, value in tensors.items():
-        if key.startswith("optim."):
-            _, index, field = key.split(".", 2)
-            optim_state.setdefault(int(index), {})[field] = value
-    optimizer.load_state_dict({"state": optim_state, "param_groups": saved.pop("param_groups")})
-    return saved
-
-
-def _init_provenance(init_weights: str | None, model: str) -> dict[str, Any] | None:
-    """The training record of the run that made ``init_weights``, for the new card.
-
-    The model card beside the weights when there is one; otherwise, for the ``best.safetensors`` of
-    a run that was stopped or is still going, that run's checkpoint progress and Hydra overrides.
-    """
-    if not init_weights:
-        return None
-    card_path = Path(init_weights).with_name(f"{model}.json")
-    try:
-        card = json.loads(card_path.read_text())
-        training = card["training"]
-        return {
-            "command": card.get("command", ""),
-            "data": card.get("data", {}).get("root"),
-            "input_size": card.get("input_size"),
-            **{
-                k: training.get(k) for k in ("epochs_run", "steps", "best_epoch", "train_seconds", "options", "history")
-            },
-            **({"init_from": training["init_from"]} if training.get("init_from") else {}),
-        }
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        pass
-    return _unfinished_run_provenance(Path(init_weights)) or {
-        "card": None,
-        "note": f"no readable model card {card_path.name} (nor a run's {CHECKPOINT_STATE}) beside the weights",
-    }
-
-
-def _unfinished_run_provenance(weights: Path) -> dict[str, Any] | None:
-    """The record of a run directory holding ``weights`` without a card: its checkpoint and Hydra files."""
-    from omegaconf import OmegaConf
-
-    run = weights.parent
-    try:
-        state = json.loads((run / CHECKPOINT_STATE).read_text())
-        record: dict[str, Any] = {
-            "command": "",
-            "note": f"from the {CHECKPOINT_STATE} of a run that did not finish (no model card)",
-            "epochs_run": int(state["epoch"]),
-            "steps": int(state["step"]),
-            "best_epoch": state.get("best_epoch"),
-            "train_seconds": state.get("train_seconds"),
-            "history": state.get("history", []),
-            "input_size": trained_input_size(read_metadata(weights)),
-        }
-    except (OSError, ValueError, KeyError, TypeError):
-        return None
-    hydra = run / ".hydra"
-    try:
-        record["command"] = " ".join(["sgf-train", *map(str, OmegaConf.load(hydra / "overrides.yaml"))])
-        config = OmegaConf.load(hydra / "config.yaml")
-        record["data"] = OmegaConf.select(config, "data.root")
-        record["input_size"] = record["input_size"] or OmegaConf.select(config, "saliency.input_size")
-    except (OSError, ValueError, TypeError):
-        pass
-    return record
 
 
 def _better(value: float, best: float | None, metric: str) -> bool:
@@ -370,7 +170,7 @@ def train_model(
     if opts.init_weights:
         load_weights(net, opts.init_weights, model, arch)
     if opts.resume:
-        progress = _load_checkpoint(Path(opts.resume), net, optimizer, model, arch)
+        progress = load_checkpoint(Path(opts.resume), net, optimizer, model, arch)
         best_file = Path(opts.resume) / BEST
         if best_file.is_file() and Path(opts.resume).resolve() != out.resolve():
             shutil.copyfile(best_file, out / BEST)
@@ -385,7 +185,7 @@ def train_model(
         dataset.epoch = epoch
         generator = torch.Generator().manual_seed(opts.seed + epoch)
         loader = torch.utils.data.DataLoader(
-            dataset, batch_size=opts.batch_size, shuffle=True, generator=generator, collate_fn=_collate
+            dataset, batch_size=opts.batch_size, shuffle=True, generator=generator, collate_fn=collate
         )
         net.train()
         t0 = time.perf_counter()
@@ -429,7 +229,7 @@ def train_model(
             else:
                 progress["since_best"] += opts.val_every
         progress["history"].append(record)
-        _save_checkpoint(out, net, optimizer, progress, model, arch)
+        save_checkpoint(out, net, optimizer, progress, model, arch)
         if opts.progress:
             val = record.get("val")
             shown = f", val {opts.monitor} {val[opts.monitor]:.4f}" if val else ""
@@ -484,7 +284,7 @@ def train_model(
             "threads": torch.get_num_threads(),
             "options": opts.model_dump(),
             "init_weights_sha256": file_hash(Path(opts.init_weights)) if opts.init_weights else None,
-            "init_from": _init_provenance(opts.init_weights, model),
+            "init_from": init_provenance(opts.init_weights, model),
             "history": progress["history"],
         },
         "metrics": tests,
@@ -492,7 +292,7 @@ def train_model(
             "torch": torch.__version__,
             "python": platform.python_version(),
             "machine": platform.machine(),
-            "processor": _cpu_name(),
+            "processor": cpu_name(),
         },
         "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
@@ -504,57 +304,3 @@ def train_model(
         for suffix in (".safetensors", ".json", ".md"):
             shutil.copyfile(out / f"{model}{suffix}", target / f"{model}{suffix}")
     return card
-
-
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor()
-
-
-def _init_lines(init: Mapping[str, Any] | None) -> list[str]:
-    """Model-card lines for the runs the weights were fine-tuned from, earliest last."""
-    lines = []
-    while init:
-        if init.get("command") is None:
-            lines.append(f"- fine-tuned from weights without a readable model card ({init.get('note', '')})")
-            break
-        note = f"; {init['note']}" if init.get("note") else ""
-        lines.append(
-            f"- fine-tuned from: `{init['command']}` ({init.get('epochs_run')} epochs at input "
-            f"{init.get('input_size')}, {float(init.get('train_seconds') or 0):.0f} s{note})"
-        )
-        init = init.get("init_from")
-    return lines
-
-
-def model_card_markdown(card: Mapping[str, Any]) -> str:
-    """A human-readable model card."""
-    lines = [
-        f"# {card['model']} model card",
-        "",
-        f"- architecture: {describe_arch(card['architecture'])} ({card['parameters']:,} parameters)",
-        f"- input size: {card['input_size']} px; weights: {card['weights']} ({card['weights_dtype']})",
-        f"- command: `{card['command']}`",
-        f"- data: {card['data']['root']} {card['data']['description']}".rstrip(),
-        f"- splits: {card['data']['sizes']} ({card['data']['splits_from']}, spec {card['data']['split_spec']})",
-        f"- training: {card['training']['epochs_run']} epochs, {card['training']['steps']} steps, best epoch "
-        f"{card['training']['best_epoch']} by val {card['training']['monitor']}, "
-        f"{card['training']['train_seconds']:.0f} s, {card['training']['images_per_second']:.1f} images/s on "
-        f"{card['training']['threads']} threads ({card['environment']['processor']})",
-        *_init_lines(card["training"].get("init_from")),
-        f"- date: {card['date']}",
-        "",
-        "| split | maxF | meanF | adpF | MAE | S-measure | mean E |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for split, m in card["metrics"].items():
-        lines.append(
-            f"| {split} | {m['maxF']:.3f} | {m['meanF']:.3f} | {m['adpF']:.3f} | {m['mae']:.3f} | {m['sm']:.3f} "
-            f"| {m['meanEm']:.3f} |"
-        )
-    return "\n".join(lines) + "\n"

@@ -3,104 +3,21 @@
 from __future__ import annotations
 
 import logging
-import math
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 from pydantic import Field, model_validator
 
 from sgf_pipeline import RunContext, Stage, StageParams, StageRegistry, hookimpl
-from sgf_pipeline.geometry import invert
 from sgf_pipeline.types import Bev, BevGrid, Frame, SaliencyMap, SalientGroundFeature, SgfDetections
-from sgf_plugins.sgf.hu import HuScale, hu_distance, hu_moments
+from sgf_plugins.sgf.best_view import best_view, group_views
+from sgf_plugins.sgf.regions import Region, find_regions
+from sgf_plugins.sgf.tracking import FeatureTrack, FeatureView, associate, moved_enough
 
 log = logging.getLogger("sgf_pipeline.sgf")
 
-#: Most pixels of a view projected into the next frame to predict where its feature went.
-PREDICTION_SAMPLES = 4000
 _NO_PIXELS = np.zeros((0, 2), dtype=np.int32)
-
-
-@dataclass(frozen=True)
-class Region:
-    """A candidate SGF region of one frame: a connected component of the binarised saliency."""
-
-    pixels: np.ndarray
-    saliency: float
-    hu: np.ndarray
-    touches_border: bool
-    instance_id: int | None
-
-
-@dataclass(frozen=True)
-class FeatureView:
-    """One view of a tracked feature: a region with the frame it was seen in."""
-
-    frame_index: int
-    timestamp: float
-    odometry: np.ndarray
-    region: Region
-    homography: np.ndarray | None = None
-
-
-@dataclass
-class FeatureTrack:
-    """A physical ground feature followed over its valid feature range (Sec. III-B, step 1)."""
-
-    track_id: int
-    views: list[FeatureView] = field(default_factory=list)
-    missed: int = 0
-
-    @property
-    def last(self) -> FeatureView:
-        """The newest view."""
-        return self.views[-1]
-
-
-def border_band(valid: np.ndarray, margin: int) -> np.ndarray:
-    """Pixels within ``margin`` px of the image border or of the BEV's invalid area (outside the camera's view)."""
-    h, w = valid.shape
-    outside = ~valid.astype(bool)
-    band = np.zeros((h, w), dtype=bool)
-    band[:margin, :] = band[-margin:, :] = True
-    band[:, :margin] = band[:, -margin:] = True
-    if outside.any():
-        size = 2 * margin + 1
-        near = cv2.dilate(outside.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
-        band |= near
-    return band
-
-
-def majority_instance(ids: np.ndarray, min_fraction: float) -> int | None:
-    """The most frequent non-zero instance id of a region when markings cover ``min_fraction`` of it, else None."""
-    if ids.size == 0:
-        return None
-    marked = ids[ids > 0]
-    if marked.size == 0 or marked.size < min_fraction * ids.size:
-        return None
-    values, counts = np.unique(marked, return_counts=True)
-    return int(values[int(np.argmax(counts))])
-
-
-def group_views(views: list[FeatureView], threshold: float, scale: HuScale) -> list[list[FeatureView]]:
-    """Runs of consecutive non-border views whose Hu distance (eq. 8) stays below ``threshold`` (step 3)."""
-    groups: list[list[FeatureView]] = []
-    current: list[FeatureView] = []
-    for view in views:
-        if view.region.touches_border:
-            if current:
-                groups.append(current)
-            current = []
-            continue
-        if current and hu_distance(current[-1].region.hu, view.region.hu, scale) >= threshold:
-            groups.append(current)
-            current = []
-        current.append(view)
-    if current:
-        groups.append(current)
-    return groups
 
 
 class HuWindowParams(StageParams):
@@ -252,114 +169,20 @@ class HuMomentDetector(Stage):
 
     def regions(self, bev: Bev, saliency: SaliencyMap) -> tuple[np.ndarray, list[Region]]:
         """Label image and candidate regions of one frame (label k is ``regions[k - 1]``)."""
-        raw = np.asarray(saliency.probability)
-        if raw.dtype != bool and not np.issubdtype(raw.dtype, np.floating):
-            raise ValueError(f"saliency must be a float map in [0, 1] (or a boolean mask), got dtype {raw.dtype}")
-        prob = np.nan_to_num(raw.astype(np.float32), nan=0.0)
-        valid = np.asarray(bev.valid, dtype=bool)
-        if prob.shape != valid.shape:
-            raise ValueError(f"saliency map {prob.shape} and BEV valid mask {valid.shape} differ in size")
-        if prob.ndim != 2:
-            raise ValueError(f"saliency must be an (H, W) map, got shape {prob.shape}")
-        mask = (prob >= self.params.threshold) & valid
-        if self.params.closing > 0:
-            size = 2 * self.params.closing + 1
-            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-            mask = (cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel) > 0) & valid
-        merge: np.ndarray | None = None  # the disk of half merge_distance that joins regions into one SGF
-        if self.params.merge_distance > 0.0:
-            # Label the mask dilated by half the merge distance: regions with a smaller gap share a label.
-            radius = max(1, round(0.5 * self.params.merge_distance / bev.grid.resolution))
-            merge = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-            grown = cv2.dilate(mask.astype(np.uint8), merge)
-            count, grown_labels = cv2.connectedComponents(grown, connectivity=8)
-            grown_labels = np.where(mask, grown_labels, 0).astype(np.int32)
-            areas = np.bincount(grown_labels.ravel(), minlength=count)
-            stats = np.zeros((count, 5), dtype=np.int64)
-            stats[:, cv2.CC_STAT_AREA] = areas
-            stats[0, cv2.CC_STAT_AREA] = 0
-            labels = grown_labels
-        else:
-            count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-        keep = np.flatnonzero(stats[1:, cv2.CC_STAT_AREA] >= self.params.min_area) + 1
-        self._stats["regions_too_small"] = self._stats.get("regions_too_small", 0) + (count - 1 - len(keep))
-        remap = np.zeros(count, dtype=np.int32)
-        remap[keep] = np.arange(1, len(keep) + 1)
-        labels = remap[labels]
-        if len(keep) == 0:
-            return labels, []
-        band = border_band(valid, self.params.border_margin)
-        if self.params.border_reach == "merge" and merge is not None:
-            band = cv2.dilate(band.astype(np.uint8), merge) > 0
-        flat = np.flatnonzero(labels)
-        order = np.argsort(labels.flat[flat], kind="stable")
-        flat = flat[order]
-        starts = np.searchsorted(labels.flat[flat], np.arange(1, len(keep) + 1))
-        ids = bev.instance_ids
-        regions = []
-        for idx in np.split(flat, starts[1:]):
-            v, u = np.divmod(idx, labels.shape[1])
-            pixels = np.stack([u, v], axis=1).astype(np.int32)
-            truth = None
-            if ids is not None:
-                truth = majority_instance(np.asarray(ids).flat[idx], self.params.truth_min_fraction)
-            regions.append(
-                Region(
-                    pixels=pixels,
-                    saliency=float(prob.flat[idx].mean()),
-                    hu=hu_moments(pixels),
-                    touches_border=bool(band.flat[idx].any()),
-                    instance_id=truth,
-                )
-            )
+        p = self.params
+        labels, regions, too_small = find_regions(
+            bev,
+            saliency,
+            threshold=p.threshold,
+            min_area=p.min_area,
+            closing=p.closing,
+            merge_distance=p.merge_distance,
+            border_margin=p.border_margin,
+            border_reach=p.border_reach,
+            truth_min_fraction=p.truth_min_fraction,
+        )
+        self._stats["regions_too_small"] = self._stats.get("regions_too_small", 0) + too_small
         return labels, regions
-
-    # -- step 2: valid feature range -------------------------------------------------------
-
-    def _predict(self, view: FeatureView, odometry: np.ndarray, grid: BevGrid) -> tuple[np.ndarray, np.ndarray]:
-        """Ground points of a view moved into the current base frame, and their (u, v) pixels."""
-        pixels = view.region.pixels
-        if len(pixels) > PREDICTION_SAMPLES:
-            pixels = pixels[:: -(-len(pixels) // PREDICTION_SAMPLES)]
-        x, y = grid.pixel_to_ground(pixels[:, 0], pixels[:, 1])
-        delta = invert(odometry) @ view.odometry
-        gx = delta[0, 0] * x + delta[0, 1] * y + delta[0, 3]
-        gy = delta[1, 0] * x + delta[1, 1] * y + delta[1, 3]
-        u, v = grid.ground_to_pixel(gx, gy)
-        return np.stack([gx, gy], axis=1), np.stack([np.rint(u), np.rint(v)], axis=1).astype(np.int64)
-
-    def _associate(
-        self, labels: np.ndarray, regions: list[Region], valid: np.ndarray, odometry: np.ndarray, grid: BevGrid
-    ) -> tuple[dict[int, int], set[int]]:
-        """Greedy track-to-region assignment (track index -> region index) and the tracks that left the view."""
-        h, w = labels.shape
-        centroids = [np.stack(grid.pixel_to_ground(*r.pixels.mean(axis=0)), axis=0) for r in regions]
-        candidates: list[tuple[float, float, int, int]] = []
-        left: set[int] = set()
-        for t, track in enumerate(self._tracks):
-            ground, uv = self._predict(track.last, odometry, grid)
-            inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-            uv_in = uv[inside]
-            seen = valid[uv_in[:, 1], uv_in[:, 0]] if len(uv_in) else np.zeros(0, dtype=bool)
-            if not seen.any():
-                left.add(t)
-                continue
-            hits = np.bincount(labels[uv_in[seen, 1], uv_in[seen, 0]], minlength=len(regions) + 1)[1:]
-            predicted_centroid = ground.mean(axis=0)
-            for r in range(len(regions)):
-                share = hits[r] / float(seen.sum())
-                dist = float(np.linalg.norm(centroids[r] - predicted_centroid))
-                if share >= self.params.min_overlap or (hits[r] == 0 and dist <= self.params.max_centroid_distance):
-                    candidates.append((-share, dist, t, r))
-        candidates.sort()
-        matches: dict[int, int] = {}
-        used: set[int] = set()
-        for _, _, t, r in candidates:
-            if t in matches or r in used:
-                continue
-            matches[t] = r
-            used.add(r)
-        return matches, left
 
     # -- steps 3-4: grouping and selection -------------------------------------------------
 
@@ -373,18 +196,7 @@ class HuMomentDetector(Stage):
             self._stats["border_only"] = self._stats.get("border_only", 0) + 1
             return None
 
-        def mean_saliency(group: list[FeatureView]) -> float:
-            return float(np.mean([v.region.saliency for v in group]))
-
-        if self.params.group_choice == "largest":
-            chosen = max(groups, key=lambda g: (len(g), mean_saliency(g)))
-        else:
-            chosen = max(groups, key=mean_saliency)
-        best = max(chosen, key=lambda v: v.region.saliency)
-        if self.params.view_choice != "most_salient":
-            pool = chosen if self.params.view_choice == "salient_near" else [v for g in groups for v in g]
-            near = [v for v in pool if v.region.saliency >= best.region.saliency - self.params.near_margin]
-            best = max(near, key=lambda v: float(v.region.pixels[:, 1].mean()))  # rows grow towards the robot
+        best = best_view(groups, self.params.group_choice, self.params.view_choice, self.params.near_margin)
         region = best.region
         return SalientGroundFeature(
             track_id=track.track_id,
@@ -409,13 +221,24 @@ class HuMomentDetector(Stage):
             raise ValueError(f"frame {frame.index}: odometry must be a finite 4x4 pose, got shape {odometry.shape}")
         labels, regions = self.regions(bev, saliency)
         valid = np.asarray(bev.valid, dtype=bool)
-        matches, left = self._associate(labels, regions, valid, odometry, bev.grid)
+        matches, left = associate(
+            self._tracks,
+            labels,
+            regions,
+            valid,
+            odometry,
+            bev.grid,
+            self.params.min_overlap,
+            self.params.max_centroid_distance,
+        )
         finished: list[FeatureTrack] = []
         still_open: list[FeatureTrack] = []
         for t, track in enumerate(self._tracks):
             if t in matches:
                 track.missed = 0
-                if not self._moved(track.last.odometry, odometry):
+                if not moved_enough(
+                    track.last.odometry, odometry, self.params.min_view_motion, self.params.min_view_turn
+                ):
                     self._stats["stationary_views"] = self._stats.get("stationary_views", 0) + 1
                     still_open.append(track)
                     continue
@@ -457,15 +280,6 @@ class HuMomentDetector(Stage):
                 out.append(sgf)
         self._selected.extend(sgf.without_pixels() for sgf in out)  # kept for the run's metrics: no pixels
         return SgfDetections(tuple(out))
-
-    def _moved(self, before: np.ndarray, now: np.ndarray) -> bool:
-        """Whether the robot moved or turned enough since a track's last view for a new view."""
-        p = self.params
-        if p.min_view_motion <= 0.0 and p.min_view_turn <= 0.0:
-            return True
-        delta = invert(before) @ now
-        turned = math.acos(max(-1.0, min(1.0, (float(np.trace(delta[:3, :3])) - 1.0) / 2.0)))
-        return float(np.linalg.norm(delta[:3, 3])) >= p.min_view_motion or turned >= p.min_view_turn
 
     def finalize(self, context: RunContext) -> None:
         """Write ``sgf.detected``/``sgf.total`` (null without ground truth) and share the selected SGFs (no pixels)."""

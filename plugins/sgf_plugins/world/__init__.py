@@ -7,11 +7,17 @@ pose (``marking_layout``), drives the preset's route (``frames()``) and holds it
 :mod:`sgf_plugins.world.dataset`. Names are imported on first use, so that loading the plugin
 (``sgf-plugins``) does not import the renderer.
 
+The campus is a :class:`~sgf_plugins.world.layout.CampusLayout` (``layout``) laid out by
+``layout_generator`` with ``marking_placement`` and ``agent_placement``. Its markings are the
+``designs`` of the library, drawn on a ``canvas`` by ``road_markings`` and ``campus_markings``
+and rasterised by ``marking_raster``.
+
 The camera (:mod:`~sgf_plugins.world.render`) composes its collaborators: the rays on the
 terrain (``raycast``), the ground's tile mosaics and grain (``ground``, tiles from ``texture``
-with ``paving``, ``clutter`` and ``ground_shadows``), ``sky`` and light, the people and vehicles
-in front of it (``occluders``), what stands above the ground (``scenery``: ``buildings``,
-``trees``, ``lamps``, ``pedestrians``, ``vehicles``) and the ``sensor``.
+with ``paving``, ``clutter`` and ``ground_shadows`` under the ``sun``), ``sky`` and light, the
+people and vehicles in front of it (``occluders``), what stands above the ground (``scenery``:
+``buildings``, ``trees``, ``lamps``, ``pedestrians``, ``vehicles``) and the ``sensor``; a
+frame's ``conditions`` say how it is rendered.
 """
 
 from __future__ import annotations
@@ -20,10 +26,11 @@ from types import ModuleType
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from sgf_plugins.world.conditions import RenderConditions
     from sgf_plugins.world.designs import DESIGNS, HELD_OUT_FAMILIES, MarkingDesign, allowed_designs, families
     from sgf_plugins.world.params import NightWorldParams, WorldParams
     from sgf_plugins.world.presets import PRESETS, Preset
-    from sgf_plugins.world.render import RenderConditions, RenderLayers
+    from sgf_plugins.world.render import RenderLayers
     from sgf_plugins.world.terrain import Terrain
     from sgf_plugins.world.world import CampusWorld, build_world, world_params
 
@@ -37,7 +44,7 @@ _WHERE = {
     "WorldParams": "params",
     "PRESETS": "presets",
     "Preset": "presets",
-    "RenderConditions": "render",
+    "RenderConditions": "conditions",
     "RenderLayers": "render",
     "Terrain": "terrain",
     "CampusWorld": "world",
@@ -75,6 +82,10 @@ def __getattr__(name: str) -> Any:
 
 def _module(name: str) -> ModuleType:
     """The submodule ``name``, imported on demand (a fixed set: nothing named by data is imported)."""
+    if name == "conditions":
+        from sgf_plugins.world import conditions
+
+        return conditions
     if name == "designs":
         from sgf_plugins.world import designs
 

@@ -13,7 +13,8 @@ import numpy as np
 
 from sgf_plugins.world.layout import CampusLayout
 from sgf_plugins.world.raycast import STEP
-from sgf_plugins.world.texture import LEVELS, Level, Sun, TileCache, TileGenerator
+from sgf_plugins.world.sun import Sun
+from sgf_plugins.world.texture import LEVELS, Level, TileCache, TileGenerator
 
 #: Near-camera grain: texel size (m) and the depth (m) up to which it shows.
 DETAIL_TEXEL = 0.0025

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -11,9 +10,7 @@ import numpy as np
 from sgf_plugins.world.clutter import GroundClutter
 from sgf_plugins.world.layout import CampusLayout
 from sgf_plugins.world.noise import lattice_noise
-
-if TYPE_CHECKING:
-    from sgf_plugins.world.texture import Sun
+from sgf_plugins.world.sun import Sun
 
 
 class GroundShadows:

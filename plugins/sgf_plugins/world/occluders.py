@@ -3,19 +3,16 @@
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
+from sgf_plugins.world.conditions import RenderConditions
 from sgf_plugins.world.drawing import PlacedAgent, clip_near
 from sgf_plugins.world.layout import Agent, CampusLayout
 from sgf_plugins.world.noise import rng_for
+from sgf_plugins.world.sun import Sun
 from sgf_plugins.world.terrain import Terrain
-from sgf_plugins.world.texture import Sun
-
-if TYPE_CHECKING:
-    from sgf_plugins.world.render import RenderConditions
 
 #: A person's footprint (16 points on a circle of 0.18 m), for their shadow.
 _BODY = 0.18 * np.stack([np.cos(np.arange(16) * math.pi / 8), np.sin(np.arange(16) * math.pi / 8)], axis=1)

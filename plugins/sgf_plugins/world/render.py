@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from sgf_pipeline.calibration import Calibration
+from sgf_plugins.world.conditions import RenderConditions
 from sgf_plugins.world.ground import GroundTexture, detail_texture
 from sgf_plugins.world.layout import CampusLayout
 from sgf_plugins.world.noise import rng_for
@@ -27,27 +28,12 @@ from sgf_plugins.world.raycast import OFFSET, STEP, RayCaster
 from sgf_plugins.world.scenery import Scenery
 from sgf_plugins.world.sensor import Sensor
 from sgf_plugins.world.sky import SkyAndLight
+from sgf_plugins.world.sun import Sun
 from sgf_plugins.world.terrain import Terrain
-from sgf_plugins.world.texture import LEVELS, Sun
+from sgf_plugins.world.texture import LEVELS
 
 #: Fixed-point scale of the light factor (light x gain in [0, 255 / LIGHT_SCALE]).
 LIGHT_SCALE = 64.0
-
-
-@dataclass(frozen=True)
-class RenderConditions:
-    """How a frame looks: night or day, the time (moving people), exposure, occluders and noise."""
-
-    night: bool = False
-    time: float = 0.0
-    exposure: float = 1.0
-    occluders: bool = True
-    extra_occluders: int = 0
-    sensor_noise: bool = True
-    headlight: bool | None = None
-    street_lamps: bool = True
-    far_field: bool = True
-    noise_seed: int = 0
 
 
 @dataclass

@@ -3,16 +3,13 @@
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
+from sgf_plugins.world.conditions import RenderConditions
 from sgf_plugins.world.noise import rng_for
 from sgf_plugins.world.raycast import RayCaster
-
-if TYPE_CHECKING:
-    from sgf_plugins.world.render import RenderConditions
 
 
 class Sensor:

@@ -7,19 +7,16 @@ at night by the headlight and the lamps near the robot under a dark glow, with a
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
+from sgf_plugins.world.conditions import RenderConditions
 from sgf_plugins.world.drawing import Lighting
 from sgf_plugins.world.layout import CampusLayout
 from sgf_plugins.world.noise import lattice_noise
 from sgf_plugins.world.raycast import OFFSET, STEP, RayCaster
-from sgf_plugins.world.texture import Sun
-
-if TYPE_CHECKING:
-    from sgf_plugins.world.render import RenderConditions
+from sgf_plugins.world.sun import Sun
 
 NIGHT_GAIN = 2.0
 

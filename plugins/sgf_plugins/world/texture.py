@@ -16,11 +16,12 @@ import cv2
 import numpy as np
 
 from sgf_plugins.world.clutter import GroundClutter
-from sgf_plugins.world.designs import Raster, rasterise
 from sgf_plugins.world.ground_shadows import GroundShadows
 from sgf_plugins.world.layout import CampusLayout, MarkingInstance
+from sgf_plugins.world.marking_raster import Raster, rasterise
 from sgf_plugins.world.noise import fbm, lattice_noise, rng_for
 from sgf_plugins.world.paving import Paving, periodic_cover
+from sgf_plugins.world.sun import Sun
 
 
 @dataclass(frozen=True)
@@ -47,26 +48,6 @@ LEVELS: tuple[Level, ...] = (
 )
 
 CURB_WIDTH = 0.15
-
-
-@dataclass(frozen=True)
-class Sun:
-    """Direction of the sun: azimuth (rad, from +x towards +y) and elevation (rad)."""
-
-    azimuth: float
-    elevation: float
-
-    @property
-    def shadow_offset(self) -> np.ndarray:
-        """Ground offset (m) of a shadow cast by a point 1 m high."""
-        k = 1.0 / math.tan(self.elevation)
-        return -k * np.array([math.cos(self.azimuth), math.sin(self.azimuth)])
-
-    @property
-    def direction(self) -> np.ndarray:
-        """Unit vector towards the sun (x, y, z)."""
-        ce = math.cos(self.elevation)
-        return np.array([ce * math.cos(self.azimuth), ce * math.sin(self.azimuth), math.sin(self.elevation)])
 
 
 class TileGenerator:

@@ -13,15 +13,18 @@ from pydantic import ValidationError
 from sgf_pipeline.calibration import Calibration, Intrinsics
 from sgf_pipeline.errors import ConfigError
 from sgf_pipeline.types import BevGrid, Frame, SequenceTruth
+from sgf_plugins.world.conditions import RenderConditions
 from sgf_plugins.world.designs import allowed_designs
 from sgf_plugins.world.drive import DriveLog, OdometryModel, SensorLog, build_legs, drive, simulate_sensors
-from sgf_plugins.world.layout import CampusLayout, LayoutOptions, build_layout
+from sgf_plugins.world.layout import CampusLayout
+from sgf_plugins.world.layout_generator import LayoutOptions, build_layout
 from sgf_plugins.world.noise import lattice_noise, rng_for
 from sgf_plugins.world.params import WorldParams
 from sgf_plugins.world.presets import PRESETS, Preset
-from sgf_plugins.world.render import RenderConditions, Renderer, RenderLayers
+from sgf_plugins.world.render import Renderer, RenderLayers
+from sgf_plugins.world.sun import Sun
 from sgf_plugins.world.terrain import Terrain
-from sgf_plugins.world.texture import LEVELS, Sun
+from sgf_plugins.world.texture import LEVELS
 from sgf_plugins.world.truth import sequence_truth
 
 
