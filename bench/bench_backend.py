@@ -210,34 +210,8 @@ def bench_lm(n: int, seed: int, every: float) -> dict[str, float]:
             result["run_with_lm_every_loop_s"] = run_s
         result["loops"] = backend.graph.loop_factors
         result[f"ate_{mode}_m"] = ate(backend.graph.store.snapshot().array(), gt)
-    result.update(bench_taken_back(backend, found, gt))
     result["ate_odometry_m"] = ate(odo, gt)
     return result
-
-
-def bench_taken_back(
-    backend: GtsamLmBackend, found: dict[int, list[LoopConstraint]], gt: np.ndarray
-) -> dict[str, float]:
-    """A look-alike loop 20 m off added to the finished graph, then taken back (``loop.consistency.drop_inconsistent``).
-
-    Times the re-solve the back-end does then (``resolve``: LM from its estimate and from dead reckoning).
-    """
-    last = max(found.values(), key=lambda items: items[0].frame_to)[0]
-    shifted = pose_from_xy_yaw(20.0, 0.0, 0.0) @ last.relative
-    look_alike = LoopConstraint(last.frame_from, last.frame_to - 50, shifted, last.covariance, 0, False, 0.01, 1.0)
-    backend.graph.add_loop(look_alike)
-    backend.graph.take_new()
-    backend.batch_optimize()
-    polluted = ate(backend.graph.store.snapshot().array(), gt)
-    t0, c0 = time.perf_counter(), time.process_time()
-    backend.graph.remove_loops([look_alike])
-    backend.resolve()
-    return {
-        "ate_with_look_alike_m": polluted,
-        "taken_back_resolve_wall_s": time.perf_counter() - t0,
-        "taken_back_resolve_cpu_s": time.process_time() - c0,
-        "ate_taken_back_m": ate(backend.graph.store.snapshot().array(), gt),
-    }
 
 
 class _TimedSolver:

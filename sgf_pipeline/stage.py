@@ -12,7 +12,7 @@ from typing import Annotated, Any, ClassVar, Optional, TypeVar
 from pydantic import BaseModel, ConfigDict
 
 from sgf_pipeline.context import RunContext
-from sgf_pipeline.types import Frame, GroupAssignment, LoopConstraints, PoseEstimate, SgfDescriptor
+from sgf_pipeline.types import Frame, GroupAssignment, LoopConstraints, SgfDescriptor
 
 T = TypeVar("T")
 
@@ -55,10 +55,6 @@ class Settlement:
     order, then to every stage's ``conclude``; each stage returns it with what it decided replaced
     (``dataclasses.replace``). The fields, and who fills them in the default pipeline:
 
-    - ``taken_back``: loops the loop stage took back (outside the largest consistent set) that the
-      back-end still holds;
-    - ``estimate``: the back-end's estimate re-solved without the loops taken back at ``settle``,
-      or ``None`` when it re-solved none;
     - ``groups`` and ``group_of``: the association's final SGF groups (after its split and merge at
       the end; ``None`` without an association) and each SGF's ``(frame_index, track_id)`` -> its
       final group;
@@ -66,8 +62,6 @@ class Settlement:
     - ``assignments``: every group assignment the loop stage received, for the SGF map.
     """
 
-    taken_back: LoopConstraints = field(default_factory=lambda: LoopConstraints(()))
-    estimate: PoseEstimate | None = None
     groups: tuple[SettledGroup, ...] | None = None
     group_of: Mapping[tuple[int, int], int] = field(default_factory=dict)
     final_loops: LoopConstraints = field(default_factory=lambda: LoopConstraints(()))

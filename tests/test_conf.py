@@ -11,8 +11,6 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from sgf_experiments import CONF as EXPERIMENTS_CONF
-from sgf_plugins.backend.stages import Isam2Params
-from sgf_plugins.loop.params import IcpLoopParams
 
 from sgf_pipeline import Pipeline, load_plugins
 from sgf_pipeline.config import RESERVED_KEYS, config_dir
@@ -63,29 +61,6 @@ def test_the_default_config_builds_a_valid_pipeline():
     assert [n.kind for n in pipeline.order] == list(cfg.pipeline) or set(n.kind for n in pipeline.order) == set(
         cfg.pipeline
     )
-
-
-def test_the_loop_consistency_test_takes_the_back_ends_heading_bias_sigmas():
-    keys = {  # the key under loop.consistency: the back-end's key it follows, and its value without a back-end
-        "yaw_bias_sigma_deg_per_m": ("odometry_yaw_bias_sigma_deg_per_m", 0.5),
-        "yaw_bias_reading_sigma_deg_per_m": ("odometry_yaw_bias_reading_sigma_deg_per_m", 0.1),
-        "odometry_sigma_yaw_deg": ("odometry_sigma_yaw_deg", 0.5),
-        "kernel_width": ("loop_kernel_width", 3.0),
-    }
-    changed = [f"backend.{backend_key}={2 * alone}" for backend_key, alone in keys.values()]
-    with initialize_config_dir(str(CONF), version_base="1.3"):
-        for backend in ("isam2", "gtsam_lm"):
-            cfg = compose("config", overrides=[f"backend={backend}", *changed])
-            for key, (backend_key, alone) in keys.items():
-                assert cfg.loop.consistency[key] == cfg.backend[backend_key] == 2 * alone, (backend, key)
-        cfg = compose("config", overrides=["backend=none"])
-        assert {key: cfg.loop.consistency[key] for key in keys} == {key: alone for key, (_, alone) in keys.items()}
-    # the stage's own defaults are the back-end's
-    loop, backend = IcpLoopParams(), Isam2Params()
-    assert {key: getattr(loop.consistency, key) for key in keys} == {key: alone for key, (_, alone) in keys.items()}
-    assert {key: getattr(backend, backend_key) for key, (backend_key, _) in keys.items()} == {
-        key: alone for key, (_, alone) in keys.items()
-    }
 
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in (EXPERIMENTS_CONF / "experiment").glob("*.yaml")))

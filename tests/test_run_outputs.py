@@ -36,7 +36,7 @@ def loop(frame_from: int, frame_to: int, **extra: object) -> dict[str, object]:
 
 def with_loops(metrics: dict[str, object], accepted: list[dict[str, object]]) -> str:
     """report.md of a run whose loop stage accepted ``accepted``."""
-    return render_report(metrics, [report_section(metrics.get("loops", {}), accepted)])  # type: ignore[arg-type]
+    return render_report(metrics, [report_section(accepted)])
 
 
 def line(n: int) -> Trajectory:
@@ -90,22 +90,3 @@ def test_the_report_lists_the_loops_up_to_its_row_limit() -> None:
     assert "| ... and 4 more |" in many
     assert "None." in with_loops(metrics, [])
     assert "Accepted loops" not in render_report(metrics)  # a run without a loop stage
-
-
-def test_the_report_and_the_summary_name_the_loops_taken_back() -> None:
-    from pathlib import Path
-
-    from sgf_pipeline.cli.run import summary
-
-    consistency = {"threshold": 3.0, "dropped": True, "outside_largest_set": [[343, 3274], [816, 3734]]}
-    loops = {"pairs_found": 9, "pairs_total": 9, "pairs_found_reverse": 0, "pairs_total_reverse": 0}
-    loops |= {"closed": 5, "closed_reverse": 0, "false_closed": 0, "consistency": consistency | {"false_outside": 2}}
-    metrics = {"sequence": "toy", "ate_rmse_m": {"odometry": 2.0, "sgf": 0.5}, "sgf": {"detected": 3, "total": 4}}
-    metrics["loops"] = loops
-    report = with_loops(metrics, [loop(1, 80)])
-    assert "(2 of them false by the ground truth): frames 343 -> 3274, 816 -> 3734" in report
-    assert "  5 (0), 0; 2 taken back" in summary(metrics, Path("nowhere"))
-    # listed only (loop.consistency.drop_inconsistent=false): the loops stayed in, nothing was taken back
-    loops["consistency"] = consistency | {"dropped": False, "false_outside": None}
-    assert "Taken back" not in with_loops(metrics, [loop(1, 80)])
-    assert "taken back" not in summary(metrics, Path("nowhere"))

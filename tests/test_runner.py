@@ -17,7 +17,7 @@ from sgf_pipeline.geometry import pose_from_xy_yaw
 from sgf_pipeline.runner import read_ahead
 from sgf_pipeline.stage import Settlement
 from sgf_pipeline.trajectory import read_tum
-from sgf_pipeline.types import Frame, LoopConstraints, PoseEstimate
+from sgf_pipeline.types import Frame, LoopConstraints
 
 
 @pytest.fixture(scope="module")
@@ -169,8 +169,8 @@ def test_the_settlement_is_handed_along_the_dag_and_a_stage_that_takes_no_part_p
     pipeline = Pipeline.from_config(cfg, plugins=plugins)
     first, last = pipeline.order[1].stage, pipeline.order[-1].stage
     loops = LoopConstraints(())
-    estimate = PoseEstimate(0, {})
-    first.settle = lambda context, settlement: replace(settlement, estimate=estimate)  # type: ignore[method-assign]
+    assignments = ()
+    first.settle = lambda context, settlement: replace(settlement, group_of={(0, 0): 1})  # type: ignore[method-assign]
     received: list[Settlement] = []
     last.conclude = lambda context, settlement: received.append(settlement) or settlement  # type: ignore[method-assign]
     middle = pipeline.order[2].stage
@@ -179,8 +179,8 @@ def test_the_settlement_is_handed_along_the_dag_and_a_stage_that_takes_no_part_p
         pipeline.process(frame)
     pipeline.finish()
     (settlement,) = received
-    assert settlement.estimate is estimate and settlement.final_loops is loops
-    assert settlement.groups is None and settlement.taken_back.items == ()
+    assert settlement.group_of == {(0, 0): 1} and settlement.final_loops is loops
+    assert settlement.groups is None and settlement.assignments == assignments
 
 
 def test_process_returns_the_pose_estimate_for_embedding(plugins):

@@ -31,12 +31,6 @@ def _fmt(value: Any, spec: str = ".2f") -> str:
     return "-" if value is None else format(value, spec)
 
 
-def _taken_back(loops: dict[str, Any]) -> list[Any]:
-    """The loops the loop stage took back at the end (its ``consistency`` metrics), if it did."""
-    consistency = loops.get("consistency") or {}
-    return list(consistency.get("outside_largest_set", [])) if consistency.get("dropped") else []
-
-
 def summary(metrics: dict[str, Any], run_dir: Path) -> str:
     """The short table printed at the end of a run."""
     ate = metrics["ate_rmse_m"]
@@ -54,8 +48,7 @@ def summary(metrics: dict[str, Any], run_dir: Path) -> str:
         ),
         (
             "loops closed (rev.), false",
-            f"{_fmt(loops['closed'], 'd')} ({_fmt(loops['closed_reverse'], 'd')}), {_fmt(loops['false_closed'], 'd')}"
-            + (f"; {len(back)} taken back" if (back := _taken_back(loops)) else ""),
+            f"{_fmt(loops['closed'], 'd')} ({_fmt(loops['closed_reverse'], 'd')}), {_fmt(loops['false_closed'], 'd')}",
         ),
         ("frames processed / seen", f"{timing.get('frames', '-')}/{timing.get('dataset_frames', '-')}"),
         ("frames/s, real-time factor", f"{_fmt(timing.get('fps'), '.1f')}, {_fmt(timing.get('realtime_factor'))}"),

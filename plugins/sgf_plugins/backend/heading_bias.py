@@ -90,18 +90,6 @@ class HeadingBias:
         self._lengths: list[float] = []  # ...the path between its frames (m)
         self._variances: list[float] = []  # ...and the variance of that difference (rad^2)
 
-    def restarted(self) -> HeadingBias:
-        """A new estimator with this one's settings, no frame and no loop seen."""
-        return HeadingBias(
-            self.prior_sigma,
-            self.odometry_sigma_yaw,
-            self.kernel_width,
-            self.max_bias,
-            self.min_loops,
-            self.significance,
-            self.reading_sigma,
-        )
-
     @property
     def loops(self) -> int:
         """Loops observed so far."""

@@ -16,7 +16,7 @@ GTSAM is imported inside functions so that listing plugins stays fast.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any, Literal
 
 import numpy as np
@@ -63,7 +63,6 @@ class PoseGraph:
         self.map_nodes: set[int] = set()
         self.loop_factors = 0
         self.map_factors = 0
-        self._loop_factor: dict[tuple[int, int, bool], list[Any]] = {}  # per loop's ends: its factors
         self.anchored = not self.map_poses
         self._prior: Any = None
         self.chain = NodeChain(node_distance)
@@ -181,7 +180,7 @@ class PoseGraph:
         relative = np.asarray(loop.relative, dtype=np.float64)
         if relative.shape != (4, 4) or not np.all(np.isfinite(relative)):
             raise ValueError("a loop constraint's relative pose must be a finite 4x4 matrix")
-        self.odometry.observe(loop, relative, self.store.frames[-1])
+        self.odometry.observe(loop, relative)
         if not self.pose3:
             relative = planar(relative)
         node_to, relative, adjoint = self._on_node(loop.frame_to, relative, "to")
@@ -208,33 +207,7 @@ class PoseGraph:
         noise = self.build.loop_noise(loop.covariance, adjoint)
         factor = self.build.between(key_from, X(node_to), relative, noise)
         self._add(factor)
-        self._loop_factor.setdefault((loop.frame_from, loop.frame_to, loop.from_map), []).append(factor)
         return anchored
-
-    def remove_loops(self, loops: Sequence[LoopConstraint]) -> int:
-        """Take loop factors back out of the graph (an incremental solver must then start over); their number.
-
-        With the heading bias estimated, the odometry is corrected again as if those loops had never
-        come (:meth:`OdometryCorrection.replayed_without`): two false loops that agree would otherwise leave the
-        bias they claimed in the odometry they were in for.
-        """
-        gone: list[Any] = []
-        keys = {(loop.frame_from, loop.frame_to, loop.from_map) for loop in loops}
-        if self.odometry.saw_any(keys):
-            # The nodes' odometry, the frames' offsets on their nodes and the odometry factors follow.
-            self._set_odometry(self.odometry.replayed_without(keys, self.store.frames))
-        for loop in loops:
-            factors = self._loop_factor.pop((loop.frame_from, loop.frame_to, loop.from_map), [])
-            gone.extend(factors)
-            if loop.from_map:
-                self.map_factors -= len(factors)
-            else:
-                self.loop_factors -= len(factors)
-        if gone:
-            ids = {id(f) for f in gone}
-            self.factors = [f for f in self.factors if id(f) not in ids]
-            self.rebuild_new()
-        return len(gone)
 
     def hindsight_heading_bias(self) -> bool:
         """Take the heading bias now known off every odometry step from the first frame on; False if none is.

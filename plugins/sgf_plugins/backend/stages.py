@@ -18,7 +18,6 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -336,8 +335,6 @@ class _GraphBackend(_Backend):
         self.graph = PoseGraph(params.pose, params.noise(), self.map_poses, params.node_distance)
         self.optimizations = 0
         self.optimize_seconds = 0.0
-        self.loops_dropped = 0
-        self.resolved = False  # settle re-solved in batch (an iSAM2 solver still holds the loops taken out)
         self.hindsight = False  # the final heading bias was taken off the whole drive
         self.camera: OdometryScale | None = None  # the camera's newest measurement of the odometry's errors
 
@@ -382,25 +379,6 @@ class _GraphBackend(_Backend):
         """Add the loops a loop stage closed at the end of the run (``settlement.final_loops``); their number."""
         return self._add_loops(settlement.final_loops)[0]
 
-    def _drop_loops(self, settlement: Settlement) -> int:
-        """Take out the loops the loop stage took back (``settlement.taken_back``); their number."""
-        count = self.graph.remove_loops(settlement.taken_back.items)  # a loop already out counts no more
-        self.loops_dropped += count
-        return count
-
-    def settle(self, context: RunContext, settlement: Settlement) -> Settlement:
-        """Take out the loops the loop stage took back and re-solve (handed on as ``settlement.estimate``).
-
-        The association regroups, and the loop stage's final pass matches, by this estimate: the
-        one the run's newest estimate would be without the false loops the consistency test found.
-        """
-        if self.graph.timestamps and self._drop_loops(settlement):
-            self.graph.take_new()
-            self.resolve()
-            self.resolved = True
-            return replace(settlement, estimate=self.estimate())
-        return settlement
-
     def _hindsight(self) -> bool:
         """The final heading bias taken off the whole drive (``odometry_yaw_bias_hindsight``); False if none moved."""
         params = self.params
@@ -413,7 +391,7 @@ class _GraphBackend(_Backend):
     def resolve(self) -> None:
         """Batch LM over the whole graph from the current estimate and from dead reckoning; the lower error wins.
 
-        After loops were taken out, the estimate they pulled may lie far from the others' optimum.
+        After the odometry changed (the hindsight heading bias), the old estimate may lie far from the optimum.
         """
         self.batch_optimize()
         optimum, error = self.graph.values, self.graph.error()
@@ -474,7 +452,6 @@ class _GraphBackend(_Backend):
             "pose_nodes": len(self.graph.nodes),
             "loop_factors": self.graph.loop_factors,
             "map_factors": self.graph.map_factors,
-            "loops_dropped": self.loops_dropped,
             "optimizations": self.optimizations,
             "optimize_seconds": round(self.optimize_seconds, 4),
             "final_error": self.graph.error(),
@@ -515,13 +492,12 @@ class GtsamLmBackend(_GraphBackend):
         return self.estimate()
 
     def finalize(self, context: RunContext) -> None:
-        """The loops closed at the end in and those taken back out, a final batch optimisation, then the rest."""
+        """The loops closed at the end, a final batch optimisation, then the rest."""
         if self.graph.timestamps:
             self._add_final_loops(self.settlement)
-            dropped = self._drop_loops(self.settlement)
             hindsight = self._hindsight()
             self.graph.take_new()
-            if dropped or hindsight:
+            if hindsight:
                 self.resolve()
             else:
                 self.batch_optimize()
@@ -617,19 +593,13 @@ class Isam2Backend(_GraphBackend):
     def finalize(self, context: RunContext) -> None:
         """The loops closed at the end, the final iSAM2 estimate (optionally refined by batch LM), then the rest.
 
-        When the loop stage took loops back (here or in :meth:`settle`), the graph without them is
-        solved by batch LM instead.
+        When the hindsight heading bias changed the odometry, the graph is solved by batch LM instead.
         """
         if self.graph.timestamps:
             final = self._add_final_loops(self.settlement)
-            dropped = self._drop_loops(self.settlement)
-            if self._hindsight() or dropped:
-                # iSAM2 holds the loops taken back, or the odometry before the hindsight: solved in batch
+            if self._hindsight():  # iSAM2 holds the odometry before the hindsight: solved in batch
                 self.graph.take_new()
                 self.resolve()
-            elif self.resolved:  # settle solved the graph without them in batch: so on
-                self.graph.take_new()
-                self.batch_optimize()
             else:
                 self._finish_isam2(final)
         super().finalize(context)

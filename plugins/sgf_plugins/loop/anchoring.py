@@ -65,48 +65,23 @@ class LoopAnchoring:
         last = estimate.frame_index
         return np.asarray(estimate.poses[last]) @ invert(self.frames.odometry(last)) @ self.frames.odometry(k)
 
-    def drift(
-        self, distance: float, newest: int, estimate: PoseEstimate | None, bias_distance: float | None = None
-    ) -> np.ndarray:
+    def drift(self, distance: float, newest: int, estimate: PoseEstimate | None) -> np.ndarray:
         """The gate's drift covariance across ``distance`` m since the last anchor up to frame ``newest``.
 
-        The heading bias acts on ``bias_distance`` m of it (all, by default): the uncertainty of the
-        bias left when the back-end corrected the odometry over all of that (the drive from its
-        ``since`` frame to ``newest``), else the bias as the back-end's model holds it.
+        The heading bias counted is the uncertainty of the bias left when the back-end corrected the
+        odometry over all of that (the drive from its ``since`` frame to ``newest``), else the bias
+        as the back-end's model holds it.
         """
         sigmas = measured_sigmas(self.p, estimate)
         if not self.p.bias_from_backend:
-            return drift_covariance(distance, sigmas, EXPECTED_YAW_BIAS, bias_distance)
-        biased = distance if bias_distance is None else bias_distance
+            return drift_covariance(distance, sigmas, EXPECTED_YAW_BIAS)
         bias = uncorrected_yaw_bias(estimate)
         corrected = corrected_yaw_bias(estimate)
         if corrected is not None:
             start = self.frames.get_distance(corrected[0])
-            if start is not None and self.frames.distance(newest) - start >= biased:
+            if start is not None and self.frames.distance(newest) - start >= distance:
                 bias = corrected[1]
-        return drift_covariance(distance, sigmas, bias, bias_distance)
-
-    def bias_distance(self, i: int, j: int, distance: float, estimate: PoseEstimate | None) -> float | None:
-        """The part of the path from frame ``i`` to the newer ``j`` that the odometry's heading bias bends.
-
-        With ``gate.bridged_bias``, when a loop the estimate has absorbed joins a frame at or
-        before ``i`` to one at or after it, the pose graph has spread that loop's closure error over
-        the drive between them, which takes a constant heading bias off it: only the drive from the
-        newest absorbed loop frame to ``j`` keeps the bias. None (all of ``distance``) otherwise.
-        """
-        if not self.p.bridged_bias or estimate is None:
-            return None
-        bridged = False
-        last = -math.inf
-        for c in self.absorbed_loops(estimate):
-            k = c.constraint
-            if k.from_map or k.frame_to > j:
-                continue
-            bridged |= k.frame_from <= i <= k.frame_to
-            last = max(last, self.frames.distance(k.frame_to))
-        if not bridged:
-            return None
-        return min(distance, self.frames.distance(j) - last)
+        return drift_covariance(distance, sigmas, bias)
 
     def absorbed_loops(self, estimate: PoseEstimate | None) -> list[Candidate]:
         """The accepted constraints the estimate satisfies; kept while the estimate and the accepted list stay."""

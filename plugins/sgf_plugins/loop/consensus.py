@@ -8,23 +8,19 @@ neighbour consensus (:meth:`NeighbourConsensus.support`): the SGFs seen in the l
 the earlier pass, must land on look-alike SGFs of that pass (with ``consensus.heading_deg`` set,
 look-alike at the heading the match predicts for them, and a neighbour that looks alike turned half a
 turn too, a bar or a disc, fixes no heading and counts ``consensus.unoriented_weight``; off by
-default). A neighbour of a common design (look-alikes in more than ``consensus.common_groups`` other
-groups) counts that limit over their number: a wrong match finds copies of a common design where it
-predicts them by chance, and at a crossing laid out like another one, several at once. The one option
-with at least ``consensus.tie_support`` agreeing markings wins; none or several, and the match gives
-no factor.
+default). The one option with at least ``consensus.tie_support`` agreeing markings wins; none or
+several, and the match gives no factor.
 
 ``consensus.min_support`` asks the same of every loop, except a match into a distinct marking: one
 the query looks like (eq. 10 within ``consensus.distance``) while no SGF of any other group comes
 within ``distinct.distance`` of it. Such a marking (a custom one, painted once) vouches for itself and
 needs ``distinct.support`` agreeing neighbours, so a route that revisits one marking only can close
 its loop; the gate is what stands against the second copy of a repeated design met before any third
-copy made it look common, and only while it predicts the match within ``distinct.gate_sigma`` metres.
+copy made it look common.
 With ``consensus.wait``, a match that has too few agreeing neighbours so far waits while the robot
 drives ``consensus.window`` metres on, and the SGFs seen after it count too. A neighbour tens of
 metres from its sighting lies off by the odometry's drift over that path; the tolerance grows with
-it, linearly (``consensus.drift``) and, for the heading bias that bends each pass, quadratically
-(``consensus.heading_bias``: by the bias the back-end's model holds).
+it (``consensus.drift`` per metre).
 
 A match into an aliased group (a repeated pattern: dashes, chevrons, bars) may be with the wrong copy,
 one period away, where the pattern's other copies agree with it too; it needs
@@ -40,11 +36,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from sgf_pipeline.geometry import invert, xy_yaw
-from sgf_pipeline.types import GroupAssignment, LoopConstraint, PoseEstimate
+from sgf_pipeline.types import GroupAssignment, LoopConstraint
 from sgf_plugins.loop.candidate import Candidate
 from sgf_plugins.loop.memory import SgfMemory, odometry_xy
 from sgf_plugins.loop.params import IcpLoopParams
-from sgf_plugins.odometry.drift import uncorrected_yaw_bias
 from sgf_plugins.odometry.frame_log import FrameLog
 from sgf_plugins.sgf.polar import shifted_distances, yaw_to_shift
 
@@ -76,7 +71,6 @@ class NeighbourConsensus:
         self.p = params
         self.frames = frames
         self.memory = memory
-        self.newest: PoseEstimate | None = None  # the newest estimate: its model of the heading bias
 
     def support(self, a: GroupAssignment, c: LoopConstraint, unlike: bool = False) -> float:
         """How many other markings near the query agree with the match: seen where it puts them, and alike.
@@ -86,9 +80,7 @@ class NeighbourConsensus:
         the query (and after it so far, with ``consensus.wait``) into the earlier pass's odometry
         frame. A neighbour agrees when an SGF of the earlier pass (within the window around the
         matched SGF, and at least ``separation.min_distance`` of path before the neighbour) lies
-        within ``consensus.radius + consensus.drift * (path from the two sightings)`` of it (with
-        ``consensus.heading_bias``, plus ``0.5 * bias * L**2`` for each sighting ``L`` m away:
-        a heading bias bends each pass's odometry; the bias the back-end's model holds) and looks
+        within ``consensus.radius + consensus.drift * (path from the two sightings)`` of it and looks
         like it (eq. 10 distance at most ``consensus.distance``); with ``consensus.heading_deg`` set,
         at the heading the match predicts for it, within that many degrees, and a neighbour that
         looks alike at the opposite heading too (a bar, a disc) confirms the position but not the
@@ -99,7 +91,7 @@ class NeighbourConsensus:
         ``consensus.distance``) do not count: in a repeated pattern they are its other copies, which
         agree with a match shifted by a period; and the tolerance is capped at half the pattern's
         period (:meth:`copy_spacing`), since a neighbour allowed more would agree with the match
-        one period off too. A neighbour's weight is scaled by :meth:`rarity`.
+        one period off too.
         """
         p = self.p.consensus
         assert a.matched is not None
@@ -125,15 +117,11 @@ class NeighbourConsensus:
             alike = shifted_distances(query.matrix, np.stack([self.memory[k].matrix for k in neighbours])).min(axis=1)
             neighbours = neighbours[alike > p.distance]
         far = np.abs(dist[earlier] - d_i)  # path from the matched sighting to each earlier SGF
-        bias = uncorrected_yaw_bias(self.newest) if p.heading_bias else None
         cap = 0.5 * self.copy_spacing(a) if unlike else math.inf
         for k in neighbours:
             here = rot @ xy[k] + (x, y)
             near = abs(d_j - dist[k])
-            tolerance = p.radius + p.drift * (near + far)
-            if bias is not None:  # a heading bias bends each pass by 0.5 b L^2
-                tolerance = tolerance + 0.5 * bias * (near**2 + far**2)
-            tolerance = np.minimum(tolerance, cap)
+            tolerance = np.minimum(p.radius + p.drift * (near + far), cap)
             close = earlier[
                 (np.hypot(*(xy[earlier] - here).T) <= tolerance)
                 & (dist[earlier] <= dist[k] - self.p.separation.min_distance)
@@ -146,7 +134,6 @@ class NeighbourConsensus:
             weight = _agreement(profiles, predicted, p.distance, p.heading_deg, p.unoriented_weight)
             if weight <= 0.0:
                 continue
-            weight *= self.rarity(int(k))
             same = [n for n, (g, _) in enumerate(agreeing) if np.hypot(*(xy[k] - g)) <= p.exclude]
             if same:
                 agreeing[same[0]] = (agreeing[same[0]][0], max(agreeing[same[0]][1], weight))
@@ -178,21 +165,6 @@ class NeighbourConsensus:
             if len(gaps):
                 spacing = min(spacing, float(gaps.min()))
         return spacing
-
-    def rarity(self, k: int) -> float:
-        """How much an agreeing neighbour (SGF ``k``) counts for its design's commonness (``consensus.common_groups``).
-
-        A design with copies in many groups (a standard arrow, a crossing) is found near any place a
-        wrong match predicts with some chance; a rare one is evidence. Counted by groups, not SGFs,
-        since one marking seen from several frames is one group.
-        """
-        limit = self.p.consensus.common_groups
-        if limit is None:
-            return 1.0
-        others, distances = self.memory.other_groups_distances(self.memory[k].matrix, self.memory[k].group)
-        groups = self.memory.groups()[others]
-        common = len(set(groups[distances <= self.p.consensus.distance].tolist()))
-        return min(1.0, limit / common) if common else 1.0
 
     def distinct(self, a: GroupAssignment) -> bool:
         """Whether the query looks like its match (eq. 10) and like no SGF of any other group seen so far.

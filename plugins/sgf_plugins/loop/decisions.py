@@ -6,8 +6,8 @@ from typing import Any
 
 from sgf_pipeline.sgf_map import MapDescriptor
 from sgf_pipeline.types import GroupAssignment, LoopConstraint
-from sgf_plugins.loop.candidate import Candidate, GateReading
-from sgf_plugins.loop.outcomes import ACCEPTED, INCONSISTENT, REFUSALS
+from sgf_plugins.loop.candidate import GateReading
+from sgf_plugins.loop.outcomes import REFUSALS
 from sgf_plugins.odometry.frame_log import FrameLog
 
 
@@ -61,15 +61,3 @@ class DecisionLog:
                 "detail": detail,
             }
         )
-
-    def taken_back(self, c: Candidate, threshold: float) -> None:
-        """Mark an accepted loop's row of ``loop_candidates.csv`` as taken back by the consistency test."""
-        self.counts[INCONSISTENT] += 1
-        k = c.constraint
-        for row in reversed(self.rows):
-            if (row["frame_from"], row["frame_to"], row["outcome"]) == (k.frame_from, k.frame_to, ACCEPTED):
-                row["outcome"] = INCONSISTENT
-                row["detail"] = (
-                    f"{row['detail']}; " if row["detail"] else ""
-                ) + f"taken back at the end: outside the largest set of loops agreeing within {threshold:g}"
-                return

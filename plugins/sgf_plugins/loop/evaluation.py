@@ -1,8 +1,7 @@
 """Scoring the loop stage's loops against the ground truth, from what the stage emits at the end of the run.
 
 The stage decides without the truth; this module judges its accepted loops (truth errors, true or
-false), counts the revisit pairs they close (Table 3) and the false loops each consistency round put
-outside its largest set, and builds the records of ``loops.csv``.
+false), counts the revisit pairs they close (Table 3), and builds the records of ``loops.csv``.
 """
 
 from __future__ import annotations
@@ -15,7 +14,6 @@ import numpy as np
 from sgf_pipeline.geometry import invert, xy_yaw
 from sgf_pipeline.types import RevisitPair, SequenceTruth
 from sgf_plugins.loop.candidate import Candidate
-from sgf_plugins.loop.consistency import ConsistencyRound
 from sgf_plugins.loop.params import EvaluationParams, IcpLoopParams
 from sgf_plugins.odometry.drift import pose_error
 from sgf_plugins.odometry.frame_log import FrameLog
@@ -92,8 +90,6 @@ def closes(pair: RevisitPair, accepted: list[Candidate], truths: list[bool | Non
 def evaluate_loops(
     loops: dict[str, Any],
     accepted: list[Candidate],
-    consistency: dict[str, Any] | None,
-    rounds: list[ConsistencyRound],
     frames: FrameLog,
     truth: SequenceTruth | None,
     p: IcpLoopParams,
@@ -101,9 +97,7 @@ def evaluate_loops(
     """The stage's loop metrics with the ground truth's verdicts, and the records of ``loops.csv``.
 
     ``loops`` holds the stage's counts: ``false_closed`` joins them after ``accepted_map``, then
-    ``closed`` and ``closed_reverse`` (with the sequence's truth) and the ``consistency`` entry with
-    ``false_outside``, the false loops outside the largest set (the rounds added up when they took
-    loops back, else the last round's).
+    ``closed`` and ``closed_reverse`` (with the sequence's truth).
     """
     errors = [truth_error(c, frames) for c in accepted]
     truths = [is_true(c, e, p.evaluation) for c, e in zip(accepted, errors, strict=True)]
@@ -119,18 +113,5 @@ def evaluate_loops(
         closed = [r for r in truth.revisits if closes(r, accepted, truths, truth)]
         out["closed"] = len(closed)
         out["closed_reverse"] = sum(bool(r.reverse) for r in closed)
-    if consistency is not None:
-        counted = rounds if p.consistency.drop_inconsistent else rounds[-1:]
-        false = [n for n in (_false_outside(r, frames, p.evaluation) for r in counted) if n is not None]
-        out["consistency"] = consistency | {"false_outside": sum(false) if false else None}
     records = [loop_entry(c, e, t, frames) for c, e, t in zip(accepted, errors, truths, strict=True)]
     return out, records
-
-
-def _false_outside(round_: ConsistencyRound, frames: FrameLog, p: EvaluationParams) -> int | None:
-    """How many loops a consistency round put outside its largest set are false (None: none judged)."""
-    if not round_.judged:
-        return 0
-    if all(is_true(c, truth_error(c, frames), p) is None for c in round_.judged):
-        return None
-    return sum(is_true(c, truth_error(c, frames), p) is False for c in round_.outside)

@@ -88,8 +88,7 @@ def render_candidates_csv(candidates: list[dict[str, Any]]) -> str:
 
     The outcome is ``accepted`` or the test that refused it, named as in ``loops.rejected`` of
     ``metrics.json``; a map match held for confirmation is ``map_unconfirmed`` (and has a second
-    row when it is confirmed later); an accepted loop taken back at the end, since the other loops
-    contradict it, is ``inconsistent``. A match that reached the gate also has what the gate saw:
+    row when it is confirmed later). A match that reached the gate also has what the gate saw:
     the travel since a loop last anchored its two frames (m), the predicted position's sigma (m)
     and the best fit's chi-square (3 dof; the gate passes up to ``chi2(loop.gate.probability)``).
     ``detail`` says more where a test has parts: what the best ICP fit missed, why a match was
@@ -102,26 +101,6 @@ def _fmt(value: Any, digits: int = 3) -> str:
     if value is None:
         return "-"
     return f"{value:.{digits}f}" if isinstance(value, float) else str(value)
-
-
-def taken_back(loops: dict[str, Any]) -> list[list[int]]:
-    """The accepted loops the consistency test took back at the end (``loops.consistency``), as frame pairs."""
-    consistency = loops.get("consistency") or {}
-    return list(consistency.get("outside_largest_set", [])) if consistency.get("dropped") else []
-
-
-def _taken_back(loops: dict[str, Any]) -> list[str]:
-    pairs = taken_back(loops)
-    if not pairs:
-        return []
-    false = loops["consistency"].get("false_outside")
-    judged = "" if false is None else f" ({false} of them false by the ground truth)"
-    listed = ", ".join(f"{a} -> {b}" for a, b in pairs)
-    return [
-        f"Taken back at the end, since the other loops contradict them through the odometry{judged}: "
-        f"frames {listed} (`loop_candidates.csv`, outcome `inconsistent`).",
-        "",
-    ]
 
 
 def _loop_table(loops: list[dict[str, Any]]) -> list[str]:
@@ -155,9 +134,9 @@ def write_loop_files(context: RunContext, loops: list[dict[str, Any]], candidate
     if loops_path is not None and candidates_path is not None:
         atomic_write_text(loops_path, render_loops_csv(loops))
         atomic_write_text(candidates_path, render_candidates_csv(candidates))
-    context.report_sections.append(report_section(context.metrics.get("loops", {}), loops))
+    context.report_sections.append(report_section(loops))
 
 
-def report_section(metrics: dict[str, Any], accepted: list[dict[str, Any]]) -> str:
-    """The accepted loops (the first ``REPORT_LOOP_ROWS``) and those taken back, as Markdown for ``report.md``."""
-    return "\n".join([*_loop_table(accepted), *_taken_back(metrics)])
+def report_section(accepted: list[dict[str, Any]]) -> str:
+    """The accepted loops (the first ``REPORT_LOOP_ROWS``), as Markdown for ``report.md``."""
+    return "\n".join(_loop_table(accepted))

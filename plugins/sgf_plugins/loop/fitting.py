@@ -166,14 +166,12 @@ class IcpFitting:
     def constraint(self, a: GroupAssignment, r: IcpResult, from_map: bool, turn: float | None = None) -> LoopConstraint:
         """The relative pose of the query's frame in the matched frame, with the floored ICP covariance.
 
-        The floor adds the BEV's own error, which ICP cannot see: a constant, plus a term growing
-        as the square of each view's range (a pitch error moves ground seen at distance d by about
-        d^2 / h times it). With ``turn``, a position-only loop (:func:`position_only_loop`): the
+        The floor adds the BEV's own error, which ICP cannot see (``covariance.floor_xy``,
+        ``covariance.floor_yaw_deg``). With ``turn``, a position-only loop (:func:`position_only_loop`): the
         marking's centre where ICP puts it, known to the RMS residual over the inliers plus that floor.
         """
         assert a.matched is not None
-        ranges = [float(np.hypot(*np.asarray(d.centroid, dtype=np.float64)[:2])) for d in (a.matched, a.descriptor)]
-        xy2 = self.p.covariance.floor_xy**2 + self.p.covariance.range_xy**2 * sum(d**4 for d in ranges)
+        xy2 = self.p.covariance.floor_xy**2
         floor = np.diag([xy2, xy2, math.radians(self.p.covariance.floor_yaw_deg) ** 2])
         relative, covariance, marking = _pose4(r), r.covariance + floor, None
         if turn is not None:

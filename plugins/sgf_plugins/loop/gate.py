@@ -9,15 +9,13 @@ fail the test once the estimate is better than the distance between the look-ali
 Once loops have anchored the estimate, the gate itself tells a design's copies apart: a match the
 gate predicts within ``gate.support_sigma`` metres needs no agreeing neighbours, unless an SGF of
 another group that looks like the query was seen within the gate's reach of the matched one and could
-be what the query saw: matched to it, the query would pass ICP and the gate too
-(``gate.support_alternatives``), and it is not a round marking against a shaped one
-(``gate.support_round``; :meth:`LoopGate.decides`).
+be what the query saw: it is not a round marking against a shaped one (``gate.support_round``;
+:meth:`LoopGate.decides`).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 
@@ -90,7 +88,7 @@ class LoopGate:
         distance = math.nan
         if not from_map:
             distance = self.anchoring.anchored_distance(i, j, estimate)
-            drift = self.anchoring.drift(distance, j, estimate, self.anchoring.bias_distance(i, j, distance, estimate))
+            drift = self.anchoring.drift(distance, j, estimate)
             predicted = (invert(self.anchoring.pose(i, estimate)) @ self.anchoring.pose(j, estimate), drift)
         elif anchored:
             assert map_pose is not None
@@ -143,15 +141,6 @@ class LoopGate:
         cov = c.covariance + predicted[1]
         return mahalanobis2(pose_error(predicted[0], c.relative), cov)
 
-    def bounds_distinct(self, candidate: Candidate) -> bool:
-        """Whether the gate is tight enough for a distinct marking to vouch for itself (``distinct.gate_sigma``).
-
-        "Distinct" means no copy was *seen*; a gate wider than the campus cannot tell a copy never
-        seen from the marking itself, so a match there needs its neighbours like any other.
-        """
-        limit, gate = self.p.distinct.gate_sigma, candidate.gate
-        return limit is None or candidate.map_pose is not None or (gate is not None and gate.sigma_xy <= limit)
-
     def decides(self, a: GroupAssignment, candidate: Candidate, estimate: PoseEstimate | None) -> bool:
         """Whether the gate alone tells this match from every look-alike seen so far (``gate.support_sigma``).
 
@@ -191,26 +180,9 @@ class LoopGate:
         """Whether remembered SGF ``k``, a look-alike within the gate's reach, could be what the query saw.
 
         With ``gate.support_round``, a look-alike the association holds in a symmetric group (a round
-        manhole, alike to a compact shape by eq. 10) cannot be a shaped marking's. With
-        ``gate.support_alternatives``, the query matched to the look-alike is put through ICP and
-        the gate as a loop would be: a look-alike whose shape ICP refuses, or that the gate refuses
-        where the estimate puts it, is told apart already. A look-alike it cannot test (seen on the
-        query's own pass, too few points) stands against the match.
+        manhole, alike to a compact shape by eq. 10) cannot be a shaped marking's; any other one can.
         """
-        if self.p.gate.support_round and self.memory[k].symmetric and not a.symmetric:
-            return False
-        if not self.p.gate.support_alternatives:
-            return True
-        other = self.memory[k].descriptor
-        if other.sgf.frame_index < a.descriptor.sgf.frame_index:
-            alternative = match_closest(a, [other])
-        else:  # seen after the query (the final pass): the same pairing, the earlier view matched
-            alternative = match_closest(replace(a, descriptor=other), [a.descriptor])
-        alternative = replace(alternative, group_id=self.memory[k].group, alternatives=(), ambiguous=False)
-        saved = self.reading, self.fitting.detail
-        outcome = self.evaluate(alternative, estimate)
-        self.reading, self.fitting.detail = saved
-        return outcome not in (outcomes.ICP, outcomes.GATE)
+        return not (self.p.gate.support_round and self.memory[k].symmetric and not a.symmetric)
 
     def estimate_xy(self, frame_index: int, centroid: np.ndarray, estimate: PoseEstimate | None) -> np.ndarray:
         """An SGF's centroid (x, y) in the current estimate (odometry before the first)."""

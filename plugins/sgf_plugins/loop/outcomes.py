@@ -22,8 +22,6 @@ CONSENSUS = "consensus"
 NOT_UNIQUE = "not_unique"
 #: A match into a prior map, held until enough of them agree on where the run is in the map.
 MAP_UNCONFIRMED = "map_unconfirmed"
-#: An accepted loop taken back at the end of the run: outside the largest set of agreeing loops.
-INCONSISTENT = "inconsistent"
 
 #: The reasons a match gives no loop, each counted (``metrics.json`` loops.rejected).
 REFUSALS = (
@@ -36,7 +34,6 @@ REFUSALS = (
     CONSENSUS,
     NOT_UNIQUE,
     MAP_UNCONFIRMED,
-    INCONSISTENT,
 )
 #: Every outcome a row of ``loop_candidates.csv`` can have.
 OUTCOMES = (ACCEPTED, *REFUSALS)

@@ -74,14 +74,8 @@ class SeparationParams(StageParams):
 class CovarianceParams(StageParams):
     """A loop's covariance: ICP's, plus floors for what it cannot see (``loop.covariance``)."""
 
-    floor_xy: float = Field(0.025, gt=0.0, description="added to ICP's translation sigma (m): IPM, sampling")
-    floor_yaw_deg: float = Field(1.5, gt=0.0, description="added to ICP's yaw sigma (deg)")
-    range_xy: float = Field(
-        0.0052,
-        ge=0.0,
-        description="added translation sigma per axis (m) per squared metre of each view's range from the robot: "
-        "the BEV's ground error grows as the square of the distance (0 = the floor alone)",
-    )
+    floor_xy: float = Field(0.05, gt=0.0, description="added to ICP's translation sigma (m): IPM, sampling")
+    floor_yaw_deg: float = Field(1.0, gt=0.0, description="added to ICP's yaw sigma (deg)")
 
 
 class GateParams(StageParams):
@@ -110,22 +104,12 @@ class GateParams(StageParams):
         description="the gate counts the heading bias as the back-end's model holds it (the uncertainty left where "
         "it corrects the odometry, the measured bias elsewhere); false = the bias wheel odometry is expected to have",
     )
-    bridged_bias: bool = Field(
-        True,
-        description="a matched frame between the two frames of an absorbed loop has had the heading bias taken off "
-        "by the pose graph: the gate's bias term counts only the drive since the newest absorbed loop",
-    )
     support_sigma: float | None = Field(
         5.0,
         gt=0.0,
         description="a match the gate predicts within this position sigma (m) needs no agreeing neighbours, unless an "
         "SGF of another group that looks like the query (eq. 10 at most consensus.distance) was seen within the "
         "gate's reach of the matched one: ICP and the gate decide (null = consensus.min_support always)",
-    )
-    support_alternatives: bool = Field(
-        True,
-        description="a look-alike within the gate's reach stands against the match only when the query matched to "
-        "it would pass ICP and the gate too; false: any SGF alike by eq. 10 within the reach does",
     )
     support_round: bool = Field(
         True,
@@ -146,11 +130,6 @@ class ConsensusParams(StageParams):
     drift: float = Field(
         0.02, ge=0.0, description="...plus this much per metre travelled from either sighting (local odometry drift)"
     )
-    heading_bias: bool = Field(
-        True,
-        description="...plus the odometry's heading bias (the back-end's model): 0.5 * bias * L**2 per sighting "
-        "L m away",
-    )
     exclude: float = Field(
         2.0, ge=0.0, description="neighbours this close (m) to the matched SGF are the same marking, not evidence"
     )
@@ -168,13 +147,6 @@ class ConsensusParams(StageParams):
         le=1.0,
         description="a neighbour that looks alike at the opposite heading too (a bar, a disc) fixes no heading: it "
         "counts this much of an agreeing marking",
-    )
-    common_groups: int | None = Field(
-        3,
-        ge=1,
-        description="a neighbour whose design has look-alikes (eq. 10 at most consensus.distance) in more than this "
-        "many other groups is common: it counts this many over their number, since a wrong match finds one of its "
-        "copies where it predicts by chance (null = every neighbour counts fully)",
     )
     tie_support: int = Field(
         1,
@@ -207,12 +179,6 @@ class DistinctParams(StageParams):
         "most consensus.distance) and that no SGF of another group looks like (all farther than distinct.distance); "
         "null = consensus.min_support",
     )
-    gate_sigma: float | None = Field(
-        50.0,
-        gt=0.0,
-        description="m: a distinct marking vouches for itself only while the gate predicts the match this tightly "
-        "(a wider gate cannot tell a copy never seen from the marking; null: at any sigma)",
-    )
     distance: float = Field(
         0.15, ge=0.0, le=1.0, description="eq. 10: an SGF of another group this close makes a marking not distinct"
     )
@@ -238,47 +204,6 @@ class SymmetricParams(StageParams):
     )
     yaw_sigma_deg: float = Field(
         90.0, gt=0.0, description="a position-only loop's sigma of the turn about its marking (deg): nearly free"
-    )
-
-
-class ConsistencyParams(StageParams):
-    """The end-of-run consistency test of the accepted loops, and the take-back (``loop.consistency``)."""
-
-    threshold: float | None = Field(
-        3.0,
-        gt=0.0,
-        description="at the end of the run, accepted loops outside the largest set whose pairwise cycles through "
-        "the odometry (the heading bias the loops measure taken off) agree within this (position error over 1 m + "
-        "5 % of the path between their ends) are listed in metrics.json as loops.consistency and, with "
-        "consistency.drop_inconsistent, taken back (null: no test)",
-    )
-    yaw_bias_sigma_deg_per_m: float = Field(
-        0.5,
-        gt=0.0,
-        description="the test's estimate of the odometry's heading bias, as the back-end's: its prior sigma "
-        "(deg per metre; the config takes backend.odometry_yaw_bias_sigma_deg_per_m)",
-    )
-    yaw_bias_reading_sigma_deg_per_m: float = Field(
-        0.1,
-        gt=0.0,
-        description="...the bias odometry is expected to have, which chooses between readings of the loops' turns "
-        "(the config takes backend.odometry_yaw_bias_reading_sigma_deg_per_m)",
-    )
-    odometry_sigma_yaw_deg: float = Field(
-        0.5,
-        gt=0.0,
-        description="...the odometry's heading sigma over one metre (the config takes backend.odometry_sigma_yaw_deg)",
-    )
-    kernel_width: float = Field(
-        3.0,
-        gt=0.0,
-        description="...and its Cauchy kernel width in sigmas (the config takes backend.loop_kernel_width)",
-    )
-    drop_inconsistent: bool = Field(
-        True,
-        description="take the loops outside the largest consistent set back out of the estimate before the "
-        "association's split and merge at the end (and the final pass's, before the last optimisation; "
-        "false: only list them)",
     )
 
 
@@ -329,9 +254,6 @@ class IcpLoopParams(StageParams):
     )
     symmetric: SymmetricParams = Field(
         default_factory=SymmetricParams, description="a match into a symmetric group (a round manhole)"
-    )
-    consistency: ConsistencyParams = Field(
-        default_factory=ConsistencyParams, description="the end-of-run consistency test of the accepted loops"
     )
     final_pass: FinalPassParams = Field(
         default_factory=FinalPassParams, description="the end-of-run pass over the final groups"

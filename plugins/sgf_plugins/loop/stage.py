@@ -16,9 +16,8 @@ pass), the match is put through these steps, each in its module:
    enough of them agree on where the run is in the map.
 
 A match into a symmetric group (a round manhole) gives a position-only loop when the gate alone
-decides it (``symmetric.position_only``). At the end of the run the loops the others contradict
-through the odometry are taken back (:mod:`~sgf_plugins.loop.consistency`), the final groups'
-unjoined drive-bys are matched once more (:mod:`~sgf_plugins.loop.final_pass`), and the loops are
+decides it (``symmetric.position_only``). At the end of the run the final groups' unjoined
+drive-bys are matched once more (:mod:`~sgf_plugins.loop.final_pass`), and the loops are
 scored against the ground truth (:mod:`~sgf_plugins.loop.evaluation`). Every decision is a row of
 ``loop_candidates.csv`` (:mod:`~sgf_plugins.loop.decisions`), its outcome one of
 :mod:`~sgf_plugins.loop.outcomes`.
@@ -45,7 +44,6 @@ from sgf_plugins.loop import outcomes
 from sgf_plugins.loop.anchoring import LoopAnchoring
 from sgf_plugins.loop.candidate import Candidate
 from sgf_plugins.loop.consensus import NeighbourConsensus, Waiting, support_detail
-from sgf_plugins.loop.consistency import LoopConsistency
 from sgf_plugins.loop.decisions import DecisionLog
 from sgf_plugins.loop.evaluation import evaluate_loops
 from sgf_plugins.loop.files import write_loop_files
@@ -96,7 +94,6 @@ class IcpLoopClosing(Stage):
         self.position_only = 0
         self.earlier_members = 0
         self._estimate: PoseEstimate | None = None  # the newest estimate (for the final pass)
-        self.consistency = LoopConsistency(self.p.consistency, self.frames)  # the end-of-run test
         self._settled = False
         self.final_accepted = 0  # loops the final pass closed
 
@@ -108,7 +105,7 @@ class IcpLoopClosing(Stage):
         """Loop constraints of the SGFs assigned to groups on this frame."""
         self.frames.append(frame)
         if estimate is not None:
-            self._estimate = self.consensus.newest = estimate
+            self._estimate = estimate
         if assignments is None:
             return LoopConstraints(tuple(self._settle_waiting(estimate, new_sgfs=False)))
         earlier, self.waiting = self.waiting, []  # this frame's matches were just decided: they wait untested
@@ -139,12 +136,7 @@ class IcpLoopClosing(Stage):
         if candidate is None:
             return []
         need, basis = self.p.consensus.min_support, ""
-        if (
-            self.p.distinct.support is not None
-            and need > self.p.distinct.support
-            and self.gate.bounds_distinct(candidate)
-            and self.consensus.distinct(a)
-        ):
+        if self.p.distinct.support is not None and need > self.p.distinct.support and self.consensus.distinct(a):
             need, basis = self.p.distinct.support, "distinct"
             self.distinct += 1
         if need > 0 and candidate.map_pose is None and self.gate.decides(a, candidate, estimate):
@@ -311,46 +303,30 @@ class IcpLoopClosing(Stage):
     # -- end of the run ---------------------------------------------------------------------
 
     def settle(self, context: RunContext, settlement: Settlement) -> Settlement:
-        """Refuse the candidates still waiting, and take back the loops outside the largest consistent set.
-
-        The back-end re-solves without them (``settlement.taken_back``) before the association
-        regroups by its estimate and this stage's final pass matches against it.
-        """
+        """Refuse the candidates still waiting (the run ended before they were settled)."""
         for w in self.waiting:  # the run ended before they were settled
             support = [self.consensus.support(a, c.constraint, unlike=w.unlike) for a, c in w.options]
             detail = support_detail(support, w.need) + " when the run ended"
             self.log.refuse(w.options[0][0], w.refused, w.options[0][1].gate, detail)
         self.waiting = []
-        taken_back = self._take_back_inconsistent()
         self._settled = True
-        return settlement if taken_back is None else replace(settlement, taken_back=taken_back)
+        return settlement
 
     def conclude(self, context: RunContext, settlement: Settlement) -> Settlement:
-        """The final pass, then the consistency test once more with its loops.
+        """The final pass: matches within the association's final groups (``settlement.groups``).
 
-        The final pass matches within the association's final groups (``settlement.groups``) against
-        the back-end's estimate without the loops taken back (``settlement.estimate``) when it
-        re-solved one, else against the newest estimate. A caller that ends the run without
-        :meth:`settle` gets it here first. Hands on the final pass's loops, those the second test
-        took back, and every group assignment (for the SGF map).
+        Against the newest estimate. A caller that ends the run without :meth:`settle` gets it here
+        first. Hands on the final pass's loops and every group assignment (for the SGF map).
         """
         if not self._settled:
             settlement = self.settle(context, settlement)
-        estimate = settlement.estimate if settlement.estimate is not None else self._estimate
+        estimate = self._estimate
         final: list[LoopConstraint] = []
         groups = settlement.groups
         if self.p.final_pass.enabled and groups is not None and estimate is not None:
             final = self.final_pass.run(list(groups), dict(settlement.group_of), estimate)
         self.final_accepted = len(final)
-        taken_back = LoopConstraints(())  # those of settle are out of the graph already
-        if final:
-            taken_back = self._take_back_inconsistent() or taken_back  # the final pass's loops judged with the others
-        return replace(
-            settlement,
-            final_loops=LoopConstraints(tuple(final)),
-            taken_back=taken_back,
-            assignments=tuple(self.assignments),
-        )
+        return replace(settlement, final_loops=LoopConstraints(tuple(final)), assignments=tuple(self.assignments))
 
     def finalize(self, context: RunContext) -> None:
         """The loop metrics (Table 3), the accepted loops and every candidate's outcome."""
@@ -370,9 +346,7 @@ class IcpLoopClosing(Stage):
             "final_pass": {"tried": self.final_pass.tried, "accepted": self.final_accepted},
         }
         truth = context.truth if context.truth is not None else self.truth
-        loops, records = evaluate_loops(
-            loops, accepted, self.consistency.entry, self.consistency.rounds, self.frames, truth, self.p
-        )
+        loops, records = evaluate_loops(loops, accepted, self.frames, truth, self.p)
         context.metrics.setdefault("loops", {}).update(loops)
         context.artifacts["loops"] = records
         context.artifacts["loop_candidates"] = list(self.decisions)
@@ -381,17 +355,6 @@ class IcpLoopClosing(Stage):
     def partial(self, context: RunContext, settlement: Settlement) -> Settlement:
         """The group assignments so far, for the SGF map of a run that stopped early."""
         return replace(settlement, assignments=tuple(self.assignments))
-
-    def _take_back_inconsistent(self) -> LoopConstraints | None:
-        """The consistency test over the accepted loops; those it takes back, for the back-end (None: no test)."""
-        dropped, threshold = self.consistency.judge(self.anchoring.accepted), self.p.consistency.threshold
-        if dropped is None or threshold is None:
-            return None
-        for c in dropped:
-            self.log.taken_back(c, threshold)
-        out = {id(c) for c in dropped}
-        self.anchoring.accepted = [c for c in self.anchoring.accepted if id(c) not in out]
-        return LoopConstraints(tuple(c.constraint for c in dropped))
 
 
 @hookimpl

@@ -78,22 +78,18 @@ def measured_sigmas(prior: DriftSigmas, estimate: PoseEstimate | None) -> DriftS
     )
 
 
-def drift_covariance(
-    distance: float, p: DriftSigmas, yaw_bias: float = EXPECTED_YAW_BIAS, bias_distance: float | None = None
-) -> np.ndarray:
+def drift_covariance(distance: float, p: DriftSigmas, yaw_bias: float = EXPECTED_YAW_BIAS) -> np.ndarray:
     """Covariance (x, y, yaw) of a relative pose predicted across ``distance`` metres since the last anchor.
 
     ``yaw_bias`` (rad/m): the heading bias in the estimate's odometry (root mean square).
-    ``bias_distance``: the part of ``distance`` the heading bias acts on (default: all of it).
     """
     d = max(distance, 0.0)
     s_yaw = math.radians(p.sigma_yaw_deg)
     bias = abs(yaw_bias)
-    b = d if bias_distance is None else min(max(bias_distance, 0.0), d)
     var_xy = (
-        p.floor_xy**2 + (p.scale_error * d) ** 2 + p.sigma_xy**2 * d + s_yaw**2 * d**3 / 3.0 + (0.5 * bias * b**2) ** 2
+        p.floor_xy**2 + (p.scale_error * d) ** 2 + p.sigma_xy**2 * d + s_yaw**2 * d**3 / 3.0 + (0.5 * bias * d**2) ** 2
     )
-    var_yaw = math.radians(p.floor_yaw_deg) ** 2 + s_yaw**2 * d + (bias * b) ** 2
+    var_yaw = math.radians(p.floor_yaw_deg) ** 2 + s_yaw**2 * d + (bias * d) ** 2
     return np.diag([var_xy, var_xy, var_yaw])
 
 

@@ -45,7 +45,7 @@ class EndOfRun:
             mine = rows[index.group[: index.size] == slot]
             if len(mine) < 2 or any(a is not None for a in group.anchors) or np.isnan(index.travelled[mine]).any():
                 continue
-            parts = self.parts(positions[mine], index.travelled[mine], shortcuts, estimate)
+            parts = self.parts(positions[mine], index.travelled[mine], shortcuts)
             if parts.max() == 0:
                 continue
             keep = parts == 0  # holds the first member, whose offset (the group's orientation) is 0
@@ -129,7 +129,7 @@ class EndOfRun:
             seen_a, seen_b = index.travelled[:n][in_a], index.travelled[:n][in_b]
             if np.abs(seen_a[:, None] - seen_b[None, :]).min() < p.repeats.window:
                 continue  # seen on one drive-by: two markings (a repeated pattern's copies), not a revisit
-            if self.parts(positions[both], index.travelled[both], shortcuts, estimate).max() > 0:
+            if self.parts(positions[both], index.travelled[both], shortcuts).max() > 0:
                 continue
             ga, gb = self.state.groups[sa], self.state.groups[sb]
             # Member b turned by ``shift`` lies on member a: B's members turn into A's orientation so.
@@ -159,7 +159,6 @@ class EndOfRun:
         positions: np.ndarray,
         travelled: np.ndarray,
         shortcuts: list[tuple[float, float]],
-        estimate: PoseEstimate | None = None,
     ) -> np.ndarray:
         """Parts (labels from 0, in order of first member) whose members are all within the gate of each other.
 
@@ -170,8 +169,7 @@ class EndOfRun:
         n = len(positions)
         distance = np.hypot(*(positions[:, None, :] - positions[None, :, :]).transpose(2, 0, 1))
         anchored = np.stack([anchored_distances(float(t), travelled, shortcuts) for t in travelled])
-        quadratic = self.gate.quadratic(travelled, shortcuts, estimate)
-        ratio = distance / self.gate.radius(anchored, np.maximum(quadratic[:, None], quadratic[None, :]))
+        ratio = distance / self.gate.radius(anchored, self.gate.quadratic())
         within = ratio <= 1.0
         label = np.arange(n)
         i, j = np.triu_indices(n, 1)

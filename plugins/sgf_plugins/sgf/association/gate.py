@@ -9,13 +9,7 @@ import numpy as np
 from sgf_pipeline.geometry import invert, xy_yaw
 from sgf_pipeline.types import PoseEstimate, SgfDescriptor
 from sgf_plugins.odometry.anchoring import anchored_distances
-from sgf_plugins.odometry.drift import (
-    EXPECTED_YAW_BIAS,
-    bias_growth,
-    corrected_yaw_bias,
-    drift_radius,
-    uncorrected_yaw_bias,
-)
+from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS, bias_growth, drift_radius
 from sgf_plugins.sgf.association.groups import NO_ESTIMATE, GatedGroup
 from sgf_plugins.sgf.association.params import OnlineGroupsParams
 from sgf_plugins.sgf.association.repeats import RepeatedPattern
@@ -41,9 +35,8 @@ class SpatialGate:
         self.reset()
 
     def reset(self) -> None:
-        """Forget the anchoring and bias caches (a new sequence)."""
+        """Forget the anchoring cache (a new sequence)."""
         self._shortcuts: tuple[object, list[tuple[float, float]]] = (NO_ESTIMATE, [])
-        self._bias_began: tuple[int, float] | None = None  # frame and travelled distance the bias correction began
 
     def gated(self, query: SgfDescriptor, estimate: PoseEstimate | None) -> list[GatedGroup]:
         """The groups the spatial gate lets the query meet, with their nearest member's map distance (m).
@@ -74,8 +67,7 @@ class SpatialGate:
             if shortcuts:
                 known = ~unknown
                 travelled[known] = anchored_distances(since, index.travelled[:n][known], shortcuts)
-        quadratic = self.quadratic(index.travelled[:n], self.anchoring(estimate), estimate)
-        radius = self.radius(travelled, quadratic)
+        radius = self.radius(travelled, self.quadratic())
         radius[anchored] = math.inf if p.gate.prior_radius is None else p.gate.prior_radius
         groups = index.group[:n]
         count = len(self.state.groups)
@@ -133,41 +125,13 @@ class SpatialGate:
         """The gate's growth per squared metre for a heading bias (rad/m): ``gate.drift_bias_share`` of 0.5 b."""
         return bias_growth(bias, self.params.gate.drift_bias_share)
 
-    def radius(self, travelled: np.ndarray, quadratic: np.ndarray | float) -> np.ndarray:
+    def radius(self, travelled: np.ndarray, quadratic: float) -> np.ndarray:
         """The spatial gate's radius (m) for the distances travelled between two sightings.
 
-        ``quadratic``: the heading bias term per pair (:meth:`quadratic`).
+        ``quadratic``: the heading bias term (:meth:`quadratic`).
         """
         return drift_radius(travelled, self.params.gate.radius, self.params.gate.drift_rate, quadratic)
 
-    def quadratic(
-        self, travelled: np.ndarray, shortcuts: list[tuple[float, float]], estimate: PoseEstimate | None
-    ) -> np.ndarray:
-        """The gate's heading bias term for members seen at ``travelled`` metres (``gate.bias_from_backend``).
-
-        The bias is the back-end's model of it (``PoseEstimate.yaw_bias``): as measured so far on
-        odometry nothing was taken off. Once the back-end takes its estimate off, the estimate keeps
-        only the bias left in it, about its sigma, on the drive after the correction began; between
-        the two frames of a loop it satisfies, the pose graph has spread the loop's error, a constant
-        bias included. There the term counts that sigma (never more than elsewhere); for a pair with
-        one member elsewhere it stays.
-        """
-        p = self.params
-        if not p.gate.bias_from_backend:
-            return np.full(np.shape(travelled), self.per_bias(EXPECTED_YAW_BIAS))
-        q = np.full(np.shape(travelled), self.per_bias(uncorrected_yaw_bias(estimate)))
-        corrected = corrected_yaw_bias(estimate)
-        if corrected is None:
-            return q
-        since, sigma = corrected
-        if self._bias_began is None or self._bias_began[0] != since:
-            known = self.state.travelled_at(since)  # remembered: the frame log forgets old frames
-            self._bias_began = None if known is None else (since, known)
-        if self._bias_began is None:
-            return q
-        began = self._bias_began[1]
-        covered = travelled >= began  # NaN (a map member): never covered
-        for a, b in shortcuts:
-            covered |= (travelled >= min(a, b)) & (travelled <= max(a, b))
-        q[covered] = self.per_bias(sigma)
-        return q
+    def quadratic(self) -> float:
+        """The gate's heading bias term: the bias wheel odometry is expected to have (``EXPECTED_YAW_BIAS``)."""
+        return self.per_bias(EXPECTED_YAW_BIAS)

@@ -69,12 +69,6 @@ class GateParams(StageParams):
         "error ~ d^2), as a share of a straight drive's bound 0.5 b: a route that turns back stays under it "
         "(a loop route's return to its start after 1.5 km: 0.4 of it)",
     )
-    bias_from_backend: bool = Field(
-        True,
-        description="b as the back-end's model holds it (the estimate's yaw_bias): the uncertainty of the bias left "
-        "between members whose drive its correction covers (seen after it began, or between the two frames of an "
-        "anchoring loop), the measured bias elsewhere; false = the bias wheel odometry is expected to have",
-    )
     member_gate: bool = Field(
         True,
         description="eq. 10 against a group's members inside the gate only; false = against every member once one "

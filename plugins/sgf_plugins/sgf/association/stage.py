@@ -340,14 +340,13 @@ class OnlineSgfGroups(Stage):
     def conclude(self, context: RunContext, settlement: Settlement) -> Settlement:
         """Regroup at the end of the run; hands on the final groups (``settlement.groups``, ``settlement.group_of``).
 
-        With ``end.split`` the groups are split by the newest estimate (:meth:`split_groups`: the
-        back-end's ``settlement.estimate``, re-solved without the loops taken back, when it re-solved
-        one), and with ``end.merge`` look-alikes it puts at one place merged (:meth:`merge_groups`).
+        With ``end.split`` the groups are split by the newest estimate (:meth:`split_groups`), and
+        with ``end.merge`` look-alikes it puts at one place merged (:meth:`merge_groups`).
         ``group_of`` maps each run member's ``(frame_index, track_id)`` to its final group, for the
         loop stage's final pass and the SGF map.
         """
         online = settled(self.state.groups)
-        estimate = settlement.estimate if settlement.estimate is not None else self._estimate
+        estimate = self._estimate
         split = merged = None
         if self.params.end.split and self.params.gate.enabled:
             split = self.end.split_groups(estimate)

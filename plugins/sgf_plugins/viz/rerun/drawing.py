@@ -17,7 +17,6 @@ JPEG_QUALITY = 75
 #: The colour of each loop candidate's outcome.
 OUTCOME_COLOURS = {
     outcomes.ACCEPTED: (60, 200, 80),
-    outcomes.INCONSISTENT: (230, 40, 230),
     outcomes.GATE: (255, 150, 30),
     outcomes.ICP: (240, 220, 50),
     outcomes.CONSENSUS: (160, 110, 255),
