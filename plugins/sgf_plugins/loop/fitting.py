@@ -14,7 +14,6 @@ must leave exactly one.
 
 from __future__ import annotations
 
-import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import replace
@@ -126,7 +125,7 @@ class IcpFitting:
         on both sides of the truth, so one fit is the middle of their stops (:func:`_merged`), its
         covariance widened by their spread. The ``probed`` fits (from seeds a few degrees either
         side) join the seeds' fits they lie within that tolerance of, and never make a fit of their
-        own; the spread test (``fit.max_spread_deg``) is on the seeds' fits alone.
+        own.
         """
         best = min(r.fitness for r in results)
         clusters: list[list[IcpResult]] = []
@@ -139,13 +138,6 @@ class IcpFitting:
                     break
             else:
                 clusters.append([r])
-        limit = self.p.fit.max_spread_deg
-        if limit is not None:
-            apart = math.degrees(max(_yaw_spread(cluster) for cluster in clusters))
-            if apart > limit:
-                # a marking nearly round (a ring-framed pick-up marker): its fits agree on the place, not the heading
-                self.detail = f"fits of one alignment {apart:.1f} degrees apart ({limit:g} at most)"
-                return []
         for r in probed:
             if r.fitness > best * self.p.fit.ambiguity_ratio:
                 continue
@@ -235,13 +227,6 @@ def _distinct_fits(fits: list[IcpResult], points: np.ndarray) -> list[IcpResult]
         if all(_displacement(r.transform, o.transform, points) > SAME_FIT_M for o in out):
             out.append(r)
     return out
-
-
-def _yaw_spread(fits: list[IcpResult]) -> float:
-    """The largest yaw difference (rad) between ICP results of one alignment."""
-    yaws = [se2_params(r.transform)[2] for r in fits]
-    return max((abs(wrap_angle(a - b)) for a, b in itertools.combinations(yaws, 2)), default=0.0)
-
 
 def _displacement(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
     """RMS distance (m) between ``points`` moved by the 2-D transforms ``a`` and ``b`` (3x3)."""

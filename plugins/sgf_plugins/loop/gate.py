@@ -9,8 +9,7 @@ fail the test once the estimate is better than the distance between the look-ali
 Once loops have anchored the estimate, the gate itself tells a design's copies apart: a match the
 gate predicts within ``gate.support_sigma`` metres needs no agreeing neighbours, unless an SGF of
 another group that looks like the query was seen within the gate's reach of the matched one and could
-be what the query saw: it is not a round marking against a shaped one (``gate.support_round``;
-:meth:`LoopGate.decides`).
+be what the query saw (:meth:`LoopGate.decides`).
 """
 
 from __future__ import annotations
@@ -168,21 +167,13 @@ class LoopGate:
                 continue  # the query itself (remembered in the group it joined: another option's, in a tie)
             here = self.estimate_xy(self.memory[k].frame, self.memory[k].centroid, estimate)
             apart = float(np.hypot(*(here - matched)))
-            if apart <= reach and self.stands_against(a, k, estimate):
+            if apart <= reach:
                 self.refusal = (
                     f"a look-alike (frame {self.memory[k].frame}) {apart:.1f} m from the match, within the gate's "
                     f"reach ({reach:.1f} m)"
                 )
                 return False
         return True
-
-    def stands_against(self, a: GroupAssignment, k: int, estimate: PoseEstimate | None) -> bool:
-        """Whether remembered SGF ``k``, a look-alike within the gate's reach, could be what the query saw.
-
-        With ``gate.support_round``, a look-alike the association holds in a symmetric group (a round
-        manhole, alike to a compact shape by eq. 10) cannot be a shaped marking's; any other one can.
-        """
-        return not (self.p.gate.support_round and self.memory[k].symmetric and not a.symmetric)
 
     def estimate_xy(self, frame_index: int, centroid: np.ndarray, estimate: PoseEstimate | None) -> np.ndarray:
         """An SGF's centroid (x, y) in the current estimate (odometry before the first)."""

@@ -50,12 +50,6 @@ class FitParams(StageParams):
         description="ICP is also seeded this far (deg) either side of each yaw seed; what it finds there only refines "
         "the seeds' own fits (the middle of a shallow valley in yaw, and its width in the covariance) (0: off)",
     )
-    max_spread_deg: float | None = Field(
-        10.0,
-        gt=0.0,
-        description="ICP fits of one alignment (within FIT_TOLERANCE_M of each other on the marking) further apart "
-        "in yaw than this: the marking fixes its place but not its heading, no factor (null: their mean, any spread)",
-    )
     ambiguity_ratio: float = Field(
         1.25,
         ge=1.0,
@@ -110,11 +104,6 @@ class GateParams(StageParams):
         description="a match the gate predicts within this position sigma (m) needs no agreeing neighbours, unless an "
         "SGF of another group that looks like the query (eq. 10 at most consensus.distance) was seen within the "
         "gate's reach of the matched one: ICP and the gate decide (null = consensus.min_support always)",
-    )
-    support_round: bool = Field(
-        True,
-        description="a look-alike in a symmetric group (a round manhole) never stands against a match into a "
-        "shaped group",
     )
 
 

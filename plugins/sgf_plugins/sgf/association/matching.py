@@ -47,19 +47,6 @@ class Eq10Matching:
             < self.params.match.symmetry_threshold
         )
 
-    def nearest_member_distances(
-        self, query: SgfDescriptor, groups: list[SgfGroup], members: list[np.ndarray | None] | None = None
-    ) -> np.ndarray:
-        """Eq. 10 distance (best shift) from the query to each group's closest member (of ``members``, when given)."""
-        members = [None] * len(groups) if members is None else members
-        chosen = [g.matrices if m is None else g.matrices[m] for g, m in zip(groups, members, strict=True)]
-        p = self.params
-        per_member = shifted_distances(query.matrix, np.concatenate(chosen), p.match.columns, p.match.min_overlap).min(
-            axis=1
-        )
-        starts = np.cumsum([0] + [len(c) for c in chosen[:-1]])
-        return np.minimum.reduceat(per_member, starts)
-
     def closest_member(
         self, query: SgfDescriptor, group: SgfGroup, estimate: PoseEstimate | None, members: np.ndarray | None = None
     ) -> tuple[int, SgfDescriptor, int]:

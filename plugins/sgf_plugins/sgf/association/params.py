@@ -31,11 +31,6 @@ class MatchParams(StageParams):
         description="a group whose self-distance over all column shifts varies less is symmetric (a round manhole "
         "as the saliency network fills it: at most 0.06; a wheelchair symbol, a logo in a ring: 0.07 and more)",
     )
-    group_distance: Literal["mean", "nearest_member"] = Field(
-        "nearest_member",
-        description="a group's eq. 10 distance: to the mean of its aligned members (the paper's D^sg), or to its "
-        "closest member (a view that differs from the others by a partial mask still matches its own)",
-    )
     position_weight: float = Field(
         0.3,
         ge=0.0,

@@ -224,12 +224,7 @@ class OnlineSgfGroups(Stage):
                     f"descriptor shape {query.matrix.shape} differs from the groups' {stack.shape[1:]}; "
                     "all SGF descriptors of a run (and of a seeded map) need the same N_r and N_s"
                 )
-            if p.match.group_distance == "mean":
-                eq10 = shifted_distances(query.matrix, stack, p.match.columns, p.match.min_overlap).min(axis=1)
-            else:
-                eq10 = self.matching.nearest_member_distances(
-                    query, [c.group for c in candidates], [c.members for c in candidates]
-                )
+            eq10 = shifted_distances(query.matrix, stack, p.match.columns, p.match.min_overlap).min(axis=1)
             # Where the estimate puts the query counts too: a group at the gate's edge pays position_weight.
             score = eq10 + p.match.position_weight * np.array([c.ratio for c in candidates])
             self._rankings.append(
