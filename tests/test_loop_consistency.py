@@ -17,7 +17,7 @@ from sgf_plugins.loop.consistency import (
     loop_heading_bias,
     maximum_consistent_sets,
 )
-from sgf_plugins.loop.icp import se2
+from sgf_plugins.shared.se2 import se2
 
 #: The accepted loops of four runs at 30 % (campus_large_loop seed 2 with
 #: ipm=mc_hindsight and ipm=plain, campus_reverse_slope seed 0 with ipm=mc and seed 2 with

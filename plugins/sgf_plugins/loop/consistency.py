@@ -24,12 +24,12 @@ from typing import Any
 import numpy as np
 
 from sgf_pipeline.geometry import xy_yaw
-from sgf_plugins.backend.heading_bias import HeadingBias
 from sgf_plugins.loop.candidate import Candidate
-from sgf_plugins.loop.icp import se2
 from sgf_plugins.loop.params import ConsistencyParams
-from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS
-from sgf_plugins.odometry.frame_log import FrameLog
+from sgf_plugins.shared.drift import EXPECTED_YAW_BIAS
+from sgf_plugins.shared.frame_log import FrameLog
+from sgf_plugins.shared.heading_bias import HeadingBias
+from sgf_plugins.shared.se2 import se2
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,7 @@ def loop_heading_bias(
 
     ``frames`` and ``odometry`` (N, 4, 4): the path, in order; ``loops``: per loop its two frames, its
     relative yaw and that yaw's variance. A Cauchy-weighted least squares with a zero-mean prior
-    (:class:`sgf_plugins.backend.heading_bias.HeadingBias`), so one false loop among true ones hardly moves
+    (:class:`sgf_plugins.shared.heading_bias.HeadingBias`), so one false loop among true ones hardly moves
     it; zero unless two loops agree on it and it stands out of its uncertainty.
     """
     estimator = HeadingBias(prior_sigma, odometry_sigma_yaw, kernel_width, reading_sigma=reading_sigma)
