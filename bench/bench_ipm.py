@@ -31,10 +31,9 @@ from sgf_plugins.ipm import (
     PlaneMotionCompensatedIPM,
     PlaneMotionCompensatedIpmParams,
     PoseQueue,
-    bev_to_image_homography,
-    visible_mask,
 )
 from sgf_plugins.ipm.stages import AHEAD_MC
+from sgf_plugins.shared.bev_homography import bev_to_image_homography, visible_mask
 
 from sgf_pipeline.calibration import Calibration, Intrinsics, camera_to_base_from_mounting
 from sgf_pipeline.io import atomic_write_text

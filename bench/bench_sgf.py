@@ -22,7 +22,8 @@ from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroup
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams
 from sgf_plugins.sgf.detector import HuMomentDetector, HuWindowParams
 from sgf_plugins.sgf.hu import HuScale, hu_distance, hu_moments
-from sgf_plugins.sgf.polar import (
+from sgf_plugins.sgf.regions import border_band
+from sgf_plugins.shared.polar import (
     BinValue,
     ColumnSet,
     polar_context,
@@ -31,7 +32,6 @@ from sgf_plugins.sgf.polar import (
     symmetry_spread,
     voxel_downsample,
 )
-from sgf_plugins.sgf.regions import border_band
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the test suite's synthetic drive
 from sgf_synthetic import (
@@ -300,8 +300,8 @@ def bench_stages(quick: bool) -> None:
 
 def bench_ground_lift(quick: bool) -> None:
     """Per-SGF cost of eq. 9 on the BEV's plane against the lift onto the driven ground (``descriptor.ground``)."""
-    from sgf_plugins.ipm.geometry import bev_to_image_homography
     from sgf_plugins.sgf.descriptor import describe, lift_driven
+    from sgf_plugins.shared.bev_homography import bev_to_image_homography
     from sgf_synthetic import toy_calibration
 
     from sgf_pipeline.types import SalientGroundFeature

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from sgf_plugins.odometry.anchoring import anchored_distances
+from sgf_plugins.shared.anchoring import anchored_distances
 
 
 def test_without_shortcuts_it_is_the_distance_along_the_path() -> None:

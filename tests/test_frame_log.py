@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from sgf_plugins.odometry.frame_log import FrameLog
+from sgf_plugins.shared.frame_log import FrameLog
 
 from sgf_pipeline.calibration import Calibration, Intrinsics
 from sgf_pipeline.types import Frame

@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from backend_world import _fill, arrow_points, ell_points, tee_points
-from sgf_plugins.loop.icp import Icp2d, IcpSettings, apply, centroid_seed, se2
+from sgf_plugins.loop.icp import Icp2d, IcpSettings, centroid_seed
 from sgf_plugins.loop.params import IcpLoopParams
+from sgf_plugins.shared.se2 import apply, se2
 
 COLUMN = 2 * math.pi / 90  # one column of the N_s = 90 polar descriptor
 

@@ -8,15 +8,17 @@ import numpy as np
 import pytest
 from ipm_scene import camera_pose, scene_calibration
 from sgf_plugins.ipm import (
-    bev_to_image_homography,
     compensated_ground_point,
-    ground_to_image_homography,
     mc_pixel_to_ground,
     metric_image_coordinates,
     roll_compensation,
+)
+from sgf_plugins.shared.bev_homography import (
+    bev_to_image_homography,
+    compensated_camera_to_base,
+    ground_to_image_homography,
     visible_mask,
 )
-from sgf_plugins.ipm.geometry import compensated_camera_to_base
 
 from sgf_pipeline.calibration import Calibration, Intrinsics
 from sgf_pipeline.types import BevGrid

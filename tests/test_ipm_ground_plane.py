@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from ipm_scene import scene_calibration
 from sgf_plugins.ipm import IpmParams
-from sgf_plugins.ipm.geometry import compensated_camera_to_base, ground_to_image_homography
 from sgf_plugins.ipm.ground_plane import GradeFilter, GroundPlaneTracker
+from sgf_plugins.shared.bev_homography import compensated_camera_to_base, ground_to_image_homography
 
 from sgf_pipeline.geometry import rotation_rpy
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from ipm_scene import GroundScene, render, scene_calibration
-from sgf_plugins.ipm import MotionCompensatedIPM, MotionCompensatedIpmParams, bev_to_image_homography
+from sgf_plugins.ipm import MotionCompensatedIPM, MotionCompensatedIpmParams
+from sgf_plugins.shared.bev_homography import bev_to_image_homography
 
 from sgf_pipeline.types import CameraImage, Frame
 

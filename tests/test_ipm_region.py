@@ -8,9 +8,8 @@ import math
 import numpy as np
 import pytest
 from sgf_plugins.ipm import InversePerspectiveMapping, IpmParams, MotionCompensatedIPM, MotionCompensatedIpmParams
-from sgf_plugins.ipm.geometry import ground_visible, nearest_region, seen_fraction
-from sgf_plugins.ipm.region import MIN_SEEN
 from sgf_plugins.odometry.scale import BevMotionParams, BevMotionScale
+from sgf_plugins.shared.bev_region import MIN_SEEN, ground_visible, nearest_region, seen_fraction
 
 from sgf_pipeline import ConfigError, RunContext
 from sgf_pipeline.calibration import Calibration, Intrinsics, camera_to_base_from_mounting

@@ -12,8 +12,8 @@ from sgf_plugins.ipm import (
     IpmParams,
     MotionCompensatedIPM,
     MotionCompensatedIpmParams,
-    bev_to_image_homography,
 )
+from sgf_plugins.shared.bev_homography import bev_to_image_homography
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.types import CameraImage, Frame

@@ -25,7 +25,7 @@ from backend_world import (
 )
 from sgf_plugins.backend.stages import GtsamLmBackend, LmParams
 from sgf_plugins.loop.fitting import position_only_loop
-from sgf_plugins.loop.icp import Icp2d, IcpResult, IcpSettings, se2
+from sgf_plugins.loop.icp import Icp2d, IcpResult, IcpSettings
 from sgf_plugins.loop.params import (
     ConsensusParams,
     DistinctParams,
@@ -37,9 +37,10 @@ from sgf_plugins.loop.params import (
     SymmetricParams,
 )
 from sgf_plugins.loop.stage import IcpLoopClosing
-from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS, drift_covariance, measured_sigmas
 from sgf_plugins.sgf.association.stage import SgfGroup
-from sgf_plugins.sgf.polar import shifted_distances
+from sgf_plugins.shared.drift import EXPECTED_YAW_BIAS, drift_covariance, measured_sigmas
+from sgf_plugins.shared.polar import shifted_distances
+from sgf_plugins.shared.se2 import se2
 
 from sgf_pipeline import RunContext
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, wrap_angle, xy_yaw

@@ -1,4 +1,4 @@
-"""The odometry's heading bias from loops (sgf_plugins.backend.heading_bias): the estimate, its robustness, the correction."""
+"""The odometry's heading bias from loops (sgf_plugins.shared.heading_bias): the estimate, its robustness, the correction."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import math
 
 import numpy as np
 import pytest
-from sgf_plugins.backend.heading_bias import MAX_YAW_BIAS, HeadingBias, with_heading_bias
 from sgf_plugins.backend.stages import Isam2Params, LmParams
+from sgf_plugins.shared.heading_bias import MAX_YAW_BIAS, HeadingBias, with_heading_bias
 
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, rotation_rpy, rpy_from_rotation, xy_yaw
 

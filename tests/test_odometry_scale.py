@@ -7,9 +7,9 @@ import math
 
 import numpy as np
 import pytest
-from sgf_plugins.backend.heading_bias import ScaledOdometry
 from sgf_plugins.backend.stages import GtsamLmBackend, LmParams
 from sgf_plugins.odometry.scale import BevMotionParams, BevMotionScale, NoOdometryScale
+from sgf_plugins.shared.heading_bias import ScaledOdometry
 from sgf_plugins.world import build_world
 
 from sgf_pipeline import RunContext

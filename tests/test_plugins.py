@@ -261,6 +261,7 @@ def test_import_linter_contract_holds():
     assert result.returncode == 0, result.stdout + result.stderr
     assert "The core never imports a plugin or an experiment KEPT" in result.stdout
     assert "The plugins never import an experiment KEPT" in result.stdout
+    assert "The plugins' layers: viz, then independent stage packages, then shared KEPT" in result.stdout
     assert "The core's layers: each module imports only the ones below it KEPT" in result.stdout
 
 

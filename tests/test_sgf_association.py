@@ -9,12 +9,12 @@ from typing import Any
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
-from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS
 from sgf_plugins.sgf.association.evaluation import group_purity, loop_pairs, score_groups
 from sgf_plugins.sgf.association.stage import OnlineGroupsParams, OnlineSgfGroups, SgfGroup
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams, describe
 from sgf_plugins.sgf.hu import hu_moments
-from sgf_plugins.sgf.polar import align, shifted_distances
+from sgf_plugins.shared.drift import EXPECTED_YAW_BIAS
+from sgf_plugins.shared.polar import align, shifted_distances
 from sgf_synthetic import (
     DEFAULT_GRID,
     Annulus,

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from sgf_plugins.sgf.polar import polar_context, shift_to_yaw, shifted_distances, voxel_downsample
+from sgf_plugins.shared.polar import polar_context, shift_to_yaw, shifted_distances, voxel_downsample
 
 SCANS = (94, 95, 198, 199)
 

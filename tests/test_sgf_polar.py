@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 from sgf_plugins.sgf.association.stage import OnlineGroupsParams
-from sgf_plugins.sgf.polar import (
+from sgf_plugins.shared.polar import (
     ColumnSet,
     align,
     best_shift,

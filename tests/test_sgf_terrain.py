@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 import pytest
-from sgf_plugins.ipm.geometry import bev_to_image_homography
 from sgf_plugins.sgf.descriptor import PolarContext, PolarContextParams, lift, lift_driven
 from sgf_plugins.sgf.terrain import driven_ground, intersect_ground, march_ground, pixel_rays, wheel_ground
+from sgf_plugins.shared.bev_homography import bev_to_image_homography
 from sgf_plugins.world.layout import SpeedBump
 from sgf_plugins.world.terrain import Terrain
 from sgf_synthetic import DEFAULT_GRID, toy_calibration

@@ -12,7 +12,7 @@ from typing import Any, Literal
 import numpy as np
 
 from sgf_pipeline.geometry import rotation_rpy, xy_yaw
-from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS
+from sgf_plugins.shared.drift import EXPECTED_YAW_BIAS
 
 PoseKind = Literal["pose2", "pose3"]
 Kernel = Literal["cauchy", "huber", "none"]

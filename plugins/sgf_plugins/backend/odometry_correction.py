@@ -11,8 +11,8 @@ import numpy as np
 from sgf_pipeline.geometry import xy_yaw
 from sgf_pipeline.types import LoopConstraint
 from sgf_plugins.backend.factors import NoiseSettings
-from sgf_plugins.backend.heading_bias import HeadingBias, ScaledOdometry, with_heading_bias
 from sgf_plugins.backend.poses import grown
+from sgf_plugins.shared.heading_bias import HeadingBias, ScaledOdometry, with_heading_bias
 
 
 class OdometryCorrection:

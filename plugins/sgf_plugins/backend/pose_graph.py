@@ -7,7 +7,7 @@ with the offset, its covariance carried by the offset's adjoint). When localizin
 the map's frames that SGFs were matched to (``m<map frame index>``, held by priors at their
 map poses). Poses are ``Pose2`` or ``Pose3`` (roll and pitch from the IMU as attitude factors).
 With ``NoiseSettings.yaw_bias_sigma`` set, the odometry's heading bias per metre is estimated from
-the loops and taken off the odometry steps that follow (:mod:`sgf_plugins.backend.heading_bias`).
+the loops and taken off the odometry steps that follow (:mod:`sgf_plugins.shared.heading_bias`).
 The graph's factors and noise models are built by :mod:`sgf_plugins.backend.factors`, its nodes
 laid out by :mod:`sgf_plugins.backend.nodes`, its poses kept in :mod:`sgf_plugins.backend.poses`
 and the odometry corrected by :mod:`sgf_plugins.backend.odometry_correction`.
@@ -24,10 +24,10 @@ import numpy as np
 from sgf_pipeline.geometry import invert
 from sgf_pipeline.types import Frame, LoopConstraint
 from sgf_plugins.backend.factors import FactorBuilder, M, NoiseSettings, PoseKind, X, planar
-from sgf_plugins.backend.heading_bias import HeadingBias
 from sgf_plugins.backend.nodes import NodeChain
 from sgf_plugins.backend.odometry_correction import OdometryCorrection
 from sgf_plugins.backend.poses import PoseStore
+from sgf_plugins.shared.heading_bias import HeadingBias
 
 FREE_ROLL_PITCH = 0.1  # rad, first-pose prior on roll and pitch (observed by the IMU, not a gauge)
 

@@ -4,13 +4,10 @@ from __future__ import annotations
 
 from sgf_pipeline import StageRegistry, hookimpl
 from sgf_plugins.ipm.geometry import (
-    bev_to_image_homography,
     compensated_ground_point,
-    ground_to_image_homography,
     mc_pixel_to_ground,
     metric_image_coordinates,
     roll_compensation,
-    visible_mask,
 )
 from sgf_plugins.ipm.reference import PoseQueue, ReferenceAttitude
 from sgf_plugins.ipm.stages import (
@@ -35,14 +32,11 @@ __all__ = [
     "PlaneMotionCompensatedIpmParams",
     "PoseQueue",
     "ReferenceAttitude",
-    "bev_to_image_homography",
     "compensated_ground_point",
-    "ground_to_image_homography",
     "mc_pixel_to_ground",
     "metric_image_coordinates",
     "roll_compensation",
     "sgf_register_stages",
-    "visible_mask",
 ]
 
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.types import BevGrid
-from sgf_plugins.ipm.geometry import RollAxis, bev_to_image_homography, compensated_camera_to_base
+from sgf_plugins.shared.bev_homography import RollAxis, bev_to_image_homography, compensated_camera_to_base
 
 #: Parameters: psi, theta (rad, eq. 1-2), log of the height scale, relative rotation correction (rad, 3).
 NUM_PARAMS = 6

@@ -11,7 +11,7 @@ import numpy as np
 
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.types import BevGrid
-from sgf_plugins.ipm.geometry import MIN_DEPTH, RollAxis
+from sgf_plugins.shared.bev_homography import MIN_DEPTH, RollAxis
 
 if TYPE_CHECKING:
     import torch
@@ -49,7 +49,7 @@ def bev_to_image_homographies(
 ) -> torch.Tensor:
     """(B, 3, 3) homographies from BEV index coordinates to image pixels, differentiable in ``psi``, ``theta``.
 
-    The batched torch form of :func:`sgf_plugins.ipm.geometry.bev_to_image_homography` (eq. 1-4).
+    The batched torch form of :func:`sgf_plugins.shared.bev_homography.bev_to_image_homography` (eq. 1-4).
     """
     import torch
 
@@ -78,7 +78,7 @@ def warp_to_bev(
 
     Returns the BEVs (B, C, h, w), zero where the ground is not visible, and the visibility masks
     (B, h, w): the pixel centre maps in front of the camera and inside ``[0, W-1] x [0, H-1]``, the
-    same rule as :func:`sgf_plugins.ipm.geometry.visible_mask`.
+    same rule as :func:`sgf_plugins.shared.bev_homography.visible_mask`.
     """
     import torch
     from kornia.geometry.transform import warp_perspective

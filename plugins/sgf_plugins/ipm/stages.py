@@ -15,11 +15,11 @@ from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.geometry import rpy_from_rotation
 from sgf_pipeline.imu import shrink_noise, steadied
 from sgf_pipeline.types import Bev, BevGrid, CameraImage, Frame
-from sgf_plugins.ipm.geometry import RollAxis, bev_to_image_homography, visible_mask
 from sgf_plugins.ipm.ground_plane import GradeFilter, GroundPlaneTracker
 from sgf_plugins.ipm.hindsight import AttitudeWindow, GroundAhead, ground_ahead, path_profile
 from sgf_plugins.ipm.reference import PoseQueue, ReferenceAttitude, ReferenceCenter, ReferenceFit
-from sgf_plugins.ipm.region import Region, choose_region
+from sgf_plugins.shared.bev_homography import RollAxis, bev_to_image_homography, visible_mask
+from sgf_plugins.shared.bev_region import Region, choose_region
 
 _INTERPOLATION = {"linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST, "cubic": cv2.INTER_CUBIC}
 _LOGGED_DROPOUTS = 5

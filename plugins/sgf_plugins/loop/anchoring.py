@@ -6,7 +6,7 @@ joins its two frames at no cost; a loop that the back-end did not absorb (``back
 optimisation only at the end, a loop down-weighted by the robust kernel) anchors nothing, so the
 gate stays as loose as the dead-reckoned drift. The heading bias in the drift is the back-end's
 model of it, the random walks and scale error the camera's measurement of them where it has one
-(:mod:`sgf_plugins.odometry.drift`).
+(:mod:`sgf_plugins.shared.drift`).
 
 On a prior SGF map (``matched`` is a :class:`~sgf_pipeline.sgf_map.MapDescriptor`), a match is
 an inter-session constraint (``from_map``). Before the run is anchored in the map frame there is
@@ -26,8 +26,8 @@ from sgf_pipeline.geometry import invert
 from sgf_pipeline.types import PoseEstimate
 from sgf_plugins.loop.candidate import Candidate
 from sgf_plugins.loop.params import GateParams, MapParams
-from sgf_plugins.odometry.anchoring import anchored_distances
-from sgf_plugins.odometry.drift import (
+from sgf_plugins.shared.anchoring import anchored_distances
+from sgf_plugins.shared.drift import (
     EXPECTED_YAW_BIAS,
     corrected_yaw_bias,
     drift_covariance,
@@ -36,7 +36,7 @@ from sgf_plugins.odometry.drift import (
     pose_error,
     uncorrected_yaw_bias,
 )
-from sgf_plugins.odometry.frame_log import FrameLog
+from sgf_plugins.shared.frame_log import FrameLog
 
 MAP = -1  # the prior map as one node of the anchoring graph
 

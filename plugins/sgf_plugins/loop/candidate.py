@@ -7,7 +7,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from sgf_pipeline.types import GroupAssignment, LoopConstraint, SgfDescriptor
-from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances
+from sgf_plugins.shared.polar import best_shift, shift_to_yaw, shifted_distances
 
 
 @dataclass(frozen=True)

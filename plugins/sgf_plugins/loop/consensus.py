@@ -40,8 +40,8 @@ from sgf_pipeline.types import GroupAssignment, LoopConstraint
 from sgf_plugins.loop.candidate import Candidate
 from sgf_plugins.loop.memory import SgfMemory, odometry_xy
 from sgf_plugins.loop.params import IcpLoopParams
-from sgf_plugins.odometry.frame_log import FrameLog
-from sgf_plugins.sgf.polar import shifted_distances, yaw_to_shift
+from sgf_plugins.shared.frame_log import FrameLog
+from sgf_plugins.shared.polar import shifted_distances, yaw_to_shift
 
 #: Look-alike SGFs nearer each other than this (m) are one marking seen twice, not two copies of a pattern.
 COPY_MIN_SPACING_M = 0.5

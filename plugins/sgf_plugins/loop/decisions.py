@@ -8,7 +8,7 @@ from sgf_pipeline.sgf_map import MapDescriptor
 from sgf_pipeline.types import GroupAssignment, LoopConstraint
 from sgf_plugins.loop.candidate import GateReading
 from sgf_plugins.loop.outcomes import REFUSALS
-from sgf_plugins.odometry.frame_log import FrameLog
+from sgf_plugins.shared.frame_log import FrameLog
 
 
 class DecisionLog:

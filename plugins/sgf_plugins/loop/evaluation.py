@@ -15,8 +15,8 @@ from sgf_pipeline.geometry import invert, xy_yaw
 from sgf_pipeline.types import RevisitPair, SequenceTruth
 from sgf_plugins.loop.candidate import Candidate
 from sgf_plugins.loop.params import EvaluationParams, IcpLoopParams
-from sgf_plugins.odometry.drift import pose_error
-from sgf_plugins.odometry.frame_log import FrameLog
+from sgf_plugins.shared.drift import pose_error
+from sgf_plugins.shared.frame_log import FrameLog
 
 
 def truth_error(c: Candidate, frames: FrameLog) -> tuple[float, float] | None:

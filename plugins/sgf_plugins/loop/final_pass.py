@@ -16,7 +16,7 @@ from sgf_plugins.loop.candidate import match_closest
 from sgf_plugins.loop.decisions import DecisionLog
 from sgf_plugins.loop.gate import LoopGate
 from sgf_plugins.loop.params import IcpLoopParams
-from sgf_plugins.odometry.frame_log import FrameLog
+from sgf_plugins.shared.frame_log import FrameLog
 
 
 class FinalPass:

@@ -22,9 +22,10 @@ import numpy as np
 
 from sgf_pipeline.geometry import invert, wrap_angle, xy_yaw
 from sgf_pipeline.types import GroupAssignment, LoopConstraint, SgfDescriptor
-from sgf_plugins.loop.icp import Icp2d, IcpResult, IcpSettings, centroid_seed, se2, se2_params
+from sgf_plugins.loop.icp import Icp2d, IcpResult, IcpSettings, centroid_seed
 from sgf_plugins.loop.params import IcpLoopParams
-from sgf_plugins.odometry.drift import mahalanobis2, pose_error
+from sgf_plugins.shared.drift import mahalanobis2, pose_error
+from sgf_plugins.shared.se2 import se2, se2_params
 
 #: Two ICP fits that put the query's points further apart than this (RMS, m) are distinct fits of one match.
 FIT_TOLERANCE_M = 0.25

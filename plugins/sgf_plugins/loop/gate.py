@@ -2,7 +2,7 @@
 
 The relative pose predicted by the previous frame's estimate (odometry before the back-end's first
 estimate) is compared with ICP's by a chi-square test whose covariance is ICP's plus the drift model's
-(:func:`~sgf_plugins.odometry.drift.drift_covariance`) across ``d``, the distance since a loop last
+(:func:`~sgf_plugins.shared.drift.drift_covariance`) across ``d``, the distance since a loop last
 anchored the two poses (:mod:`sgf_plugins.loop.anchoring`). This makes a look-alike marking elsewhere
 fail the test once the estimate is better than the distance between the look-alikes.
 
@@ -25,11 +25,12 @@ from sgf_plugins.loop import outcomes
 from sgf_plugins.loop.anchoring import MAP, LoopAnchoring
 from sgf_plugins.loop.candidate import Candidate, GateReading, match_closest
 from sgf_plugins.loop.fitting import IcpFitting
-from sgf_plugins.loop.icp import IcpResult, se2_params
+from sgf_plugins.loop.icp import IcpResult
 from sgf_plugins.loop.memory import SgfMemory
 from sgf_plugins.loop.params import IcpLoopParams
-from sgf_plugins.odometry.drift import mahalanobis2, pose_error
-from sgf_plugins.odometry.frame_log import FrameLog
+from sgf_plugins.shared.drift import mahalanobis2, pose_error
+from sgf_plugins.shared.frame_log import FrameLog
+from sgf_plugins.shared.se2 import se2_params
 
 
 class LoopGate:

@@ -1,8 +1,8 @@
 """2-D ICP between two SGF point sets (paper Sec. III-D), vectorised over points with a k-d tree.
 
-A rigid 2-D transform is a 3x3 homogeneous matrix ``T`` that maps source points into the target
-frame: ``q = R p + t``. The covariance of a result is over the local (right) perturbation of
-``T``, ``T Exp(xi)`` with ``xi = (x, y, yaw)``: the tangent convention of GTSAM's ``Pose2``.
+A rigid 2-D transform is a 3x3 homogeneous matrix ``T`` (:mod:`sgf_plugins.shared.se2`) that maps source
+points into the target frame: ``q = R p + t``. The covariance of a result is over the local (right)
+perturbation of ``T``, ``T Exp(xi)`` with ``xi = (x, y, yaw)``: the tangent convention of GTSAM's ``Pose2``.
 """
 
 from __future__ import annotations
@@ -13,23 +13,9 @@ from typing import Literal
 
 import numpy as np
 
+from sgf_plugins.shared.se2 import apply, se2, se2_params
+
 Metric = Literal["point_to_point", "point_to_line"]
-
-
-def se2(x: float, y: float, yaw: float) -> np.ndarray:
-    """3x3 homogeneous matrix of a planar rigid transform."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s, x], [s, c, y], [0.0, 0.0, 1.0]])
-
-
-def se2_params(transform: np.ndarray) -> tuple[float, float, float]:
-    """``(x, y, yaw)`` of a 3x3 planar transform."""
-    return float(transform[0, 2]), float(transform[1, 2]), math.atan2(float(transform[1, 0]), float(transform[0, 0]))
-
-
-def apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Transform (N, 2) points."""
-    return points @ transform[:2, :2].T + transform[:2, 2]
 
 
 def _perp(points: np.ndarray) -> np.ndarray:

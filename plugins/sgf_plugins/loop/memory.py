@@ -8,7 +8,7 @@ import numpy as np
 
 from sgf_pipeline.geometry import xy_yaw
 from sgf_pipeline.types import GroupAssignment, SgfDescriptor
-from sgf_plugins.sgf.polar import shifted_distances
+from sgf_plugins.shared.polar import shifted_distances
 
 
 @dataclass

@@ -8,7 +8,7 @@ pass), the match is put through these steps, each in its module:
    pass the shape tests, one per alignment.
 2. The gate (:mod:`~sgf_plugins.loop.gate`): the ICP pose against the relative pose the estimate
    predicts, within the drift since a loop last anchored the two frames
-   (:mod:`~sgf_plugins.loop.anchoring`, :mod:`~sgf_plugins.odometry.drift`).
+   (:mod:`~sgf_plugins.loop.anchoring`, :mod:`~sgf_plugins.shared.drift`).
 3. The neighbour consensus (:mod:`~sgf_plugins.loop.consensus`): look-alike markings are told
    apart by the markings around them, unless the match is into a distinct marking or the gate
    alone decides it; a match short of agreeing neighbours waits for those seen after it.
@@ -52,7 +52,7 @@ from sgf_plugins.loop.fitting import IcpFitting
 from sgf_plugins.loop.gate import LoopGate
 from sgf_plugins.loop.memory import SgfMemory
 from sgf_plugins.loop.params import IcpLoopParams
-from sgf_plugins.odometry.frame_log import FrameLog
+from sgf_plugins.shared.frame_log import FrameLog
 
 
 class IcpLoopClosing(Stage):

@@ -1,1 +1,1 @@
-"""Wheel odometry as the pipeline reads it: frame log, loop-anchored distances, drift model, scale."""
+"""The ``odometry_scale`` stage: the wheel odometry's scale error and heading bias, measured from the camera."""

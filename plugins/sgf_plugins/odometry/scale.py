@@ -38,9 +38,9 @@ from sgf_pipeline import RunContext, Stage, StageParams, StageRegistry, hookimpl
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.geometry import xy_yaw
 from sgf_pipeline.types import BevGrid, CameraImage, Frame, OdometryScale
-from sgf_plugins.ipm.geometry import bev_to_image_homography, visible_mask
-from sgf_plugins.ipm.region import Region, choose_region
-from sgf_plugins.loop.icp import se2
+from sgf_plugins.shared.bev_homography import bev_to_image_homography, visible_mask
+from sgf_plugins.shared.bev_region import Region, choose_region
+from sgf_plugins.shared.se2 import se2
 
 #: Parameters of the fit: shift (x, y) in metres, turn (rad), pitch-like a and roll-like b (1/m).
 _PARAMS = 5

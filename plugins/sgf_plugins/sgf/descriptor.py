@@ -13,9 +13,9 @@ from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.geometry import invert, rotation_rpy, rpy_from_rotation
 from sgf_pipeline.imu import steadied_roll_pitch
 from sgf_pipeline.types import Frame, SalientGroundFeature, SgfDescriptor, SgfDescriptors, SgfDetections
-from sgf_plugins.odometry.frame_log import FrameLog
-from sgf_plugins.sgf.polar import polar_context, ring_key, voxel_downsample
 from sgf_plugins.sgf.terrain import driven_ground, intersect_ground, march_ground, pixel_rays, wheel_ground
+from sgf_plugins.shared.frame_log import FrameLog
+from sgf_plugins.shared.polar import polar_context, ring_key, voxel_downsample
 
 #: Frames of odometry the driven-ground lift remembers (a feature's valid range is far shorter).
 TERRAIN_FRAMES = 2_000

@@ -7,12 +7,12 @@ import math
 import numpy as np
 
 from sgf_pipeline.types import PoseEstimate
-from sgf_plugins.odometry.anchoring import anchored_distances
 from sgf_plugins.sgf.association.gate import SpatialGate
 from sgf_plugins.sgf.association.groups import SgfGroup
 from sgf_plugins.sgf.association.params import OnlineGroupsParams
 from sgf_plugins.sgf.association.state import AssociationState
-from sgf_plugins.sgf.polar import shifted_distances
+from sgf_plugins.shared.anchoring import anchored_distances
+from sgf_plugins.shared.polar import shifted_distances
 
 
 class EndOfRun:

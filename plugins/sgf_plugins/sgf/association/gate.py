@@ -8,12 +8,12 @@ import numpy as np
 
 from sgf_pipeline.geometry import invert, xy_yaw
 from sgf_pipeline.types import PoseEstimate, SgfDescriptor
-from sgf_plugins.odometry.anchoring import anchored_distances
-from sgf_plugins.odometry.drift import EXPECTED_YAW_BIAS, bias_growth, drift_radius
 from sgf_plugins.sgf.association.groups import NO_ESTIMATE, GatedGroup
 from sgf_plugins.sgf.association.params import OnlineGroupsParams
 from sgf_plugins.sgf.association.repeats import RepeatedPattern
 from sgf_plugins.sgf.association.state import AssociationState
+from sgf_plugins.shared.anchoring import anchored_distances
+from sgf_plugins.shared.drift import EXPECTED_YAW_BIAS, bias_growth, drift_radius
 
 #: A loop anchors the gate when the estimate's relative yaw between its frames is within this of the loop's (rad).
 ANCHOR_YAW_TOLERANCE = 0.05

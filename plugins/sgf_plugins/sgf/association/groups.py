@@ -11,7 +11,7 @@ import numpy as np
 
 from sgf_pipeline.stage import SettledGroup
 from sgf_pipeline.types import SgfDescriptor
-from sgf_plugins.sgf.polar import ColumnSet, align, best_shift, shifted_distances, symmetry_spread
+from sgf_plugins.shared.polar import ColumnSet, align, best_shift, shifted_distances, symmetry_spread
 
 #: Frames whose odometry and travelled distance are remembered at least (older ones only for group members).
 HISTORY_FRAMES = 20_000

@@ -8,7 +8,7 @@ from sgf_pipeline.types import LookAlike, PoseEstimate, SgfDescriptor
 from sgf_plugins.sgf.association.groups import GatedGroup, SgfGroup
 from sgf_plugins.sgf.association.params import OnlineGroupsParams
 from sgf_plugins.sgf.association.state import AssociationState
-from sgf_plugins.sgf.polar import best_shift, shift_to_yaw, shifted_distances, symmetry_spread
+from sgf_plugins.shared.polar import best_shift, shift_to_yaw, shifted_distances, symmetry_spread
 
 
 class Eq10Matching:

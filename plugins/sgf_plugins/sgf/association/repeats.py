@@ -10,7 +10,7 @@ from sgf_pipeline.types import PoseEstimate, SgfDescriptor
 from sgf_plugins.sgf.association.groups import GatedGroup
 from sgf_plugins.sgf.association.params import OnlineGroupsParams
 from sgf_plugins.sgf.association.state import AssociationState
-from sgf_plugins.sgf.polar import shifted_distances
+from sgf_plugins.shared.polar import shifted_distances
 
 
 class RepeatedPattern:

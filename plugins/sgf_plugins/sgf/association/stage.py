@@ -36,7 +36,7 @@ from sgf_plugins.sgf.association.matching import Eq10Matching
 from sgf_plugins.sgf.association.params import OnlineGroupsParams
 from sgf_plugins.sgf.association.repeats import RepeatedPattern
 from sgf_plugins.sgf.association.state import AssociationState
-from sgf_plugins.sgf.polar import shift_to_yaw, shifted_distances, symmetry_spread
+from sgf_plugins.shared.polar import shift_to_yaw, shifted_distances, symmetry_spread
 
 
 @dataclass(frozen=True)
@@ -67,7 +67,7 @@ class OnlineSgfGroups(Stage):
     or the odometry pose when no back-end runs; the gate keeps identical standard markings at
     different places (perceptual aliasing) in different groups while allowing for drift. With
     ``gate.anchored``, the distance travelled is counted as the loop stage counts it
-    (:mod:`sgf_plugins.odometry.anchoring`): a loop closure that the estimate meets (within
+    (:mod:`sgf_plugins.shared.anchoring`): a loop closure that the estimate meets (within
     ``gate.anchor_tolerance``) joins its two frames at no cost, so once a revisit is anchored the gate
     shrinks back to what the odometry drifts since the loop, not since the first sighting.
 

@@ -10,9 +10,9 @@ import numpy as np
 
 from sgf_pipeline.geometry import invert, xy_yaw
 from sgf_pipeline.types import Frame, LoopConstraints, PoseEstimate, SgfDescriptor
-from sgf_plugins.odometry.frame_log import FrameLog
 from sgf_plugins.sgf.association.groups import HISTORY_FRAMES, MemberIndex, SgfGroup
-from sgf_plugins.sgf.polar import yaw_to_shift
+from sgf_plugins.shared.frame_log import FrameLog
+from sgf_plugins.shared.polar import yaw_to_shift
 
 
 @dataclass(frozen=True)
