@@ -105,6 +105,7 @@ def sweep(tmp_path: Path) -> Path:
         _run(root, "none", "campus_reverse_slope", seed, 1.0 + wobble)
         _run(root, "idle", "campus_reverse_slope", seed, 1.05 - wobble)  # within the spread
         _run(root, "drifts", "campus_reverse_slope", seed, 1.5 + wobble)  # 0.5 m worse: beyond it
+        _run(root, "scattered", "campus_reverse_slope", seed, 1.2 + 3 * wobble)  # 0.2 m worse, its own spread 0.42 m
         _run(root, "consensus", "campus_reverse_slope", seed, 1.0, false=int(seed == 202))
         _run(root, "final_pass", "campus_reverse_slope", seed, 1.0, closed=7)
         _run(root, "paper", "campus_reverse_slope", seed, 9.0, closed=3, false=2)
@@ -115,11 +116,20 @@ def test_an_extension_earns_its_place_by_a_false_loop_a_closed_pair_or_ate_beyon
     from sgf_experiments.report import find_runs
 
     table = ablation_table(find_runs(sweep))
-    assert [r["name"] for r in table["rows"]] == ["none", "paper", "consensus", "drifts", "final_pass", "idle"]
+    assert [r["name"] for r in table["rows"]] == [
+        "none",
+        "paper",
+        "consensus",
+        "drifts",
+        "final_pass",
+        "idle",
+        "scattered",
+    ]
     verdicts = table["verdicts"]
     assert verdicts["consensus"]["costs"] == {"campus_reverse_slope": ["1 false loop(s)"]}
     assert verdicts["final_pass"]["costs"] == {"campus_reverse_slope": ["2 closed pair(s)"]}
     assert verdicts["drifts"]["costs"] == {"campus_reverse_slope": ["0.50 m ATE"]}
+    assert verdicts["scattered"]["costs"] == {"campus_reverse_slope": ["0.20 m ATE"]}  # the default's spread decides
     assert not verdicts["idle"]["earns_its_place"] and verdicts["idle"]["costs"] == {}
     assert verdicts["paper"]["earns_its_place"]  # the default beats the paper as printed
     (none,) = [r for r in table["rows"] if r["name"] == "none"]

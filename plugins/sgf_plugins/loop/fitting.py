@@ -1,12 +1,10 @@
-"""ICP alignment of a match (paper Sec. III-D): yaw seeds and probes, the fit tests, one fit per alignment.
+"""ICP alignment of a match (paper Sec. III-D): yaw seeds, the fit tests, one fit per alignment.
 
 The two SGFs' point sets are aligned by 2-D ICP (:mod:`sgf_plugins.loop.icp`) seeded by the relative
 yaw of the best column shift (so reverse loops converge) and by the centroids. ``GroupAssignment.yaw``
 is read as the rotation (rad, counter-clockwise) that turns the new SGF's points about their centroid
 onto the matched SGF's; with ``fit.seed_both_signs`` the opposite sign is tried too, so the
-association's sign convention does not matter, and ``fit.yaw_probe_deg`` either side of each seed as
-well: a long, thin marking fixes its heading weakly, ICP stops on either wall of that shallow valley,
-and the loop takes the middle of its stops. A fit passes when it converged with a low RMS residual, a
+association's sign convention does not matter. A fit passes when it converged with a low RMS residual, a
 high two-way inlier ratio and no degenerate direction. When ICP finds several distinct near-equal
 fits (a twofold symmetric shape turned by 180 degrees, a row laid on itself one period on), the gate
 must leave exactly one.
@@ -15,7 +13,6 @@ must leave exactly one.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -48,10 +45,10 @@ class IcpFitting:
         )
         self.detail = ""  # what the last failed ICP missed
 
-    def align(self, a: GroupAssignment, position_only: bool = False) -> tuple[list[IcpResult], list[IcpResult]]:
-        """ICP from each yaw seed, then (when one passed) from its probes: the results of each that pass the tests.
+    def align(self, a: GroupAssignment, position_only: bool = False) -> list[IcpResult]:
+        """ICP from each yaw seed: the results that pass the tests.
 
-        For a position-only loop the heading ICP cannot fix is no failure, and no probe refines it.
+        For a position-only loop the heading ICP cannot fix is no failure.
         """
         assert a.matched is not None
         query, matched = a.descriptor, a.matched
@@ -64,20 +61,11 @@ class IcpFitting:
         icp = Icp2d(np.asarray(matched.points, dtype=np.float64), self.settings)
         source = np.asarray(query.points, dtype=np.float64)
 
-        def from_seeds(yaws: list[float]) -> tuple[list[IcpResult], list[IcpResult]]:
-            tried = [icp.align(source, centroid_seed(query.centroid, matched.centroid, y)) for y in yaws]
-            return [r for r in tried if self.passes(r, position_only)], tried
-
-        good, tried = from_seeds(seeds)
+        tried = [icp.align(source, centroid_seed(query.centroid, matched.centroid, y)) for y in seeds]
+        good = [r for r in tried if self.passes(r, position_only)]
         if not good:
             self.detail = self.failed_fit(tried)
-            return [], []
-        probe = math.radians(self.p.fit.yaw_probe_deg)
-        if probe == 0.0 or position_only:
-            return good, []
-        # probes only refine the seeds' fits: without one to refine they are not run
-        probed, _ = from_seeds(_distinct_yaws([y + d for y in seeds for d in (-probe, probe)], seeds))
-        return good, probed
+        return good
 
     def passes(self, r: IcpResult, position_only: bool = False) -> bool:
         """Whether an ICP result passes the acceptance tests: converged, RMS, two-way inliers, not degenerate.
@@ -115,7 +103,7 @@ class IcpFitting:
             + ("" if r.converged else ", not converged")
         )
 
-    def fits(self, results: list[IcpResult], points: np.ndarray, probed: Sequence[IcpResult] = ()) -> list[IcpResult]:
+    def fits(self, results: list[IcpResult], points: np.ndarray) -> list[IcpResult]:
         """The distinct near-equal fits of a match (RMS within ``fit.ambiguity_ratio`` of the best), best first.
 
         Several come from a twofold symmetric shape turned by 180 degrees, or from a row of
@@ -124,9 +112,7 @@ class IcpFitting:
         robot, where a few degrees of yaw about the marking move the pose by its lever arm): ICP
         seeded from either side of a shallow valley (an elongated marking turned a little) stops
         on both sides of the truth, so one fit is the middle of their stops (:func:`_merged`), its
-        covariance widened by their spread. The ``probed`` fits (from seeds a few degrees either
-        side) join the seeds' fits they lie within that tolerance of, and never make a fit of their
-        own.
+        covariance widened by their spread.
         """
         best = min(r.fitness for r in results)
         clusters: list[list[IcpResult]] = []
@@ -139,14 +125,6 @@ class IcpFitting:
                     break
             else:
                 clusters.append([r])
-        for r in probed:
-            if r.fitness > best * self.p.fit.ambiguity_ratio:
-                continue
-            joined = next(
-                (c for c in clusters if _displacement(r.transform, c[0].transform, points) <= FIT_TOLERANCE_M), None
-            )
-            if joined is not None:
-                joined.append(r)
         return [_merged(_distinct_fits(cluster, points)) for cluster in clusters]
 
     def select(self, results: list[IcpResult], predicted: tuple[np.ndarray, np.ndarray] | None) -> IcpResult:
@@ -228,6 +206,7 @@ def _distinct_fits(fits: list[IcpResult], points: np.ndarray) -> list[IcpResult]
         if all(_displacement(r.transform, o.transform, points) > SAME_FIT_M for o in out):
             out.append(r)
     return out
+
 
 def _displacement(a: np.ndarray, b: np.ndarray, points: np.ndarray) -> float:
     """RMS distance (m) between ``points`` moved by the 2-D transforms ``a`` and ``b`` (3x3)."""

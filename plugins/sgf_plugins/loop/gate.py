@@ -78,7 +78,7 @@ class LoopGate:
         if min(len(query.points), len(matched.points)) < self.p.icp.min_points:
             return outcomes.TOO_FEW_POINTS
         position_only = a.symmetric and self.p.symmetric.position_only
-        results, probed = self.fitting.align(a, position_only)
+        results = self.fitting.align(a, position_only)
         if not results:
             return outcomes.ICP
         map_pose = np.asarray(matched.map_pose, dtype=np.float64) if isinstance(matched, MapDescriptor) else None
@@ -98,7 +98,7 @@ class LoopGate:
                 self.anchoring.drift(distance, j, estimate),
             )
         points = np.asarray(query.points, dtype=np.float64)
-        fits = self.fitting.centred(results, query) if position_only else self.fitting.fits(results, points, probed)
+        fits = self.fitting.centred(results, query) if position_only else self.fitting.fits(results, points)
         if not fits:
             return outcomes.ICP
         turn = None  # a position-only loop turns about its marking as the estimate predicts (ICP's heading when none)

@@ -43,13 +43,6 @@ class FitParams(StageParams):
     extra_yaw_seeds: int = Field(
         1, ge=0, le=16, description="further seeds evenly spaced in yaw around the first (1: its half-turn alternative)"
     )
-    yaw_probe_deg: float = Field(
-        5.0,
-        ge=0.0,
-        le=30.0,
-        description="ICP is also seeded this far (deg) either side of each yaw seed; what it finds there only refines "
-        "the seeds' own fits (the middle of a shallow valley in yaw, and its width in the covariance) (0: off)",
-    )
     ambiguity_ratio: float = Field(
         1.25,
         ge=1.0,

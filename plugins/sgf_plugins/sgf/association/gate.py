@@ -42,10 +42,8 @@ class SpatialGate:
         """The groups the spatial gate lets the query meet, with their nearest member's map distance (m).
 
         ``repeated`` marks a group holding a member seen moments ago (within ``repeats.window`` of
-        travel) at another place (beyond ``repeats.radius``, and with a ground footprint that
-        overlaps the query's by less than ``repeats.overlap``): if it also looks like the query, the
-        two are neighbouring copies of a repeated pattern (see the stage's ``assign``). A partial view of
-        the same marking moves its centroid by up to a metre or two but covers the same paint.
+        travel) at another place (beyond ``repeats.radius``): if it also looks like the query, the
+        two are neighbouring copies of a repeated pattern (see the stage's ``assign``).
         """
         p, index = self.params, self.state.index
         n = index.size
@@ -73,14 +71,14 @@ class SpatialGate:
         count = len(self.state.groups)
         member_inside = (distance <= radius) | (not p.gate.enabled)
         nearest = np.full(count, math.inf)
-        np.minimum.at(nearest, groups, np.where(member_inside | (not p.gate.member_gate), distance, math.inf))
+        np.minimum.at(nearest, groups, distance)
         ratio = np.full(count, math.inf)
         np.minimum.at(ratio, groups, distance / radius)
         inside = np.bincount(groups, weights=member_inside, minlength=count) > 0
         repeats = np.bincount(groups, weights=repeated, minlength=count) > 0
         members: list[np.ndarray | None] = [None] * count
         repeating: list[np.ndarray | None] = [None] * count
-        if inside.any() and ((p.gate.member_gate and p.gate.enabled) or (repeats & inside).any()):
+        if (repeats & inside).any():
             # members sit in the index in the order they joined their group: rank within the group = member index
             order = np.argsort(groups, kind="stable")
             starts = np.concatenate([[0], np.cumsum(np.bincount(groups, minlength=count))[:-1]])
@@ -90,8 +88,6 @@ class SpatialGate:
                 kept = flags[order]
                 return np.split(rank[kept], np.cumsum(np.bincount(groups[order][kept], minlength=count))[:-1])
 
-            if p.gate.member_gate and p.gate.enabled:
-                members = [m if inside[k] else None for k, m in enumerate(per_group(member_inside))]
             repeating = [r if repeats[k] else None for k, r in enumerate(per_group(repeated))]
         return [
             GatedGroup(group, float(nearest[k]), bool(repeats[k]), float(min(ratio[k], 1.0)), members[k], repeating[k])

@@ -37,11 +37,6 @@ class MatchParams(StageParams):
         description="added to a group's eq. 10 distance times how far out in the spatial gate its nearest member lies "
         "(0 at the query's map position, this at the gate's edge): groups are ranked by both; 0 = eq. 10 alone",
     )
-    tie_margin: float = Field(
-        0.05,
-        ge=0.0,
-        description="groups within this eq. 10 distance of the best are equally good; the nearest on the map wins",
-    )
     yaw_tolerance: float = Field(
         0.02,
         ge=0.0,
@@ -63,11 +58,6 @@ class GateParams(StageParams):
         description="gate growth per squared metre travelled, for the odometry's heading bias b (rad/m; position "
         "error ~ d^2), as a share of a straight drive's bound 0.5 b: a route that turns back stays under it "
         "(a loop route's return to its start after 1.5 km: 0.4 of it)",
-    )
-    member_gate: bool = Field(
-        True,
-        description="eq. 10 against a group's members inside the gate only; false = against every member once one "
-        "is inside (a group then reaches far: a member seen long ago opens the gate, a recent one far away matches)",
     )
     prior_radius: float | None = Field(
         None, gt=0.0, description="gate (m) around members of groups seeded from a saved map; null = no gate"
@@ -93,14 +83,6 @@ class RepeatsParams(StageParams):
         "repeated-pattern test",
     )
     radius: float = Field(0.5, gt=0.0, description="...away means farther than this on the map (m)")
-    overlap: float | None = Field(
-        0.25,
-        gt=0.0,
-        le=1.0,
-        description="...and its ground footprint shares less than this share of the smaller one's cells with the "
-        "query's (a partial view of the same marking moves the centroid but overlaps it); null = no footprint test",
-    )
-    footprint_cell: float = Field(0.1, gt=0.0, description="cell size (m) of the footprints the overlap compares")
     copy_distance: float = Field(
         0.2, ge=0.0, description="...and a copy looks like the query: eq. 10 distance at most this (0 = no copies)"
     )
@@ -112,7 +94,7 @@ class RepeatsParams(StageParams):
     )
     copies: Literal["apart", "new"] = Field(
         "new",
-        description="a query whose best match is a neighbouring copy (ties it within match.tie_margin): joins the best "
+        description="a query whose best match is a neighbouring copy (ties it): joins the best "
         "other group (apart), or opens its own (new, aliased: no loop factors)",
     )
 

@@ -17,9 +17,8 @@ class RepeatedPattern:
     """The repeated-pattern test: members seen moments ago elsewhere, and whether the query looks like them.
 
     Give-way triangles, zebra bars and dashes repeat one marking metres apart: a group holding a
-    member seen within ``repeats.window`` of travel at another place (beyond ``repeats.radius``,
-    its ground footprint overlapping the query's by less than ``repeats.overlap``) that also looks
-    like the query (``repeats.copy_distance``) is a neighbouring copy, not a revisit.
+    member seen within ``repeats.window`` of travel at another place (beyond ``repeats.radius``)
+    that also looks like the query (``repeats.copy_distance``) is a neighbouring copy, not a revisit.
     """
 
     def __init__(self, params: OnlineGroupsParams, state: AssociationState) -> None:
@@ -34,23 +33,9 @@ class RepeatedPattern:
         distance: np.ndarray,
         anchored: np.ndarray,
     ) -> np.ndarray:
-        """Which members were seen moments ago at another place than the query (a partial view overlaps it)."""
-        p, index = self.params, self.state.index
-        repeated = ~anchored & (travelled < p.repeats.window) & (distance > p.repeats.radius)
-        if p.repeats.overlap is not None and repeated.any():
-            footprint = self.footprint(query, estimate)
-            for k in np.flatnonzero(repeated):
-                other = self.footprint(index.members[k], estimate)
-                shared = len(footprint & other) / max(1, min(len(footprint), len(other)))
-                repeated[k] = shared < p.repeats.overlap
-        return repeated
-
-    def footprint(self, descriptor: SgfDescriptor, estimate: PoseEstimate | None) -> set[tuple[int, int]]:
-        """The map cells (``repeats.footprint_cell`` wide) that a descriptor's ground points cover."""
-        pose = self.state.map_pose(descriptor, estimate)
-        xy = np.asarray(descriptor.points, dtype=np.float64)[:, :2] @ pose[:2, :2].T + pose[:2, 3]
-        cells = np.floor(xy / self.params.repeats.footprint_cell).astype(np.int64)
-        return set(map(tuple, cells.tolist()))
+        """Which members were seen moments ago at another place than the query."""
+        p = self.params
+        return ~anchored & (travelled < p.repeats.window) & (distance > p.repeats.radius)
 
     def copy_distances(self, query: SgfDescriptor, candidates: list[GatedGroup], eq10: np.ndarray) -> np.ndarray:
         """Eq. 10 from the query to each repeating group's members seen moments ago elsewhere (``repeats.copy_member``).

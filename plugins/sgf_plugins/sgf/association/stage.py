@@ -60,9 +60,7 @@ class OnlineSgfGroups(Stage):
     """Assign each SGF descriptor to the nearest SGF group by the column-shifted cosine distance (eq. 10).
 
     Candidates: with ``gate.enabled``, only groups with a member whose map position lies within
-    ``gate.radius + gate.drift_rate * (distance travelled between the two sightings)`` of the query's;
-    with ``gate.member_gate`` a group is compared through those members only (a sighting from long ago
-    has a wide gate, and must not let a recent member of its group far from the query match it).
+    ``gate.radius + gate.drift_rate * (distance travelled between the two sightings)`` of the query's.
     Map positions apply the back-end's previous estimate of the member's frame to its centroid,
     or the odometry pose when no back-end runs; the gate keeps identical standard markings at
     different places (perceptual aliasing) in different groups while allowing for drift. With
@@ -82,10 +80,10 @@ class OnlineSgfGroups(Stage):
     ``shift``/``yaw`` are relative to it: the query's frame is turned by ``yaw`` from the matched
     member's frame, so ``R(yaw) @ (points - centroid) + matched.centroid`` approximates
     ``matched.points``. Shifts within ``match.yaw_tolerance`` of the best (2- or 4-fold symmetric
-    markings) are resolved by the relative yaw of the two poses, and groups within ``match.tie_margin``
-    of the best distance (identical standard markings, which eq. 10 cannot tell apart) are
-    resolved by the nearest member on the map; a query whose own profile is not flat leaves the
-    symmetric groups among them out (a match into one gives no loop factor).
+    markings) are resolved by the relative yaw of the two poses, and groups level with the best
+    distance (identical descriptors, which eq. 10 cannot tell apart) are resolved by the nearest
+    member on the map; a query whose own profile is not flat leaves the symmetric groups among them
+    out (a match into one gives no loop factor).
 
     The group descriptor is the mean of its members after turning each by its shift into the
     first member's orientation: averaging unaligned descriptors of a feature seen from different
@@ -239,11 +237,11 @@ class OnlineSgfGroups(Stage):
                 candidates[i].group.aliased = True
             copy_nearby = bool(copy.any())
             best_kept = score[~copy].min() if not copy.all() else math.inf
-            if p.repeats.copies == "new" and copy_nearby and score[copy].min() <= best_kept + p.match.tie_margin:
+            if p.repeats.copies == "new" and copy_nearby and score[copy].min() <= best_kept:
                 # The query is one more copy of the pattern here, not a revisit elsewhere: a group of its own.
                 opened_distance = float(eq10.min())
             elif not copy.all():
-                ties = np.flatnonzero(~copy & (score <= best_kept + p.match.tie_margin))
+                ties = np.flatnonzero(~copy & (score <= best_kept))
                 ties = self.matching.closable_ties(query, candidates, ties)
                 i = int(min(ties, key=lambda t: candidates[t].nearest))
                 best = (candidates[i].group, float(eq10[i]))
