@@ -143,6 +143,7 @@ def test_sgf_report_writes_the_leave_one_out_section(sweep: Path) -> None:
     assert "| idle | campus_reverse_slope | 201, 202 | 1.05 ± 0.14 |" in report
     assert "cost nothing measurable on these runs: idle." in report
     assert json.loads((sweep / "tables.json").read_text())["ablation"]["verdicts"]["idle"]["earns_its_place"] is False
+    assert "## Robustness" not in report  # ``ablate/none`` has the suite's tag form, but is no perturbed robot
 
 
 def test_the_paper_as_printed_runs_end_to_end(tmp_path: Path) -> None:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sgf_experiments.ablation import ablation_table, render_ablation
+from sgf_experiments.ablation import ablation_name, ablation_table, render_ablation
 from sgf_experiments.paper import PAPER_TABLE2, PAPER_TABLE3, PAPER_TABLE4, SEQUENCE_ORDER
 from sgf_experiments.robustness import plot_robustness, render_robustness, robustness_table
 from sgf_pipeline.errors import DataError
@@ -458,7 +458,8 @@ def write_report(root: str | Path, out_dir: str | Path | None = None) -> dict[st
     out = Path(out_dir) if out_dir is not None else Path(root)
     out.mkdir(parents=True, exist_ok=True)
     tables = build_tables(runs)
-    robustness = robustness_table(runs)
+    # a leave-one-out tag (``ablate/none``) has the suite's form: its runs are no perturbed robot
+    robustness = robustness_table([r for r in runs if ablation_name(r.config.get("run", {}).get("tag")) is None])
     if robustness["rows"]:
         tables["robustness"] = robustness
         if plot_robustness(out / "robustness.png", robustness):
