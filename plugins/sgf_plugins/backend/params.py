@@ -1,4 +1,4 @@
-"""Parameters of the back-ends: ``backend.<key>``."""
+"""Parameters of the back-ends, flat keys grouped by concern: ``backend.<key>``."""
 
 from __future__ import annotations
 
@@ -21,7 +21,16 @@ class BackendParams(StageParams):
 class GraphParams(BackendParams):
     """The pose graph of eq. 11: pose type, noise models, robust kernel, prior map."""
 
+    # --- the graph's poses: their type and spacing
     pose: Literal["pose2", "pose3"] = Field("pose2", description="planar poses, or 3-D with IMU roll/pitch factors")
+    node_distance: float = Field(
+        1.0,
+        ge=0.0,
+        description="travel (m) between pose nodes; frames between ride on the last node by odometry "
+        "(0 = a node per processed frame; the newest frame of a loop gets one)",
+    )
+
+    # --- noise: the odometry factors
     odometry_sigma_xy: float = Field(0.05, gt=0.0, description="odometry translation sigma over one metre (m/sqrt(m))")
     odometry_sigma_yaw_deg: float = Field(
         0.5, gt=0.0, description="odometry heading sigma over one metre (deg/sqrt(m))"
@@ -32,7 +41,11 @@ class GraphParams(BackendParams):
     )
     odometry_floor_xy: float = Field(0.005, gt=0.0, description="odometry translation sigma of a standstill (m)")
     odometry_floor_yaw_deg: float = Field(0.05, gt=0.0, description="odometry heading sigma of a standstill (deg)")
+
+    # --- noise: the IMU attitude factors (pose3)
     imu_sigma_roll_pitch_deg: float = Field(0.5, gt=0.0, description="pose3: sigma of the IMU attitude factor (deg)")
+
+    # --- noise: the loop factors and their robust kernel
     loop_sigma_z: float = Field(0.05, gt=0.0, description="pose3: loop factor height sigma (m)")
     loop_sigma_roll_pitch_deg: float = Field(1.0, gt=0.0, description="pose3: loop factor roll/pitch sigma (deg)")
     loop_kernel: Literal["cauchy", "huber", "none"] = Field(
@@ -44,17 +57,17 @@ class GraphParams(BackendParams):
         description="kernel width in sigmas of the whitened loop error (a loop is closed from dead "
         "reckoning while its error is below about twice this many sigmas of the odometry chain)",
     )
+
+    # --- noise: the prior on the first pose
     prior_sigma_xy: float = Field(1e-3, gt=0.0, description="prior on the first pose (m), fixes the map frame")
     prior_sigma_yaw_deg: float = Field(0.01, gt=0.0, description="prior on the first pose (deg)")
-    node_distance: float = Field(
-        1.0,
-        ge=0.0,
-        description="travel (m) between pose nodes; frames between ride on the last node by odometry "
-        "(0 = a node per processed frame; the newest frame of a loop gets one)",
-    )
+
+    # --- the prior map: an earlier run's SGF map to localize on
     prior_map: str | None = Field(None, description="SGF map of an earlier run to localize on (inter-session factors)")
     map_sigma_xy: float = Field(0.05, gt=0.0, description="prior sigma of a prior map's frame poses (m)")
     map_sigma_yaw_deg: float = Field(0.5, gt=0.0, description="prior sigma of a prior map's frame poses (deg)")
+
+    # --- the odometry's heading bias, estimated from the loops
     odometry_yaw_bias: bool = Field(
         True,
         description="estimate the odometry's heading bias per metre travelled from the loops, and take it off the "
@@ -74,6 +87,8 @@ class GraphParams(BackendParams):
         description="at the end of the run, take the final heading bias off the whole drive from its first frame "
         "(online it corrects only the drive after the loops that measured it) and solve the graph again in batch",
     )
+
+    # --- output: the final pose graph's file
     graph: Literal["none", "g2o"] = Field(
         "none",
         description="write the final pose graph the back-end optimised: g2o (pose_graph.g2o, VERTEX_SE2 and EDGE_SE2 "
@@ -116,6 +131,7 @@ class GraphParams(BackendParams):
 class LmParams(GraphParams):
     """Batch Levenberg-Marquardt over the whole graph."""
 
+    # --- solver: batch Levenberg-Marquardt
     optimize_every_loop: bool = Field(True, description="re-optimize the whole graph on every frame that adds loops")
     max_iterations: int = Field(100, ge=1, description="LM iterations per optimisation")
     relative_error_tol: float = Field(1e-6, gt=0.0, description="LM stops when the error improves by less (relative)")
@@ -124,6 +140,7 @@ class LmParams(GraphParams):
 class Isam2Params(GraphParams):
     """Incremental smoothing and mapping (iSAM2), for online use."""
 
+    # --- solver: iSAM2's factorization and relinearization
     factorization: Literal["qr", "cholesky"] = Field(
         "qr", description="QR: robust on long loop-free drives, where Cholesky finds the system indeterminate"
     )
