@@ -23,7 +23,9 @@ import time
 
 import numpy as np
 from omegaconf import OmegaConf
-from sgf_plugins.backend.stages import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
+from sgf_plugins.backend.isam2 import Isam2Backend
+from sgf_plugins.backend.lm import GtsamLmBackend
+from sgf_plugins.backend.params import Isam2Params, LmParams
 
 from sgf_pipeline.calibration import Calibration, Intrinsics
 from sgf_pipeline.context import RunContext

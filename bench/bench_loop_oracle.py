@@ -22,7 +22,8 @@ import time
 from pathlib import Path
 
 import numpy as np
-from sgf_plugins.backend.stages import Isam2Backend, Isam2Params
+from sgf_plugins.backend.isam2 import Isam2Backend
+from sgf_plugins.backend.params import Isam2Params
 from sgf_plugins.world.world import CampusWorld, build_world
 
 from sgf_pipeline.context import RunContext

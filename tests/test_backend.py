@@ -9,14 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 from backend_world import CALIBRATION, OracleAssociation, ate, make_world, run_stages
-from sgf_plugins.backend.stages import (
-    BackendParams,
-    GtsamLmBackend,
-    Isam2Backend,
-    Isam2Params,
-    LmParams,
-    OdometryBackend,
-)
+from sgf_plugins.backend.isam2 import Isam2Backend
+from sgf_plugins.backend.lm import GtsamLmBackend
+from sgf_plugins.backend.odometry_only import OdometryBackend
+from sgf_plugins.backend.params import BackendParams, Isam2Params, LmParams
 from sgf_plugins.loop.fitting import position_only_loop
 from sgf_plugins.loop.params import ConsensusParams, GateParams, IcpLoopParams
 from sgf_plugins.loop.stage import IcpLoopClosing

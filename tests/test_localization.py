@@ -8,7 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from backend_world import Marking, OracleAssociation, ate, make_world, rmse, run_stages
-from sgf_plugins.backend.stages import GtsamLmBackend, Isam2Backend, Isam2Params, LmParams
+from sgf_plugins.backend.isam2 import Isam2Backend
+from sgf_plugins.backend.lm import GtsamLmBackend
+from sgf_plugins.backend.params import Isam2Params, LmParams
 from sgf_plugins.loop.stage import IcpLoopClosing, IcpLoopParams
 
 from sgf_pipeline.sgf_map import load_map

@@ -21,7 +21,8 @@ from backend_world import (
     make_world,
     run_stages,
 )
-from sgf_plugins.backend.stages import GtsamLmBackend, LmParams
+from sgf_plugins.backend.lm import GtsamLmBackend
+from sgf_plugins.backend.params import LmParams
 from sgf_plugins.loop.fitting import position_only_loop
 from sgf_plugins.loop.icp import Icp2d, IcpResult, IcpSettings
 from sgf_plugins.loop.params import (

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from sgf_plugins.backend.stages import Isam2Params, LmParams
+from sgf_plugins.backend.params import Isam2Params, LmParams
 from sgf_plugins.shared.heading_bias import MAX_YAW_BIAS, HeadingBias, with_heading_bias
 
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, rotation_rpy, rpy_from_rotation, xy_yaw

@@ -7,7 +7,8 @@ import math
 
 import numpy as np
 import pytest
-from sgf_plugins.backend.stages import GtsamLmBackend, LmParams
+from sgf_plugins.backend.lm import GtsamLmBackend
+from sgf_plugins.backend.params import LmParams
 from sgf_plugins.odometry.scale import BevMotionParams, BevMotionScale, NoOdometryScale
 from sgf_plugins.shared.heading_bias import ScaledOdometry
 from sgf_plugins.world import build_world
