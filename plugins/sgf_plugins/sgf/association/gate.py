@@ -76,7 +76,6 @@ class SpatialGate:
         np.minimum.at(ratio, groups, distance / radius)
         inside = np.bincount(groups, weights=member_inside, minlength=count) > 0
         repeats = np.bincount(groups, weights=repeated, minlength=count) > 0
-        members: list[np.ndarray | None] = [None] * count
         repeating: list[np.ndarray | None] = [None] * count
         if (repeats & inside).any():
             # members sit in the index in the order they joined their group: rank within the group = member index
@@ -90,7 +89,7 @@ class SpatialGate:
 
             repeating = [r if repeats[k] else None for k, r in enumerate(per_group(repeated))]
         return [
-            GatedGroup(group, float(nearest[k]), bool(repeats[k]), float(min(ratio[k], 1.0)), members[k], repeating[k])
+            GatedGroup(group, float(nearest[k]), bool(repeats[k]), float(min(ratio[k], 1.0)), repeating[k])
             for k, group in enumerate(self.state.groups)
             if inside[k]
         ]

@@ -76,7 +76,6 @@ class GatedGroup:
     nearest: float
     repeated: bool
     ratio: float = 0.0
-    members: np.ndarray | None = None  # indices of the members inside the gate (None: every member)
     repeating: np.ndarray | None = None  # indices of the members seen moments ago elsewhere (when ``repeated``)
 
 

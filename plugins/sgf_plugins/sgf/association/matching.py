@@ -41,32 +41,29 @@ class Eq10Matching:
         """Whether a match of a shaped query into this gated group would be symmetric (its closest member flat)."""
         if not gated.group.symmetric:
             return False
-        m, _ = self.nearest_member(query, gated.group, gated.members)
+        m, _ = self.nearest_member(query, gated.group)
         return (
             symmetry_spread(gated.group.members[m].matrix, self.params.match.columns)
             < self.params.match.symmetry_threshold
         )
 
     def closest_member(
-        self, query: SgfDescriptor, group: SgfGroup, estimate: PoseEstimate | None, members: np.ndarray | None = None
+        self, query: SgfDescriptor, group: SgfGroup, estimate: PoseEstimate | None
     ) -> tuple[int, SgfDescriptor, int]:
-        """The group member (of ``members``, when given) closest to the query by eq. 10, its index, and the shift."""
-        m, profile = self.nearest_member(query, group, members)
+        """The group member closest to the query by eq. 10, its index, and the shift."""
+        m, profile = self.nearest_member(query, group)
         matched = group.members[m]
         prior = None if group.anchors[m] is not None else self.prior_shift(query, matched, estimate)
         return m, matched, best_shift(profile, prior, self.params.match.yaw_tolerance)
 
-    def nearest_member(
-        self, query: SgfDescriptor, group: SgfGroup, members: np.ndarray | None = None
-    ) -> tuple[int, np.ndarray]:
-        """The index of the group member (of ``members``, when given) closest by eq. 10, and its shift profile."""
+    def nearest_member(self, query: SgfDescriptor, group: SgfGroup) -> tuple[int, np.ndarray]:
+        """The index of the group member closest by eq. 10, and its shift profile."""
         p = self.params
-        candidates = np.arange(len(group.members)) if members is None else members
-        profiles = shifted_distances(query.matrix, group.matrices[candidates], p.match.columns, p.match.min_overlap)
+        profiles = shifted_distances(query.matrix, group.matrices, p.match.columns, p.match.min_overlap)
         k = int(np.argmin(profiles.min(axis=1)))
-        return int(candidates[k]), profiles[k]
+        return k, profiles[k]
 
     def look_alike(self, query: SgfDescriptor, gated: GatedGroup, estimate: PoseEstimate | None) -> LookAlike:
         """A tied group's closest member, as an alternative match of the query."""
-        _, matched, shift = self.closest_member(query, gated.group, estimate, gated.members)
+        _, matched, shift = self.closest_member(query, gated.group, estimate)
         return LookAlike(gated.group.group_id, matched, shift, shift_to_yaw(shift, query.matrix.shape[1]))

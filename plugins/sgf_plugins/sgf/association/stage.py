@@ -44,15 +44,13 @@ class Choice:
     """What the ranking of the gated groups decided for one query.
 
     ``best``: the group to join and its eq. 10 distance (None: open a group, reporting
-    ``opened_distance``); ``tied``: the look-alike groups level with it; ``members``: the best
-    group's members inside the gate (None: every member); ``copy_nearby``: a neighbouring copy of a
+    ``opened_distance``); ``tied``: the look-alike groups level with it; ``copy_nearby``: a neighbouring copy of a
     repeated pattern was among the candidates.
     """
 
     best: tuple[SgfGroup, float] | None
     opened_distance: float
     tied: list[GatedGroup]
-    members: np.ndarray | None
     copy_nearby: bool
 
 
@@ -213,7 +211,6 @@ class OnlineSgfGroups(Stage):
         best: tuple[SgfGroup, float] | None = None
         opened_distance = 1.0  # reported when the query opens a group and no group was kept
         tied: list[GatedGroup] = []
-        gated_members: np.ndarray | None = None
         copy_nearby = False
         if candidates:
             stack = np.stack([c.group.descriptor for c in candidates])
@@ -249,8 +246,7 @@ class OnlineSgfGroups(Stage):
                 # by eq. 10: the query joins the nearest, the match is ambiguous, and the others are
                 # handed on as alternatives (a loop stage may tell them apart by their neighbours).
                 tied = [candidates[t] for t in ties if t != i]
-                gated_members = candidates[i].members
-        return Choice(best, opened_distance, tied, gated_members, copy_nearby)
+        return Choice(best, opened_distance, tied, copy_nearby)
 
     def _open(self, query: SgfDescriptor, choice: Choice) -> GroupAssignment:
         """Open a group for the query."""
@@ -283,7 +279,7 @@ class OnlineSgfGroups(Stage):
         p, state = self.params, self.state
         n_s = query.matrix.shape[1]
         group.aliased = group.aliased or choice.copy_nearby
-        m, matched, shift = self.matching.closest_member(query, group, estimate, choice.members)
+        m, matched, shift = self.matching.closest_member(query, group, estimate)
         # An aliased look-alike (a repeated pattern) could be the true one: then nothing resolves the tie.
         alternatives = (
             ()
