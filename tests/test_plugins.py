@@ -335,6 +335,7 @@ def test_sigterm_during_a_run_leaves_a_record_and_no_half_file(toy_plugin_site: 
     import time
 
     run_dir = tmp_path / "run"
+    mark = tmp_path / "frames_flow"
     env = dict(os.environ, PYTHONPATH=str(toy_plugin_site))
     proc = subprocess.Popen(
         [
@@ -342,6 +343,7 @@ def test_sigterm_during_a_run_leaves_a_record_and_no_half_file(toy_plugin_site: 
             "pipeline=[dataset,enhance]",
             "dataset=toy_circle",
             "dataset.frames=1000000",
+            f"+dataset.mark_file={mark}",
             "enhance=clahe",
             "run.progress=false",
             f"hydra.run.dir={run_dir}",
@@ -351,11 +353,15 @@ def test_sigterm_during_a_run_leaves_a_record_and_no_half_file(toy_plugin_site: 
         stderr=subprocess.PIPE,
         text=True,
     )
-    deadline = time.time() + 60
-    while not (run_dir / "run.log").exists() or "pipeline:" not in (run_dir / "run.log").read_text():
+    # Frame 20 is read only after frames went through the stages: the reading thread holds a few
+    # frames ahead (READ_DEPTH), never twenty.
+    from sgf_pipeline.reading import READ_DEPTH
+
+    assert READ_DEPTH + 2 < 20
+    deadline = time.time() + 120
+    while not mark.exists():
         assert time.time() < deadline and proc.poll() is None, proc.communicate()
         time.sleep(0.2)
-    time.sleep(1.0)
     proc.send_signal(signal.SIGTERM)
     proc.communicate(timeout=60)
     assert proc.returncode != 0

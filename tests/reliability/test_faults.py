@@ -32,6 +32,7 @@ from sgf_pipeline import io as sgf_io
 from sgf_pipeline import outputs as sgf_outputs
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.geometry import pose_from_xy_yaw
+from sgf_pipeline.reading import READ_DEPTH
 from sgf_pipeline.runner import LOCK_FILE
 from sgf_pipeline.stage import Settlement
 from sgf_pipeline.trajectory import read_tum
@@ -345,12 +346,13 @@ def _default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def _wait_for_start(run_dir: Path, proc: subprocess.Popen[str]) -> None:
-    deadline = time.time() + 60
-    while not (run_dir / "run.log").exists() or "pipeline:" not in (run_dir / "run.log").read_text():
+def _wait_for_frames(run_dir: Path, proc: subprocess.Popen[str]) -> None:
+    """Wait until the toy dataset marks its frame 20 read: frames went through the stages by then."""
+    assert READ_DEPTH + 2 < 20  # the reading thread holds only a few frames ahead
+    deadline = time.time() + 120
+    while not (run_dir.parent / f"{run_dir.name}.flowing").exists():
         assert time.time() < deadline and proc.poll() is None, proc.communicate()
         time.sleep(0.1)
-    time.sleep(0.5)
 
 
 def test_sigint_and_sigterm_leave_a_record_and_exit_130_and_143(toy_plugin_site: Path, tmp_path: Path):
@@ -359,6 +361,7 @@ def test_sigint_and_sigterm_leave_a_record_and_exit_130_and_143(toy_plugin_site:
     for sig in (signal.SIGINT, signal.SIGTERM):
         run_dir = tmp_path / sig.name
         args = ["pipeline=[dataset,enhance]", "dataset=toy_circle", "dataset.frames=10000000", "enhance=clahe"]
+        args.append(f"+dataset.mark_file={tmp_path / f'{sig.name}.flowing'}")
         procs[sig] = (
             run_dir,
             subprocess.Popen(
@@ -372,7 +375,7 @@ def test_sigint_and_sigterm_leave_a_record_and_exit_130_and_143(toy_plugin_site:
             ),
         )
     for run_dir, proc in procs.values():
-        _wait_for_start(run_dir, proc)
+        _wait_for_frames(run_dir, proc)
     # A third run into a directory in use is refused while the first one is running.
     run_dir, proc = procs[signal.SIGINT]
     third = run_cli(

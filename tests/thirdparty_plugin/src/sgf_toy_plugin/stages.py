@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 from pydantic import Field
@@ -37,6 +38,7 @@ class CircleParams(StageParams):
     frames: int = Field(40, ge=3)
     radius: float = Field(5.0, gt=0.0)
     seed: int = 0
+    mark_file: str = Field("", description="a file created once frame 20 is read: a test's sign that frames flow")
 
 
 class ToyCircle(Dataset):
@@ -61,6 +63,8 @@ class ToyCircle(Dataset):
             x, y = p.radius * math.sin(angle), p.radius * (1.0 - math.cos(angle))
             gt = pose_from_xy_yaw(x, y, angle)
             odo = pose_from_xy_yaw(x * 1.02, y * 1.02, angle * 1.01)
+            if p.mark_file and i == 20:
+                Path(p.mark_file).touch()
             rng = np.random.default_rng(p.seed * 100003 + i)
             yield Frame(
                 i,
