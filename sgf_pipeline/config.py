@@ -8,7 +8,9 @@ from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic.config import JsonDict
 from pydantic.fields import FieldInfo
+from pydantic_core import PydanticUndefined, to_jsonable_python
 
 from sgf_pipeline.errors import ConfigError
 
@@ -23,6 +25,34 @@ PAPER_STAGES = ("dataset", "enhance", "ipm", "saliency", "detector", "descriptor
 
 #: Stage kinds the shipped default config runs besides the paper's (extensions, docs/method.md).
 EXTENSION_STAGES = ("odometry_scale",)
+
+
+#: A parameter's ``json_schema_extra`` key: what its config node holds in place of the default, an
+#: interpolation that wires a run-level key into the stage (``${oc.select:map.prior,null}``).
+CONFIG_VALUE = "config_value"
+
+#: The ``json_schema_extra`` of a stage parameter that takes the run's ``map.prior`` (a prior SGF map).
+FROM_MAP_PRIOR: JsonDict = {CONFIG_VALUE: "${oc.select:map.prior,null}"}
+
+
+def defaults_node(model: type[BaseModel], defaults: BaseModel | None = None) -> dict[str, Any]:
+    """A model's defaults as a plain config node, the one place a parameter's default is written.
+
+    Parameter groups become nested mappings, a parameter without a default is Hydra's ``???``
+    (it must be set), and a parameter that declares a :data:`CONFIG_VALUE` holds that instead.
+    """
+    node: dict[str, Any] = {}
+    for key, info in model.model_fields.items():
+        extra = info.json_schema_extra
+        if isinstance(extra, dict) and CONFIG_VALUE in extra:
+            node[key] = extra[CONFIG_VALUE]
+            continue
+        value = getattr(defaults, key) if defaults is not None else info.get_default(call_default_factory=True)
+        if isinstance(value, BaseModel):
+            node[key] = defaults_node(type(value), value)
+        else:
+            node[key] = "???" if value is PydanticUndefined else to_jsonable_python(value)
+    return node
 
 
 def config_dir() -> Path:

@@ -37,9 +37,10 @@ class PipelineHooks:
     def sgf_observer_options(self) -> dict[str, type[BaseModel]] | None:
         """The top-level config nodes an observer plugin reads, each with its pydantic model (``extra="forbid"``).
 
-        Such a node sits beside the stage nodes (``sgf-run viz=rerun`` selects ``conf/viz/rerun.yaml``);
-        the runner validates it while the pipeline is built and hands it to every hook as
-        ``run.observer_options[name]``, which has no entry when the config has no such node.
+        Such a node sits beside the stage nodes; a model with a default ``name`` is selectable by it
+        (``sgf-run viz=rerun``, at its defaults). The runner validates the node while the pipeline is
+        built and hands it to every hook as ``run.observer_options[name]``, which has no entry when
+        the config has no such node.
         """
 
     @hookspec

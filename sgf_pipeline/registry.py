@@ -12,7 +12,7 @@ import pluggy
 from pydantic import BaseModel
 
 from sgf_pipeline import hookspecs, observers
-from sgf_pipeline.config import TOP_LEVEL_KEYS
+from sgf_pipeline.config import TOP_LEVEL_KEYS, PluginOptions, RunOptions, defaults_node
 from sgf_pipeline.errors import PluginError
 from sgf_pipeline.variants import BLOCK_ENV, NAME, StageRegistry
 
@@ -137,6 +137,40 @@ def _observer_options(manager: pluggy.PluginManager, registry: StageRegistry) ->
                 raise PluginError(f"{where}: the options of {name!r} must be a pydantic model refusing unknown keys")
             owners[name] = impl.plugin_name
             nodes[name] = model
+    return nodes
+
+
+#: The root config of the runner's own options at their defaults (``conf/config.yaml`` lists it first).
+RUNNER_CONFIG = "runner"
+
+
+def code_config_nodes() -> dict[str, dict[str, Any]]:
+    """The config nodes that the code's defaults make, by config path (what ``conf/`` need not repeat).
+
+    ``<kind>/<variant>`` for each stage variant (its ``name`` and its Params defaults), ``<node>/<name>``
+    for each observer node whose options model has a default ``name``, and :data:`RUNNER_CONFIG` for
+    the runner's ``run`` and ``plugins`` nodes. Plugins load as for a run (the environment's allow and
+    block lists); a plugin that fails to load contributes nothing here, and the run reports it.
+    """
+    try:
+        loaded = [load_plugins()]
+    except PluginError:
+        loaded = []
+        for ep in {e.name for e in metadata.entry_points(group=ENTRY_POINT_GROUP)}:
+            try:
+                loaded.append(load_plugins(allow=[ep]))
+            except PluginError:
+                continue
+    nodes: dict[str, dict[str, Any]] = {
+        RUNNER_CONFIG: {"run": defaults_node(RunOptions), "plugins": defaults_node(PluginOptions)}
+    }
+    for plugins in loaded:
+        for variant in plugins.registry:
+            nodes[f"{variant.kind}/{variant.name}"] = {"name": variant.name, **defaults_node(variant.params_model)}
+        for node, model in plugins.observer_options.items():
+            name = model.model_fields["name"].default if "name" in model.model_fields else None
+            if isinstance(name, str):
+                nodes[f"{node}/{name}"] = defaults_node(model)
     return nodes
 
 

@@ -21,10 +21,15 @@ def run_cli(
     return subprocess.run([str(exe), *args], capture_output=True, text=True, env=full_env, cwd=cwd, timeout=timeout)
 
 
-def conf_node(relative: str) -> dict:
-    """A config group file of conf/ as plain data, interpolations resolved (as Hydra would, alone)."""
+def conf_node(option: str) -> dict:
+    """The node Hydra composes for ``<group>/<option>`` (``detector/hu_window``) in the default run, as plain data."""
+    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    node = OmegaConf.to_container(OmegaConf.load(ROOT / "conf" / relative), resolve=True)
+    from sgf_pipeline.config import config_dir
+
+    group, name = option.removesuffix(".yaml").split("/")
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        node = OmegaConf.to_container(compose("config", overrides=[f"{group}={name}"])[group], resolve=True)
     assert isinstance(node, dict)
     return node

@@ -16,7 +16,6 @@ from sgf_plugins.backend.params import BackendParams, Isam2Params, LmParams
 from sgf_plugins.loop.fitting import position_only_loop
 from sgf_plugins.loop.params import ConsensusParams, GateParams, IcpLoopParams
 from sgf_plugins.loop.stage import IcpLoopClosing
-from sgf_testing import conf_node
 
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, rpy_from_rotation, wrap_angle, xy_yaw
@@ -221,22 +220,6 @@ def test_finalize_writes_the_trajectory_metrics_and_a_loadable_map(tmp_path: Pat
     for view in sgf_map.views:
         np.testing.assert_allclose(view.pose, by_frame[view.frame_index], atol=1e-9)
         np.testing.assert_array_equal(view.ground_truth, world.gt[view.frame_index])
-
-
-@pytest.mark.parametrize("variant", ["gtsam_lm", "isam2", "none"])
-def test_config_files_hold_the_defaults(variant: str) -> None:
-    raw = conf_node(f"backend/{variant}.yaml")
-    assert raw.pop("name") == variant
-    model = {"gtsam_lm": LmParams, "isam2": Isam2Params, "none": BackendParams}[variant]
-    assert set(raw) == set(model.model_fields)
-    assert model.model_validate(raw) == model()
-
-
-def test_loop_config_file_holds_the_defaults() -> None:
-    raw = conf_node("loop/icp.yaml")
-    assert raw.pop("name") == "icp"
-    assert set(raw) == set(IcpLoopParams.model_fields)
-    assert IcpLoopParams.model_validate(raw) == IcpLoopParams()
 
 
 def test_isam2_survives_a_long_straight_drive_and_anchors_in_a_map_at_its_end(tmp_path: Path) -> None:

@@ -140,19 +140,6 @@ def composed_dataset(name: str) -> dict[str, object]:
     return {str(k): v for k, v in node.items()}
 
 
-@pytest.mark.parametrize("name", CAMPUS_PRESETS)
-def test_a_campus_preset_is_the_shared_base_and_what_differs(plugins, name: str):
-    node = composed_dataset(name)
-    params = plugins.registry.get("dataset", name).params_model()
-    assert node == {"name": name, **params.model_dump(mode="json")}  # the world's preset, key by key
-    assert list(node) == ["name", *type(params).model_fields]  # in the order a run's config.yaml lists them
-    own = OmegaConf.to_container(OmegaConf.load(CONF / "dataset" / f"{name}.yaml"))
-    base = OmegaConf.to_container(OmegaConf.load(CONF / "dataset" / "campus" / "base.yaml"))
-    assert isinstance(own, dict) and isinstance(base, dict)
-    assert own.pop("defaults") == ["campus/base@_here_", "_self_"] and own.pop("name") == name
-    assert {key: value for key, value in own.items() if base.get(key) == value} == {}, "a preset holds what differs"
-
-
 def test_the_campus_presets_differ_in_their_route_and_the_night_alone():
     nodes = {name: composed_dataset(name) for name in CAMPUS_PRESETS}
     delivery = nodes["campus_delivery"]

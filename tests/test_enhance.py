@@ -7,10 +7,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import yaml
 from ipm_scene import GroundScene, render, scene_calibration
 from pydantic import ValidationError
 from sgf_plugins.ipm.enhance import ClaheEnhancement, ClaheParams, NoEnhancement, as_rgb
+from sgf_testing import conf_node
 
 from sgf_pipeline import DataError, StageParams, load_plugins
 from sgf_pipeline.calibration import Calibration, Intrinsics
@@ -107,9 +107,9 @@ def test_bad_input_and_parameters() -> None:
 def test_registered_and_configured() -> None:
     registry = load_plugins(allow=["enhance"]).registry
     assert {v.name for v in registry.variants("enhance")} == {"none", "clahe"}
-    node = yaml.safe_load((ROOT / "conf" / "enhance" / "clahe.yaml").read_text())
+    node = conf_node("enhance/auto")  # the default: CLAHE on dark frames only
     assert node.pop("name") == "clahe"
-    assert node == ClaheParams().model_dump()
+    assert node == ClaheParams(max_brightness=0.3).model_dump()
 
 
 def test_clahe_max_brightness_enhances_night_frames_only(night) -> None:

@@ -12,7 +12,6 @@ from ipm_scene import GroundScene, render, scene_calibration, truth_mask
 from pydantic import ValidationError
 from sgf_plugins.ipm import (
     HindsightMotionCompensatedIPM,
-    HindsightMotionCompensatedIpmParams,
     InversePerspectiveMapping,
     IpmParams,
     MotionCompensatedIPM,
@@ -20,6 +19,7 @@ from sgf_plugins.ipm import (
     PlaneMotionCompensatedIPM,
     PlaneMotionCompensatedIpmParams,
 )
+from sgf_testing import conf_node
 
 from sgf_pipeline import ConfigError, DataError, Dataset, Pipeline, RunContext, hookimpl, load_plugins
 from sgf_pipeline.calibration import Calibration, Intrinsics
@@ -53,27 +53,10 @@ def test_both_variants_are_registered_with_their_parameters() -> None:
     assert registry.get("ipm", "plain").signature.output_types == (Bev,)
 
 
-@pytest.mark.parametrize(
-    "name,params",
-    [
-        ("plain", IpmParams),
-        ("mc", MotionCompensatedIpmParams),
-        ("mc_plane", PlaneMotionCompensatedIpmParams),
-        ("mc_hindsight", HindsightMotionCompensatedIpmParams),
-    ],
-)
-def test_configs_list_every_parameter_with_its_default(name: str, params) -> None:
-    node = yaml.safe_load((ROOT / "conf" / "ipm" / f"{name}.yaml").read_text())
-    assert node.pop("name") == name
-    defaults = params().model_dump()
-    assert node == defaults
-    assert params.model_validate(node) == params()
-
-
 def test_mc_ahead_config_is_mc_with_its_extensions() -> None:
     from sgf_plugins.ipm.stages import AHEAD_MC
 
-    node = yaml.safe_load((ROOT / "conf" / "ipm" / "mc_ahead.yaml").read_text())
+    node = conf_node("ipm/mc_ahead")
     assert node.pop("name") == "mc"
     assert node == {**MotionCompensatedIpmParams().model_dump(), **AHEAD_MC}
     assert AHEAD_MC == {"reference_fit": "line", "lookahead": 2.0, "attitude_noise": 0.005}

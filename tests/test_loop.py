@@ -1159,14 +1159,6 @@ def _leaves(node: object, prefix: str = "") -> dict[str, object]:
     return {prefix[:-1]: node}
 
 
-def test_the_config_file_holds_every_nested_key_at_its_default() -> None:
-    from sgf_testing import conf_node
-
-    raw = conf_node("loop/icp.yaml")
-    assert raw.pop("name") == "icp"
-    assert _leaves(raw) == _leaves(IcpLoopParams().model_dump())
-
-
 @pytest.mark.parametrize(
     ("values", "expected"),
     [

@@ -10,6 +10,7 @@ import re
 from pathlib import Path
 
 import pytest
+import yaml
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 from sgf_testing import ROOT, run_cli
 
@@ -302,6 +303,13 @@ def test_third_party_plugin_package_is_listed_and_selected_by_config(toy_plugin_
     effective = (run_dir / "config.yaml").read_text()
     assert "gamma: 0.25" in effective
     assert "ATE odometry (m)            0.10" in result.stdout
+    # The plugin ships no YAML for its variants (their defaults come from their Params), and one
+    # preset in its config package: enhance=gamma_dark is the gamma variant at 0.5.
+    composed = run_cli("sgf-run", "--cfg", "job", "dataset=toy_circle", "enhance=gamma_dark", env=env)
+    assert composed.returncode == 0, composed.stderr
+    node = yaml.safe_load(composed.stdout)
+    assert node["enhance"] == {"name": "gamma", "gamma": 0.5}
+    assert node["dataset"] == {"name": "toy_circle", "frames": 40, "radius": 5.0, "seed": 0, "mark_file": ""}
 
     # Without the plugin on the path, the same config fails with Hydra's list of options.
     missing = run_cli("sgf-run", "pipeline=[dataset,enhance]", "dataset=toy_circle", f"hydra.run.dir={tmp_path / 'x'}")
@@ -343,7 +351,7 @@ def test_sigterm_during_a_run_leaves_a_record_and_no_half_file(toy_plugin_site: 
             "pipeline=[dataset,enhance]",
             "dataset=toy_circle",
             "dataset.frames=1000000",
-            f"+dataset.mark_file={mark}",
+            f"dataset.mark_file={mark}",
             "enhance=clahe",
             "run.progress=false",
             f"hydra.run.dir={run_dir}",

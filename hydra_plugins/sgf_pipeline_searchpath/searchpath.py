@@ -1,4 +1,6 @@
-"""Adds every ``sgf_pipeline.conf`` entry point (a package holding config groups) to sgf apps' search path.
+"""The sgf apps' search path: every ``sgf_pipeline.conf`` package, then the variants' code defaults.
+
+The code defaults come last (``sgf-defaults://``, variants.py), so a YAML preset of the same name wins.
 
 A third-party plugin that ships ``ipm/myipm.yaml`` in its package ``my_plugin.conf`` declares
 ``[project.entry-points."sgf_pipeline.conf"] my_plugin = "my_plugin.conf"``; then
@@ -34,3 +36,5 @@ class SgfPipelineSearchPathPlugin(SearchPathPlugin):
             return
         for ep in sorted(metadata.entry_points(group=CONF_GROUP), key=lambda e: e.name):
             search_path.append(provider=f"sgf-plugin:{ep.name}", path=f"pkg://{ep.value}")
+        # Last: the variants' code defaults, for every variant no YAML above names (variants.py).
+        search_path.append(provider="sgf-pipeline", path="sgf-defaults://")

@@ -110,7 +110,7 @@ def _presets(kind: str, entries: list[dict[str, Any]]) -> list[str]:
         node = yaml.safe_load(path.read_text())
         if path.stem in variants or not isinstance(node, dict):
             continue
-        variant = node.get("name")
+        variant = next((d for d in node.get("defaults", []) if isinstance(d, str) and d != "_self_"), None)
         lines.append(f"- `{kind}={path.stem}`: `{kind}={variant}` with the settings of `conf/{kind}/{path.name}`")
     return [*lines, ""] if lines else []
 
@@ -121,10 +121,9 @@ def render_markdown(entries: list[dict[str, Any]], loaded: LoadedPlugins, whole:
         "# Configuration reference",
         "",
         "Every key a run's configuration takes, with its type, default and meaning. A stage kind is a config",
-        "group: `sgf-run <kind>=<variant>` chooses a variant (`conf/<kind>/<variant>.yaml`) and",
-        "`sgf-run <kind>.<key>=<value>` sets one of its parameters; a parameter group's keys take dots",
-        "(`<kind>.<group>.<key>=<value>`). The defaults are the variants' own: the YAML files repeat them",
-        "(a test keeps the two equal).",
+        "group: `sgf-run <kind>=<variant>` chooses a variant and `sgf-run <kind>.<key>=<value>` sets one of",
+        "its parameters; a parameter group's keys take dots (`<kind>.<group>.<key>=<value>`). Each default is",
+        "written once, in the variant's Params; `conf/<kind>/` holds only presets, a variant with other settings.",
         "",
         f"This file is generated from the installed plugins: `{REGENERATE}`.",
         "",

@@ -361,7 +361,7 @@ def test_sigint_and_sigterm_leave_a_record_and_exit_130_and_143(toy_plugin_site:
     for sig in (signal.SIGINT, signal.SIGTERM):
         run_dir = tmp_path / sig.name
         args = ["pipeline=[dataset,enhance]", "dataset=toy_circle", "dataset.frames=10000000", "enhance=clahe"]
-        args.append(f"+dataset.mark_file={tmp_path / f'{sig.name}.flowing'}")
+        args.append(f"dataset.mark_file={tmp_path / f'{sig.name}.flowing'}")
         procs[sig] = (
             run_dir,
             subprocess.Popen(

@@ -3,7 +3,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from hydra import compose, initialize_config_dir
-from omegaconf import OmegaConf
 from sgf_plugins.world import PRESETS, WorldParams, build_world
 from sgf_plugins.world.dataset import CampusDataset
 
@@ -23,21 +22,6 @@ def test_the_presets_are_registered_dataset_variants():
         assert issubclass(variant.cls, CampusDataset) and variant.cls.output == "frame"
         assert issubclass(variant.params_model, WorldParams)
         assert variant.params_model().night is PRESETS[name].night
-
-
-@pytest.mark.parametrize("name", VARIANTS)
-def test_each_config_lists_every_parameter_with_its_default(name):
-    path = config_dir() / "dataset" / f"{name}.yaml"
-    text = path.read_text()
-    assert text.startswith("#")
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):  # the preset over campus/base.yaml
-        node = OmegaConf.to_container(compose("config", overrides=[f"dataset={name}"]).dataset)
-    assert isinstance(node, dict)
-    assert node.pop("name") == name
-    model = load_plugins().registry.get("dataset", name).params_model
-    assert set(node) == set(model.model_fields)
-    defaults = model().model_dump()
-    assert node == defaults
 
 
 def test_the_default_run_streams_the_campus_with_its_truth(tmp_path: Path):

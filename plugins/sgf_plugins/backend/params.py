@@ -8,6 +8,7 @@ from typing import Literal
 from pydantic import Field, model_validator
 
 from sgf_pipeline import StageParams
+from sgf_pipeline.config import FROM_MAP_PRIOR
 from sgf_plugins.backend.factors import NoiseSettings
 
 
@@ -63,7 +64,11 @@ class GraphParams(BackendParams):
     prior_sigma_yaw_deg: float = Field(0.01, gt=0.0, description="prior on the first pose (deg)")
 
     # --- the prior map: an earlier run's SGF map to localize on
-    prior_map: str | None = Field(None, description="SGF map of an earlier run to localize on (inter-session factors)")
+    prior_map: str | None = Field(
+        None,
+        description="SGF map of an earlier run to localize on (inter-session factors; set map.prior)",
+        json_schema_extra=FROM_MAP_PRIOR,
+    )
     map_sigma_xy: float = Field(0.05, gt=0.0, description="prior sigma of a prior map's frame poses (m)")
     map_sigma_yaw_deg: float = Field(0.5, gt=0.0, description="prior sigma of a prior map's frame poses (deg)")
 

@@ -107,7 +107,7 @@ class MotionCompensatedIpmParams(IpmParams):
         return self
 
 
-#: The extensions ``ipm=mc_ahead`` (conf/ipm/mc_ahead.yaml) turns on over the paper's MC-IPM (``ipm=mc``).
+#: The extensions the preset ``ipm=mc_ahead`` (conf/ipm/mc_ahead.yaml) turns on over the paper's MC-IPM (``ipm=mc``).
 AHEAD_MC: dict[str, Any] = {"reference_fit": "line", "lookahead": 2.0, "attitude_noise": 0.005}
 
 

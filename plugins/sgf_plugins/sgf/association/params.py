@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import Field
 
 from sgf_pipeline import StageParams
+from sgf_pipeline.config import FROM_MAP_PRIOR
 
 
 class MatchParams(StageParams):
@@ -129,5 +130,8 @@ class OnlineGroupsParams(StageParams):
     repeats: RepeatsParams = Field(default_factory=RepeatsParams, description="repeated patterns")
     end: EndParams = Field(default_factory=EndParams, description="the end of the run")
     prior_map: str | None = Field(
-        None, description="an SGF map (sgf_map.safetensors) whose groups seed the association: localization on it"
+        None,
+        description="an SGF map (sgf_map.safetensors) whose groups seed the association: localization on it "
+        "(set map.prior)",
+        json_schema_extra=FROM_MAP_PRIOR,
     )

@@ -33,7 +33,7 @@ def rerun_missing() -> str | None:
 
 
 class RerunOptions(BaseModel):
-    """Where the recording goes (config node ``viz``: ``conf/viz/rerun.yaml``)."""
+    """Where the recording goes (config node ``viz``: ``sgf-run viz=rerun``)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
