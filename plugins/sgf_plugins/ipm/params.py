@@ -10,17 +10,17 @@ from sgf_pipeline import StageParams
 from sgf_pipeline.types import BevGrid
 from sgf_plugins.ipm.reference import ReferenceCenter, ReferenceFit
 from sgf_plugins.shared.bev_homography import RollAxis
-from sgf_plugins.shared.bev_region import Region
+from sgf_plugins.shared.bev_region import BEV_GRID, Region
 
 
 class IpmParams(StageParams):
     """The metric BEV grid (the virtual camera of eq. 3-4) and how the image is resampled into it."""
 
-    resolution: float = Field(0.02, gt=0.0, description="metres per BEV pixel")
-    x_min: float = Field(0.5, description="near edge of the BEV, metres ahead of the base origin")
-    x_max: float = Field(5.62, description="far edge of the BEV, metres ahead of the base origin")
-    y_min: float = Field(-2.56, description="right edge of the BEV (metres, y is left)")
-    y_max: float = Field(2.56, description="left edge of the BEV (metres, y is left)")
+    resolution: float = Field(BEV_GRID.resolution, gt=0.0, description="metres per BEV pixel")
+    x_min: float = Field(BEV_GRID.x_min, description="near edge of the BEV, metres ahead of the base origin")
+    x_max: float = Field(BEV_GRID.x_max, description="far edge of the BEV, metres ahead of the base origin")
+    y_min: float = Field(BEV_GRID.y_min, description="right edge of the BEV (metres, y is left)")
+    y_max: float = Field(BEV_GRID.y_max, description="left edge of the BEV (metres, y is left)")
     interpolation: Literal["linear", "nearest", "cubic"] = Field(
         "linear", description="image resampling (cubic: cv2 backend only)"
     )

@@ -24,6 +24,10 @@ Region = Literal["auto", "fixed"]
 #: ``region: auto`` keeps the configured region when the camera sees at least this share of it.
 MIN_SEEN = 0.5
 
+#: The BEV grid of the IPM stages and of the synthetic world's visibility: 256 x 256 cells of 2 cm,
+#: from 0.5 m ahead of the base, centred on it.
+BEV_GRID = BevGrid(resolution=0.02, x_min=0.5, x_max=5.62, y_min=-2.56, y_max=2.56)
+
 
 # -- the ground the camera sees ----------------------------------------------------------------------
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pydantic import Field, model_validator
 
 from sgf_pipeline.stage import StageParams
+from sgf_plugins.shared.bev_region import BEV_GRID
 
 
 class WorldParams(StageParams):
@@ -78,11 +79,13 @@ class WorldParams(StageParams):
         description="how often a design is chosen, by name (relative; 0 = never; null = every design's own): "
         "e.g. {random_shape: 3} paints procedural custom markings, which no preset does, for saliency training worlds",
     )
-    bev_resolution: float = Field(0.02, gt=0.0, description="visibility grid (the IPM's BEV grid) resolution (m)")
-    bev_x_min: float = Field(0.5, description="visibility grid near edge (m ahead of the base)")
-    bev_x_max: float = Field(5.62, description="visibility grid far edge (m)")
-    bev_y_min: float = Field(-2.56, description="visibility grid right edge (m)")
-    bev_y_max: float = Field(2.56, description="visibility grid left edge (m)")
+    bev_resolution: float = Field(
+        BEV_GRID.resolution, gt=0.0, description="visibility grid (the IPM's BEV grid) resolution (m)"
+    )
+    bev_x_min: float = Field(BEV_GRID.x_min, description="visibility grid near edge (m ahead of the base)")
+    bev_x_max: float = Field(BEV_GRID.x_max, description="visibility grid far edge (m)")
+    bev_y_min: float = Field(BEV_GRID.y_min, description="visibility grid right edge (m)")
+    bev_y_max: float = Field(BEV_GRID.y_max, description="visibility grid left edge (m)")
     pass_merge_gap_s: float = Field(
         1.0, ge=0.0, description="join passes of one drive-by split by a gap this short (s)"
     )
