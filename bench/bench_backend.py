@@ -25,7 +25,7 @@ import numpy as np
 from omegaconf import OmegaConf
 from sgf_plugins.backend.isam2 import Isam2Backend
 from sgf_plugins.backend.lm import GtsamLmBackend
-from sgf_plugins.backend.params import Isam2Params, LmParams
+from sgf_plugins.backend.params import Isam2Params, Isam2Solver, LmParams, LmSolver
 
 from sgf_pipeline.calibration import Calibration, Intrinsics
 from sgf_pipeline.context import RunContext
@@ -157,7 +157,9 @@ def bench_growth(n: int, seed: int, window: int = 2000) -> dict[str, list[float]
     found = loops(gt, 0.3, 10.0, rng)
     default = Isam2Params().node_distance
     variants = {
-        "partial_check_off": Isam2Params(save_map=False, node_distance=0.0, partial_relinearization_check=False),
+        "partial_check_off": Isam2Params(
+            save_map=False, node_distance=0.0, solver=Isam2Solver(partial_relinearization_check=False)
+        ),
         "node_distance=0": Isam2Params(save_map=False, node_distance=0.0),
         f"node_distance={default:g}": Isam2Params(save_map=False),
     }
@@ -179,8 +181,8 @@ def bench_growth(n: int, seed: int, window: int = 2000) -> dict[str, list[float]
 def bench_lm(n: int, seed: int, every: float) -> dict[str, float]:
     """Batch LM over n Pose2 keyframes 0.3 m apart (2.7 km at n = 9,000) with loops every ``every`` m.
 
-    ``cold``: from dead reckoning (``optimize_every_loop: false``, the worst case at the end of a
-    run); ``warm``: the final optimisation of a default run (``optimize_every_loop: true``), which
+    ``cold``: from dead reckoning (``solver.every_loop: false``, the worst case at the end of a
+    run); ``warm``: the final optimisation of a default run (``solver.every_loop: true``), which
     starts from the estimate of the last loop frame.
     """
     import gtsam
@@ -191,7 +193,7 @@ def bench_lm(n: int, seed: int, every: float) -> dict[str, float]:
     found = loops(gt, 0.3, every, rng)
     result: dict[str, float] = {"poses": n, "length_km": n * 0.3 / 1000}
     for mode in ("cold", "warm"):
-        backend = GtsamLmBackend(LmParams(save_map=False, optimize_every_loop=mode == "warm"))
+        backend = GtsamLmBackend(LmParams(save_map=False, solver=LmSolver(every_loop=mode == "warm")))
         backend.begin(RunContext(run_dir=None))
         t0 = time.perf_counter()
         for frame in frames(gt, odo):

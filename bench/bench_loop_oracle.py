@@ -9,7 +9,7 @@ truth between the middles of the two passes (5 cm and 1 degree of noise in the c
 delivered when the second pass is driven. The pairs: every revisit pair, the pairs of asymmetric
 markings (symmetric ones never give a loop factor), or the instances a run closed (``--loops``,
 its ``loops.csv``, true loops only). Each with the heading-bias estimate on and off
-(``backend.odometry_yaw_bias``). The floor of Table 2's ATE for a route, and what each part of
+(``backend.heading_bias.enabled``). The floor of Table 2's ATE for a route, and what each part of
 the loop closing is worth on it.
 """
 
@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 from sgf_plugins.backend.isam2 import Isam2Backend
-from sgf_plugins.backend.params import Isam2Params
+from sgf_plugins.backend.params import HeadingBiasParams, Isam2Params
 from sgf_plugins.world.world import CampusWorld, build_world
 
 from sgf_pipeline.context import RunContext
@@ -58,7 +58,7 @@ def solve(world: CampusWorld, frames: list[int], pairs: list[RevisitPair], bias:
         ids = (p.instance_id, p.instance_id)
         loop = LoopConstraint(a, b, invert(gt[a]) @ gt[b], LOOP_COVARIANCE, 0, p.reverse, 0.01, 1.0, ids)
         loops.setdefault(b, []).append(loop)
-    backend = Isam2Backend(Isam2Params(save_map=False, odometry_yaw_bias=bias))
+    backend = Isam2Backend(Isam2Params(save_map=False, heading_bias=HeadingBiasParams(enabled=bias)))
     context = RunContext(run_dir=None, calibration=calibration)
     backend.begin(context)
     imu = world.sensors.imu_roll_pitch

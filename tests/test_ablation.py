@@ -80,7 +80,7 @@ def test_the_leave_one_out_experiment_sweeps_every_ablation_on_the_evaluation_se
         assert (
             paper.run.tag == "ablate/paper"
             and paper.loop.consensus.min_support == 0
-            and not paper.backend.odometry_yaw_bias
+            and not paper.backend.heading_bias.enabled
         )
 
 

@@ -131,7 +131,7 @@ def look_alike_loop(world, a: int, b: int) -> LoopConstraint:  # type: ignore[no
 @pytest.mark.parametrize(("kernel", "moves"), [("cauchy", False), ("huber", True), ("none", True)])
 def test_the_cauchy_kernel_ignores_a_false_loop(world, kernel: str, moves: bool) -> None:  # type: ignore[no-untyped-def]
     loops = true_loops(world)
-    clean, _ = feed(world, GtsamLmBackend(LmParams(save_map=False, loop_kernel=kernel)), loops)  # type: ignore[arg-type]
+    clean, _ = feed(world, GtsamLmBackend(LmParams(save_map=False, loop={"kernel": kernel})), loops)  # type: ignore[arg-type]
     marking_5 = [r.second for r in world.truth.revisits if r.instance_id == 5][-1]
     marking_1 = next(r.second for r in world.truth.revisits if r.instance_id == 1)
     a, b = (marking_1.start_frame + marking_1.end_frame) // 2, (marking_5.start_frame + marking_5.end_frame) // 2
@@ -139,7 +139,7 @@ def test_the_cauchy_kernel_ignores_a_false_loop(world, kernel: str, moves: bool)
     assert np.linalg.norm((invert(world.gt[a]) @ world.gt[b])[:2, 3] - false.relative[:2, 3]) > 30.0
     polluted = {k: list(v) for k, v in loops.items()}
     polluted.setdefault(b + 3, []).append(false)
-    dirty, _ = feed(world, GtsamLmBackend(LmParams(save_map=False, loop_kernel=kernel)), polluted)  # type: ignore[arg-type]
+    dirty, _ = feed(world, GtsamLmBackend(LmParams(save_map=False, loop={"kernel": kernel})), polluted)  # type: ignore[arg-type]
     moved = np.linalg.norm(dirty.trajectories["sgf"].positions - clean.trajectories["sgf"].positions, axis=1).max()
     if moves:
         assert moved > 2.0
@@ -150,7 +150,7 @@ def test_the_cauchy_kernel_ignores_a_false_loop(world, kernel: str, moves: bool)
 
 def test_the_gate_alone_keeps_look_alikes_out_of_the_graph() -> None:
     world = make_world(seed=1, odometry_noise=(0.01, math.radians(0.3), 0.01, math.radians(0.05)))
-    no_kernel = LmParams(save_map=False, loop_kernel="none")
+    no_kernel = LmParams(save_map=False, loop={"kernel": "none"})
     alone = IcpLoopParams(consensus=ConsensusParams(min_support=0))  # no neighbour consensus: the gate alone
     reference = run_stages(
         world, IcpLoopClosing(alone), GtsamLmBackend(no_kernel), OracleAssociation(world, by="instance")
@@ -263,7 +263,7 @@ def test_pose2_keeps_the_odometry_height_roll_and_pitch(world) -> None:  # type:
         frames.append(Frame(f.index, f.timestamp, f.image, f.odometry @ tilt, CALIBRATION, ground_truth=f.ground_truth))
     sloped = World(world.gt, np.stack([f.odometry for f in frames]), world.markings, frames, world.sgfs, world.truth)
     context, estimates = feed(
-        sloped, GtsamLmBackend(LmParams(save_map=False, odometry_yaw_bias_hindsight=False)), true_loops(world)
+        sloped, GtsamLmBackend(LmParams(save_map=False, heading_bias={"hindsight": False})), true_loops(world)
     )
     poses = context.trajectories["sgf"].poses
     np.testing.assert_allclose(poses[:, 2, 3], 0.02 * np.arange(len(frames)), atol=1e-9)
@@ -277,14 +277,14 @@ def test_isam2_defaults_keep_the_loops_correction(world) -> None:  # type: ignor
     """The partial relinearization check (on every update) ends where the full check does, near batch LM.
 
     Checking only every 10th update with the partial check loses part of a loop's correction (ATE +36 %
-    here, 0.41 -> 0.99 m on the default run), which is why the default keeps ``relinearize_skip: 1``.
+    here, 0.41 -> 0.99 m on the default run), which is why the default keeps ``solver.relinearize_skip: 1``.
     """
     loops = true_loops(world)
-    online = {"save_map": False, "odometry_yaw_bias_hindsight": False}  # the solvers' own ends, no batch re-solve
+    online = {"save_map": False, "heading_bias": {"hindsight": False}}  # the solvers' own ends, no batch re-solve
     lm, _ = feed(world, GtsamLmBackend(LmParams(**online)), loops)
     partial, _ = feed(world, Isam2Backend(Isam2Params(**online)), loops)
-    full, _ = feed(world, Isam2Backend(Isam2Params(**online, partial_relinearization_check=False)), loops)
-    sparse, _ = feed(world, Isam2Backend(Isam2Params(**online, relinearize_skip=10)), loops)
+    full, _ = feed(world, Isam2Backend(Isam2Params(**online, solver={"partial_relinearization_check": False})), loops)
+    sparse, _ = feed(world, Isam2Backend(Isam2Params(**online, solver={"relinearize_skip": 10})), loops)
     errors = {
         k: ate(c.trajectories["sgf"].poses, world.gt)
         for k, c in [("lm", lm), ("partial", partial), ("full", full), ("sparse", sparse)]
@@ -298,7 +298,7 @@ def test_isam2_defaults_keep_the_loops_correction(world) -> None:  # type: ignor
 def test_a_translation_threshold_relinearizes_less_and_ends_at_the_same_trajectory(world, pose: str) -> None:  # type: ignore[no-untyped-def]
     loops = true_loops(world)
     default = Isam2Backend(Isam2Params(save_map=False, pose=pose))
-    coarse = Isam2Backend(Isam2Params(save_map=False, pose=pose, relinearize_threshold_translation=1.0))
+    coarse = Isam2Backend(Isam2Params(save_map=False, pose=pose, solver={"relinearize_threshold_translation": 1.0}))
     a, _ = feed(world, default, loops)
     b, _ = feed(world, coarse, loops)
     # rotations still relinearize at 0.1 rad, translations only past 1 m: less than half the variables relinearized
@@ -371,7 +371,7 @@ def test_a_loop_to_a_frame_between_nodes_moves_by_the_adjoint() -> None:
     loop = LoopConstraint(3, 74, invert(gt[3]) @ gt[74], cov, 0, False, 0.01, 1.0, (1, 1))
     results = []
     for node_distance in (0.0, 2.2):
-        backend = GtsamLmBackend(LmParams(save_map=False, node_distance=node_distance, loop_kernel="none"))
+        backend = GtsamLmBackend(LmParams(save_map=False, node_distance=node_distance, loop={"kernel": "none"}))
         backend.begin(RunContext(run_dir=None, calibration=CALIBRATION))
         for frame in frames:
             backend.process(frame, LoopConstraints((loop,)) if frame.index == 78 else None)
@@ -440,7 +440,7 @@ def test_the_odometry_heading_bias_is_estimated_from_loops_and_corrects_the_driv
     assert loops and max(loops) < 2 * lap
     results = {}
     for estimate_bias in (False, True):
-        backend = backend_class(params_class(save_map=False, pose=pose, odometry_yaw_bias=estimate_bias))
+        backend = backend_class(params_class(save_map=False, pose=pose, heading_bias={"enabled": estimate_bias}))
         context, estimates = feed(biased, backend, loops)
         tail = context.trajectories["sgf"].poses[2 * lap :]
         results[estimate_bias] = (rmse_xy(tail, biased.gt[2 * lap :]), context.metrics["backend"])
@@ -478,7 +478,7 @@ def test_the_final_heading_bias_straightens_the_drive_before_the_loops_that_meas
     assert min(loops) >= 3 * lap // 2
     errors, metrics = {}, {}
     for hindsight in (False, True):
-        settings = {"save_map": False, "odometry_yaw_bias_hindsight": hindsight}
+        settings = {"save_map": False, "heading_bias": {"hindsight": hindsight}}
         backend = (
             GtsamLmBackend(LmParams(**settings)) if solver == "gtsam_lm" else Isam2Backend(Isam2Params(**settings))
         )  # type: ignore[arg-type]
@@ -512,10 +512,10 @@ def test_loops_closed_at_the_end_of_the_run_enter_the_final_optimisation(world, 
 @pytest.mark.parametrize(
     "backend",
     [
-        GtsamLmBackend(LmParams(save_map=False, odometry_yaw_bias=True)),
-        Isam2Backend(Isam2Params(save_map=False, odometry_yaw_bias=True)),
-        GtsamLmBackend(LmParams(save_map=False, pose="pose3", odometry_yaw_bias=True)),
-        Isam2Backend(Isam2Params(save_map=False, pose="pose3", odometry_yaw_bias=True)),
+        GtsamLmBackend(LmParams(save_map=False, heading_bias={"enabled": True})),
+        Isam2Backend(Isam2Params(save_map=False, heading_bias={"enabled": True})),
+        GtsamLmBackend(LmParams(save_map=False, pose="pose3", heading_bias={"enabled": True})),
+        Isam2Backend(Isam2Params(save_map=False, pose="pose3", heading_bias={"enabled": True})),
     ],
     ids=["lm-pose2", "isam2-pose2", "lm-pose3", "isam2-pose3"],
 )

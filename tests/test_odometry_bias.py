@@ -202,8 +202,8 @@ def test_loops_of_one_lap_are_read_by_the_expected_bias_between_a_bias_and_its_a
     On campus_large_loop at full length (seed 0) the loose prior (0.5 deg/m) chose the alias, and the
     back-end turned the whole drive by it (ATE 169 m instead of 2.6); the expected bias (0.1 deg/m)
     chooses the reading, and the loose prior still refines it."""
-    default = Isam2Params().odometry_yaw_bias_reading_sigma_deg_per_m
-    assert default == LmParams().odometry_yaw_bias_reading_sigma_deg_per_m == 0.1
+    default = Isam2Params().heading_bias.reading_sigma_deg_per_m
+    assert default == LmParams().heading_bias.reading_sigma_deg_per_m == 0.1
     loose = [lap_loops(0.5, seed) for seed in range(12)]
     assert any(b == pytest.approx(0.17, abs=0.005) for b in loose)  # the alias is there to be read
     assert all(b == pytest.approx(-0.07, abs=0.005) or b == pytest.approx(0.17, abs=0.005) for b in loose)

@@ -244,12 +244,12 @@ def test_the_final_pose_graph_as_g2o_reads_back_to_the_same_poses(tmp_path: Path
     lm.setAbsoluteErrorTol(1e-14)
     lm.setMaxIterations(500)
     result = gtsam.LevenbergMarquardtOptimizer(graph, start, lm).optimize()
-    # The run's LM stopped once a step lowered the error by less than max(relative_error_tol * error, the
+    # The run's LM stopped once a step lowered the error by less than max(solver.relative_error_tol * error, the
     # absolute tolerance): its poses lie within that error of the optimum, so within sqrt(2 dE sigma^2) of
     # it along each axis (sigma^2: the optimum's marginal covariance, the inverse of the error's Hessian).
     run_lm = gtsam.LevenbergMarquardtParams()
     error = graph.error(written)
-    stop = max(1e-6 * error, run_lm.getAbsoluteErrorTol())  # relative_error_tol of backend=gtsam_lm: 1e-6
+    stop = max(1e-6 * error, run_lm.getAbsoluteErrorTol())  # solver.relative_error_tol of backend=gtsam_lm: 1e-6
     marginals = gtsam.Marginals(graph, result)
     sgf = read_tum(tmp_path / "trajectory_sgf.tum")
     world = next(iter(WORLDS.values()))

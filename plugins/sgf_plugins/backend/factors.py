@@ -12,7 +12,6 @@ from typing import Any, Literal
 import numpy as np
 
 from sgf_pipeline.geometry import rotation_rpy, xy_yaw
-from sgf_plugins.shared.drift import EXPECTED_YAW_BIAS
 
 PoseKind = Literal["pose2", "pose3"]
 Kernel = Literal["cauchy", "huber", "none"]
@@ -20,25 +19,25 @@ Kernel = Literal["cauchy", "huber", "none"]
 
 @dataclass(frozen=True)
 class NoiseSettings:
-    """Noise models of eq. 11: odometry sigmas grow with the square root of the distance travelled."""
+    """Noise models of eq. 11 in radians (from the back-end's Params): odometry sigmas grow with sqrt(distance)."""
 
-    odometry_sigma_xy: float = 0.05
-    odometry_sigma_yaw: float = math.radians(0.5)
-    odometry_sigma_z: float = 0.02
-    odometry_sigma_roll_pitch: float = math.radians(2.0)
-    odometry_floor_xy: float = 0.005
-    odometry_floor_yaw: float = math.radians(0.05)
-    imu_sigma_roll_pitch: float = math.radians(0.5)
-    loop_sigma_z: float = 0.05
-    loop_sigma_roll_pitch: float = math.radians(1.0)
-    loop_kernel: Kernel = "cauchy"
-    loop_kernel_width: float = 3.0
-    prior_sigma_xy: float = 1e-3
-    prior_sigma_yaw: float = 1e-4
-    map_sigma_xy: float = 0.05
-    map_sigma_yaw: float = math.radians(0.5)
-    yaw_bias_sigma: float | None = None  # rad/m, prior sigma of the odometry's heading bias (None: not estimated)
-    yaw_bias_reading_sigma: float = EXPECTED_YAW_BIAS  # rad/m, the sigma that chooses between aliased readings
+    odometry_sigma_xy: float
+    odometry_sigma_yaw: float
+    odometry_sigma_z: float
+    odometry_sigma_roll_pitch: float
+    odometry_floor_xy: float
+    odometry_floor_yaw: float
+    imu_sigma_roll_pitch: float
+    loop_sigma_z: float
+    loop_sigma_roll_pitch: float
+    loop_kernel: Kernel
+    loop_kernel_width: float
+    prior_sigma_xy: float
+    prior_sigma_yaw: float
+    map_sigma_xy: float
+    map_sigma_yaw: float
+    yaw_bias_sigma: float | None  # rad/m, prior sigma of the odometry's heading bias (None: not estimated)
+    yaw_bias_reading_sigma: float  # rad/m, the sigma that chooses between aliased readings
 
 
 FRAME_SYMBOL = "x"  # GTSAM key character of a processed frame's pose

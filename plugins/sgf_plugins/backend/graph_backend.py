@@ -31,7 +31,7 @@ from sgf_pipeline.types import (
     YawBiasCorrection,
 )
 from sgf_plugins.backend.base import Backend
-from sgf_plugins.backend.params import GraphParams, LmParams
+from sgf_plugins.backend.params import GraphParams, LmParams, LmSolver
 from sgf_plugins.backend.pose_graph import PoseGraph
 
 #: The file of the final pose graph (``graph=g2o``).
@@ -105,10 +105,10 @@ class GraphBackend(Backend):
         return self._add_loops(settlement.final_loops)[0]
 
     def _hindsight(self) -> bool:
-        """The final heading bias taken off the whole drive (``odometry_yaw_bias_hindsight``); False if none moved."""
+        """The final heading bias taken off the whole drive (``heading_bias.hindsight``); False if none moved."""
         params = self.params
         assert isinstance(params, GraphParams)
-        if not params.odometry_yaw_bias_hindsight:
+        if not params.heading_bias.hindsight:
             return False
         self.hindsight = self.graph.hindsight_heading_bias()
         return self.hindsight
@@ -163,8 +163,9 @@ class GraphBackend(Backend):
         params = self.params
         t0 = time.perf_counter()
         lm = gtsam.LevenbergMarquardtParams()
-        lm.setMaxIterations(params.max_iterations if isinstance(params, LmParams) else 100)
-        lm.setRelativeErrorTol(params.relative_error_tol if isinstance(params, LmParams) else 1e-6)
+        solver = params.solver if isinstance(params, LmParams) else LmSolver()
+        lm.setMaxIterations(solver.max_iterations)
+        lm.setRelativeErrorTol(solver.relative_error_tol)
         result = gtsam.LevenbergMarquardtOptimizer(self.graph.graph(), self.graph.values, lm).optimize()
         self.graph.set_values(result)
         self.optimizations += 1

@@ -33,8 +33,8 @@ class Isam2Backend(GraphBackend):
         params = self.params
         assert isinstance(params, Isam2Params)
         settings = gtsam.ISAM2Params()
-        rotation = params.relinearize_threshold
-        translation = params.relinearize_threshold_translation
+        rotation = params.solver.relinearize_threshold
+        translation = params.solver.relinearize_threshold_translation
         if translation is None:
             settings.setRelinearizeThreshold(rotation)
         else:
@@ -47,9 +47,9 @@ class Isam2Backend(GraphBackend):
             for symbol in (FRAME_SYMBOL, MAP_SYMBOL):
                 per_key.insert((symbol, threshold))
             settings.setRelinearizeThreshold(per_key)
-        settings.relinearizeSkip = params.relinearize_skip
-        settings.enablePartialRelinearizationCheck = params.partial_relinearization_check
-        settings.setFactorization(params.factorization.upper())
+        settings.relinearizeSkip = params.solver.relinearize_skip
+        settings.enablePartialRelinearizationCheck = params.solver.partial_relinearization_check
+        settings.setFactorization(params.solver.factorization.upper())
         return gtsam.ISAM2(settings)
 
     def process(
@@ -71,7 +71,7 @@ class Isam2Backend(GraphBackend):
         if count:
             params = self.params
             assert isinstance(params, Isam2Params)
-            for _ in range(params.loop_updates):
+            for _ in range(params.solver.loop_updates):
                 self.isam.update()
             self.graph.set_values(self.isam.calculateEstimate())
         else:
@@ -125,5 +125,5 @@ class Isam2Backend(GraphBackend):
         self.optimize_seconds += time.perf_counter() - t0
         params = self.params
         assert isinstance(params, Isam2Params)
-        if params.final_batch:
+        if params.solver.final_batch:
             self.batch_optimize()

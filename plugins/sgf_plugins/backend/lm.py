@@ -25,7 +25,7 @@ class GtsamLmBackend(GraphBackend):
         self.graph.take_new()  # batch optimisation uses the whole graph
         params = self.params
         assert isinstance(params, LmParams)
-        if count and params.optimize_every_loop:
+        if count and params.solver.every_loop:
             self.batch_optimize()
         self.update_seconds.append(time.perf_counter() - t0)
         return self.estimate()

@@ -1,4 +1,4 @@
-"""The wheel odometry's heading bias per metre, estimated from loop closures (``backend.odometry_yaw_bias``).
+"""The wheel odometry's heading bias per metre, estimated from loop closures (``backend.heading_bias.enabled``).
 
 Wheel odometry turns a little with every metre it drives (unequal wheel radii, a pulling tyre):
 the heading error grows with the distance and the position error with its square. Eq. 11 spreads
