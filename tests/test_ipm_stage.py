@@ -280,3 +280,12 @@ def test_runs_in_a_pipeline_after_enhance() -> None:
 def test_mc_plane_refuses_bad_fit_parameters(override: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         PlaneMotionCompensatedIpmParams(**override)
+
+
+@pytest.mark.parametrize("name", ["mc", "mc_plane", "mc_hindsight"])
+@pytest.mark.parametrize("key", ["lookahead", "attitude_noise"])
+def test_every_mc_variant_refuses_a_negative_lookahead_or_noise_scale(name: str, key: str) -> None:
+    model = load_plugins(allow=["ipm"]).registry.get("ipm", name).params_model
+    assert getattr(model(), key) >= 0.0
+    with pytest.raises(ValidationError, match=key):
+        model(**{key: -0.1})

@@ -124,10 +124,12 @@ class PlaneMotionCompensatedIpmParams(MotionCompensatedIpmParams):
     )
     lookahead: float = Field(
         AHEAD_MC["lookahead"],
+        ge=0.0,
         description="mc_ahead: metres ahead whose ground pitch the BEV plane gets until the first plane fit",
     )
     attitude_noise: float = Field(
         AHEAD_MC["attitude_noise"],
+        ge=0.0,
         description="mc_ahead: noise scale sigma (rad); a deviation d from the reference counts d^3 / (d^2 + sigma^2)",
     )
 
@@ -187,10 +189,13 @@ class HindsightMotionCompensatedIpmParams(MotionCompensatedIpmParams):
         "mean: the inliers' average (paper)",
     )
     lookahead: float = Field(
-        AHEAD_MC["lookahead"], description="mc_ahead: metres ahead whose ground pitch the fallback's BEV plane gets"
+        AHEAD_MC["lookahead"],
+        ge=0.0,
+        description="mc_ahead: metres ahead whose ground pitch the fallback's BEV plane gets",
     )
     attitude_noise: float = Field(
         AHEAD_MC["attitude_noise"],
+        ge=0.0,
         description="mc_ahead: noise scale sigma (rad); a deviation d from the reference, or from the median "
         "attitude around the frame, counts d^3 / (d^2 + sigma^2)",
     )
