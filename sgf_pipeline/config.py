@@ -1,4 +1,4 @@
-"""The composed configuration, validated with pydantic after Hydra has composed it."""
+"""The composed configuration: made plain (resolved, without ``hydra``), then validated with pydantic."""
 
 from __future__ import annotations
 
@@ -275,3 +275,38 @@ def parse_config(raw: Mapping[str, Any]) -> PipelineConfig:
     run = validate_options("run", RunOptions, raw.get("run"))
     plugins = validate_options("plugins", PluginOptions, raw.get("plugins"))
     return PipelineConfig(pipeline=tuple(kinds), stages=stages, run=run, plugins=plugins)
+
+
+def plain_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
+    """A composed config as the plain, resolved mapping a run saves as ``config.yaml`` (without ``hydra``)."""
+    from omegaconf import DictConfig, OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    if isinstance(cfg, DictConfig):
+        try:
+            container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
+        except OmegaConfBaseException as exc:
+            raise ConfigError(describe_omegaconf_error(exc)) from None
+        assert isinstance(container, dict)
+        return {str(k): v for k, v in container.items() if k != "hydra"}
+    if not isinstance(cfg, Mapping):
+        raise ConfigError(f"a configuration is a mapping (pipeline, run, plugins, stage nodes), got {cfg!r:.80}")
+    return {str(k): v for k, v in dict(cfg).items() if k != "hydra"}
+
+
+def describe_omegaconf_error(exc: Exception) -> str:
+    """One paragraph about a config value OmegaConf cannot resolve, with the resolvers on offer."""
+    from omegaconf.basecontainer import BaseContainer
+
+    key = getattr(exc, "full_key", None) or "?"
+    detail = [
+        line.strip()
+        for line in str(exc).splitlines()
+        if line.strip() and not line.strip().startswith(("full_key:", "object_type=", "reference_type="))
+    ]
+    message = " ".join(" ".join(detail).split())
+    resolvers = ", ".join(sorted(BaseContainer._resolvers))
+    return (
+        f"{key}: the value cannot be resolved: {message}. Interpolations may name other keys (${{run.max_frames}}) "
+        f"or the registered resolvers ({resolvers}); none of them imports or runs code"
+    )

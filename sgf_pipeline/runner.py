@@ -22,18 +22,20 @@ from sgf_pipeline.config import (
     PipelineConfig,
     check_keys,
     parse_config,
+    plain_config,
     validate_options,
 )
 from sgf_pipeline.context import RunContext
-from sgf_pipeline.errors import CacheError, ConfigError, StageError
+from sgf_pipeline.errors import CacheError, StageError
 from sgf_pipeline.reading import DatasetReader, FrameDrops, frame_problem, read_in_background
 from sgf_pipeline.reading import read_ahead as read_ahead
 from sgf_pipeline.registry import LoadedPlugins, load_plugins
 from sgf_pipeline.run_directory import LOCK_FILE as LOCK_FILE
 from sgf_pipeline.run_directory import RUN_FILES as RUN_FILES
 from sgf_pipeline.run_directory import RunDirectory
-from sgf_pipeline.run_info import RunInfo, RunView, StageNode
-from sgf_pipeline.stage import Dataset, Settlement, Stage
+from sgf_pipeline.run_end import commit_cache, end_stages, keep_partial
+from sgf_pipeline.run_info import RunInfo, RunView
+from sgf_pipeline.stage import Dataset, Stage
 from sgf_pipeline.trajectory import Trajectory
 from sgf_pipeline.types import Frame, PoseEstimate
 from sgf_pipeline.wiring import build_node, wire
@@ -337,41 +339,8 @@ class Pipeline:
             raise RuntimeError("finish() was called twice")
         self.begin()
         self._finished = True
-        failures: list[tuple[StageError, str]] = []
-        settlement = Settlement()
-
         cache = self.cache
-
-        def end(node: StageNode, phase: str, *args: Any) -> Any:
-            """One stage's end-of-run call, its result; a failure is recorded (result ``None``)."""
-            try:
-                if phase == "finalize" and cache is not None:
-                    return cache.finalize(node, self.context)
-                return getattr(node.stage, phase)(self.context, *args)
-            except Exception as exc:
-                self.plugins.manager.hook.sgf_on_error(run=self.info, stage=node, frame=None, error=exc)
-                error = StageError(
-                    f"stage {node.label} failed in {phase}: {type(exc).__name__}: {exc}", node.kind, node.name, None
-                )
-                error.__cause__ = exc
-                failures.append((error, phase))
-                return None
-
-        # Every stage settles, then stage by stage concludes and finalizes, even after another failed: the
-        # settlement goes on along the DAG (as it was when a stage failed).
-        for node in self.order:
-            if isinstance(node.stage, Stage):  # a dataset has nothing to settle
-                settlement = end(node, "settle", settlement) or settlement
-        for node in self.order:
-            if isinstance(node.stage, Stage):
-                settlement = end(node, "conclude", settlement) or settlement
-            end(node, "finalize")
-        if failures:
-            first = failures[0][0]
-            if len(failures) > 1:
-                others = ", ".join(f"{e.kind}={e.name} in {phase}" for e, phase in failures[1:])
-                first.args = (f"{first.args[0]} (also failed: {others})",)
-            raise first
+        end_stages(self.order, self.context, self.info, self.plugins.manager.hook, cache)
         if cache is not None:
             self._commit_cache(cache)
         view = self.view()
@@ -390,24 +359,14 @@ class Pipeline:
         return metrics
 
     def _commit_cache(self, cache: CachePlan) -> None:
-        """Keep the finished run's new stage cache entries; report the run's use of the cache in metrics.json."""
-        if not self._read_to_end or self._taken != self._given:
-            log.info("stage cache: the run did not process every frame of its dataset; no entry is kept")
-            cache.abort()
-            self.context.metrics["cache"] = cache.report()
-            return
+        """Keep the finished run's new stage cache entries (:func:`~sgf_pipeline.run_end.commit_cache`)."""
         reading = {
             "total_frames": self.info.total_frames,
             "frames_seen": self.info.frames_seen,
             "last_timestamp": self.info.last_timestamp,
             "dropped_by_reason": dict(self.drops.by_reason),
         }
-        try:
-            cache.commit(reading)
-        except OSError as exc:  # a full disk costs the cache, never the run
-            log.warning("stage cache: the new entries were not kept: %s", exc)
-            cache.abort()
-        self.context.metrics["cache"] = cache.report()
+        commit_cache(cache, self.context, reading, self._read_to_end and self._taken == self._given)
 
     def _write_failure(self, exc: BaseException) -> None:
         if self.run_dir is None or not self._begun:
@@ -416,15 +375,7 @@ class Pipeline:
             log.error("the run in %s finished writing before it failed: %s: %s", self.run_dir, type(exc).__name__, exc)
             return
         status = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-        settlement = Settlement()
-        for node in self.order:  # what each stage has so far (the pose estimate, the SGF map)
-            if isinstance(node.stage, Stage):
-                try:
-                    settlement = node.stage.partial(self.context, settlement)
-                except KeyboardInterrupt:  # a second Ctrl-C: record the run with what is kept so far
-                    break
-                except Exception as error:  # a stage broken by the stop itself: the others still keep theirs
-                    log.warning("%s could not keep its results so far: %s: %s", node.label, type(error).__name__, error)
+        keep_partial(self.order, self.context)  # what each stage has so far (the pose estimate, the SGF map)
         outputs.write_failure(self.view(), status, exc)
 
 
@@ -455,38 +406,3 @@ class PoseLog:
         poses = np.tile(np.eye(4), (self._count, 1, 1))
         poses[:, :3, :4] = rows[:, 1:].reshape(-1, 3, 4)
         return Trajectory(rows[:, 0].copy(), poses)
-
-
-def plain_config(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """A composed config as the plain, resolved mapping a run saves as ``config.yaml`` (without ``hydra``)."""
-    from omegaconf import DictConfig, OmegaConf
-    from omegaconf.errors import OmegaConfBaseException
-
-    if isinstance(cfg, DictConfig):
-        try:
-            container = OmegaConf.to_container(cfg, resolve=True, throw_on_missing=True)
-        except OmegaConfBaseException as exc:
-            raise ConfigError(describe_omegaconf_error(exc)) from None
-        assert isinstance(container, dict)
-        return {str(k): v for k, v in container.items() if k != "hydra"}
-    if not isinstance(cfg, Mapping):
-        raise ConfigError(f"a configuration is a mapping (pipeline, run, plugins, stage nodes), got {cfg!r:.80}")
-    return {str(k): v for k, v in dict(cfg).items() if k != "hydra"}
-
-
-def describe_omegaconf_error(exc: Exception) -> str:
-    """One paragraph about a config value OmegaConf cannot resolve, with the resolvers on offer."""
-    from omegaconf.basecontainer import BaseContainer
-
-    key = getattr(exc, "full_key", None) or "?"
-    detail = [
-        line.strip()
-        for line in str(exc).splitlines()
-        if line.strip() and not line.strip().startswith(("full_key:", "object_type=", "reference_type="))
-    ]
-    message = " ".join(" ".join(detail).split())
-    resolvers = ", ".join(sorted(BaseContainer._resolvers))
-    return (
-        f"{key}: the value cannot be resolved: {message}. Interpolations may name other keys (${{run.max_frames}}) "
-        f"or the registered resolvers ({resolvers}); none of them imports or runs code"
-    )

@@ -113,7 +113,7 @@ def sweep(tmp_path: Path) -> Path:
 
 
 def test_an_extension_earns_its_place_by_a_false_loop_a_closed_pair_or_ate_beyond_the_spread(sweep: Path) -> None:
-    from sgf_experiments.report import find_runs
+    from sgf_experiments.runs import find_runs
 
     table = ablation_table(find_runs(sweep))
     assert [r["name"] for r in table["rows"]] == [

@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 import yaml
-from sgf_experiments.report import build_tables, find_runs, write_report
+from sgf_experiments.report import build_tables, write_report
+from sgf_experiments.runs import find_runs
 from sgf_testing import run_cli
 
 from sgf_pipeline.errors import DataError

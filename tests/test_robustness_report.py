@@ -10,8 +10,9 @@ import yaml
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from sgf_experiments import CONF as EXPERIMENTS_CONF
-from sgf_experiments.report import find_runs, write_report
+from sgf_experiments.report import write_report
 from sgf_experiments.robustness import perturbed_runs, robustness_table, split_tag
+from sgf_experiments.runs import find_runs
 
 from sgf_pipeline import load_plugins
 from sgf_pipeline.config import config_dir

@@ -4,157 +4,18 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 import os
 from collections import defaultdict
 from collections.abc import Iterable
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from sgf_experiments.ablation import ablation_name, ablation_table, render_ablation
 from sgf_experiments.paper import PAPER_TABLE2, PAPER_TABLE3, PAPER_TABLE4, SEQUENCE_ORDER
 from sgf_experiments.robustness import plot_robustness, render_robustness, robustness_table
-from sgf_pipeline.errors import DataError
-from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text, read_text, read_yaml
-
-METRIC_LOOP_KEYS = (
-    "pairs_found",
-    "pairs_total",
-    "pairs_found_reverse",
-    "pairs_total_reverse",
-    "closed",
-    "closed_reverse",
-    "false_closed",
-)
-IGNORED_KEYS = ("run.progress", "run.torch_threads", "run.overwrite", "plugins.")
-
-
-@dataclass
-class RunRecord:
-    """One finished run: its directory, metrics and effective configuration."""
-
-    path: Path
-    metrics: dict[str, Any]
-    config: dict[str, Any]
-
-    @property
-    def sequence(self) -> str:
-        """The dataset variant the run used."""
-        return str(self.metrics.get("sequence") or self.config.get("dataset", {}).get("name", "?"))
-
-    @property
-    def seed(self) -> Any:
-        """The dataset seed, when the dataset has one."""
-        return self.config.get("dataset", {}).get("seed")
-
-
-def _flatten(node: Any, prefix: str = "") -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    if isinstance(node, dict):
-        for key, value in node.items():
-            out.update(_flatten(value, f"{prefix}{key}."))
-    else:
-        out[prefix[:-1]] = json.dumps(node) if isinstance(node, list) else node
-    return out
-
-
-def find_runs(root: str | Path) -> list[RunRecord]:
-    """Every finished run below ``root`` (a run directory or a multirun directory)."""
-    base = Path(root)
-    if not base.exists():
-        raise DataError(f"{base} does not exist; pass a run or multirun directory written by sgf-run")
-    runs = []
-    for metrics_path in sorted(base.rglob("metrics.json")):
-        try:
-            metrics = json.loads(read_text(metrics_path, "metrics file"))
-        except json.JSONDecodeError as exc:
-            raise DataError(f"{metrics_path} is not valid JSON ({exc}); was the run interrupted?") from None
-        except RecursionError:
-            raise DataError(f"{metrics_path} is not valid JSON (nested too deeply)") from None
-        if not isinstance(metrics, dict):
-            raise DataError(f"{metrics_path} holds a {type(metrics).__name__}, not the mapping sgf-run writes")
-        _check_metrics(metrics_path, metrics)
-        config_path = metrics_path.parent / "config.yaml"
-        config = read_yaml(config_path, "run config") if config_path.exists() else {}
-        if not isinstance(config, dict | None):
-            raise DataError(f"{config_path} holds a {type(config).__name__}, not the mapping sgf-run writes")
-        runs.append(RunRecord(metrics_path.parent, metrics, config or {}))
-    if not runs:
-        raise DataError(f"no metrics.json below {base}; pass a directory written by sgf-run")
-    return runs
-
-
-#: The numeric fields of metrics.json the report reads (each a number or null when present).
-_NUMERIC_FIELDS = (
-    ("ate_rmse_m", "odometry"),
-    ("ate_rmse_m", "sgf"),
-    ("sgf", "detected"),
-    ("sgf", "total"),
-    *(("loops", k) for k in METRIC_LOOP_KEYS),
-    ("timing", "fps"),
-    ("timing", "realtime_factor"),
-    ("peak_rss_mb",),
-)
-
-
-def _check_metrics(path: Path, metrics: dict[str, Any]) -> None:
-    """Refuse a metrics.json whose fields the report reads are not numbers (a hand-edited or foreign file)."""
-    for keys in _NUMERIC_FIELDS:
-        node: Any = metrics
-        for depth, key in enumerate(keys):
-            if node is None:
-                break
-            if not isinstance(node, dict):
-                raise DataError(f"{path}: {'.'.join(keys[:depth])} must be a mapping, got {node!r:.40}")
-            node = node.get(key)
-        if node is not None and (isinstance(node, bool) or not isinstance(node, (int, float))):
-            raise DataError(f"{path}: {'.'.join(keys)} must be a number or null, got {node!r:.40}")
-    stages = _get(metrics, "timing", "stages")
-    if stages is not None and not (
-        isinstance(stages, dict)
-        and all(
-            isinstance(row, dict)
-            and (row.get("mean_ms") is None or (type(row["mean_ms"]) in (int, float)))
-            and isinstance(row.get("variant", ""), str)
-            for row in stages.values()
-        )
-    ):
-        raise DataError(f"{path}: timing.stages must map stage kinds to {{variant, mean_ms, ...}}, got {stages!r:.60}")
-    if not isinstance(metrics.get("sequence", ""), str):
-        raise DataError(f"{path}: sequence must be a name, got {metrics['sequence']!r:.40}")
-
-
-def swept_keys(runs: Iterable[RunRecord]) -> list[str]:
-    """Config keys whose values differ between runs (except seeds and presentation options)."""
-    flats = [_flatten(r.config) for r in runs]
-    keys = sorted(set().union(*flats)) if flats else []
-    out = []
-    for key in keys:
-        if key == "dataset.seed" or key.startswith(IGNORED_KEYS):
-            continue
-        if key.startswith("dataset.") and key != "dataset.name":
-            continue
-        values = {json.dumps(f.get(key), sort_keys=True, default=str) for f in flats}
-        if len(values) > 1:
-            out.append(key)
-    # a swept variant (``ipm.name``) brings its own parameters: those name no variant unless they
-    # also differ between runs of the same variant
-    chosen = {k.removesuffix(".name") for k in out if k.endswith(".name") and k != "dataset.name"}
-    kept = []
-    for key in out:
-        stage = key.split(".", 1)[0]
-        if stage in chosen and key != f"{stage}.name":
-            within: dict[str, set[str]] = defaultdict(set)
-            for f in flats:
-                within[json.dumps(f.get(f"{stage}.name"), default=str)].add(
-                    json.dumps(f.get(key), sort_keys=True, default=str)
-                )
-            if all(len(v) == 1 for v in within.values()):
-                continue
-        kept.append(key)
-    return kept
+from sgf_experiments.runs import RunRecord, find_runs, flatten, swept_keys, value_at
+from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text
 
 
 def _mean_std(values: list[float]) -> tuple[float, float] | None:
@@ -172,29 +33,20 @@ def _fmt_ms(stat: tuple[float, float] | None, n: int, digits: int = 2) -> str:
     return f"{stat[0]:.{digits}f} ± {stat[1]:.{digits}f}" if n > 1 else f"{stat[0]:.{digits}f}"
 
 
-def _get(metrics: dict[str, Any], *path: str) -> Any:
-    node: Any = metrics
-    for p in path:
-        if not isinstance(node, dict):
-            return None
-        node = node.get(p)
-    return node
-
-
 def _sum(runs: list[RunRecord], *path: str) -> int | None:
-    values = [_get(r.metrics, *path) for r in runs]
+    values = [value_at(r.metrics, *path) for r in runs]
     return None if any(v is None for v in values) else int(sum(values))
 
 
 def _purities(runs: list[RunRecord]) -> list[float | None]:
     """Each run's SGF group purity, in seed order (None where a run has none)."""
     ordered = sorted(runs, key=lambda r: str(r.seed))
-    return [_get(r.metrics, "sgf", "purity") for r in ordered]
+    return [value_at(r.metrics, "sgf", "purity") for r in ordered]
 
 
 def _ranked_first(runs: list[RunRecord]) -> tuple[int, int] | None:
     """Decisions where the association ranked the own marking's group first, and all such decisions, over the runs."""
-    found = [_get(r.metrics, "sgf", "own_group_ranked_first") for r in runs]
+    found = [value_at(r.metrics, "sgf", "own_group_ranked_first") for r in runs]
     known = [f for f in found if isinstance(f, dict) and f.get("decisions")]
     if not known:
         return None
@@ -202,7 +54,7 @@ def _ranked_first(runs: list[RunRecord]) -> tuple[int, int] | None:
 
 
 def _variant_label(run: RunRecord, keys: list[str]) -> str:
-    flat = _flatten(run.config)
+    flat = flatten(run.config)
     return ", ".join(f"{k}={flat.get(k)}" for k in keys if k != "dataset.name") or "default"
 
 
@@ -219,10 +71,10 @@ def build_tables(runs: list[RunRecord]) -> dict[str, Any]:
         groups[(_variant_label(run, keys), run.sequence)].append(run)
     rows = []
     for (variant, sequence), members in sorted(groups.items()):
-        ate_odo = _mean_std([_get(r.metrics, "ate_rmse_m", "odometry") for r in members])
-        ate_sgf = _mean_std([_get(r.metrics, "ate_rmse_m", "sgf") for r in members])
-        fps = _mean_std([_get(r.metrics, "timing", "fps") for r in members])
-        rtf = _mean_std([_get(r.metrics, "timing", "realtime_factor") for r in members])
+        ate_odo = _mean_std([value_at(r.metrics, "ate_rmse_m", "odometry") for r in members])
+        ate_sgf = _mean_std([value_at(r.metrics, "ate_rmse_m", "sgf") for r in members])
+        fps = _mean_std([value_at(r.metrics, "timing", "fps") for r in members])
+        rtf = _mean_std([value_at(r.metrics, "timing", "realtime_factor") for r in members])
         rows.append(
             {
                 "variant": variant,
@@ -377,7 +229,7 @@ def runs_csv(runs: list[RunRecord]) -> str:
     writer = csv.DictWriter(buf, fieldnames=fields)
     writer.writeheader()
     for run in runs:
-        flat = _flatten(run.config)
+        flat = flatten(run.config)
         m = run.metrics
         writer.writerow(
             {
@@ -385,20 +237,20 @@ def runs_csv(runs: list[RunRecord]) -> str:
                 "sequence": run.sequence,
                 "seed": run.seed,
                 **{k: flat.get(k) for k in keys},
-                "ate_odometry": _get(m, "ate_rmse_m", "odometry"),
-                "ate_sgf": _get(m, "ate_rmse_m", "sgf"),
-                "detected": _get(m, "sgf", "detected"),
-                "total": _get(m, "sgf", "total"),
-                "pairs_found": _get(m, "loops", "pairs_found"),
-                "pairs_total": _get(m, "loops", "pairs_total"),
-                "pairs_found_reverse": _get(m, "loops", "pairs_found_reverse"),
-                "pairs_total_reverse": _get(m, "loops", "pairs_total_reverse"),
-                "closed": _get(m, "loops", "closed"),
-                "closed_reverse": _get(m, "loops", "closed_reverse"),
-                "false_closed": _get(m, "loops", "false_closed"),
-                "purity": _get(m, "sgf", "purity"),
-                "fps": _get(m, "timing", "fps"),
-                "realtime_factor": _get(m, "timing", "realtime_factor"),
+                "ate_odometry": value_at(m, "ate_rmse_m", "odometry"),
+                "ate_sgf": value_at(m, "ate_rmse_m", "sgf"),
+                "detected": value_at(m, "sgf", "detected"),
+                "total": value_at(m, "sgf", "total"),
+                "pairs_found": value_at(m, "loops", "pairs_found"),
+                "pairs_total": value_at(m, "loops", "pairs_total"),
+                "pairs_found_reverse": value_at(m, "loops", "pairs_found_reverse"),
+                "pairs_total_reverse": value_at(m, "loops", "pairs_total_reverse"),
+                "closed": value_at(m, "loops", "closed"),
+                "closed_reverse": value_at(m, "loops", "closed_reverse"),
+                "false_closed": value_at(m, "loops", "false_closed"),
+                "purity": value_at(m, "sgf", "purity"),
+                "fps": value_at(m, "timing", "fps"),
+                "realtime_factor": value_at(m, "timing", "realtime_factor"),
                 "peak_rss_mb": m.get("peak_rss_mb"),
             }
         )
@@ -414,7 +266,7 @@ def plot_timing(path: Path, runs: list[RunRecord]) -> None:
 
     per_stage: dict[str, list[float]] = defaultdict(list)
     for run in runs:
-        for stage, row in (_get(run.metrics, "timing", "stages") or {}).items():
+        for stage, row in (value_at(run.metrics, "timing", "stages") or {}).items():
             if row.get("mean_ms") is not None:
                 per_stage[f"{stage}\n{row.get('variant', '')}"].append(float(row["mean_ms"]))
     if not per_stage:

@@ -31,7 +31,7 @@ MIN_CLOSED_SHARE = 0.85
 
 
 class RunRecord(Protocol):
-    """What the table reads of a finished run (``sgf_experiments.report.RunRecord``)."""
+    """What the table reads of a finished run (``sgf_experiments.runs.RunRecord``)."""
 
     metrics: dict[str, Any]
     config: dict[str, Any]

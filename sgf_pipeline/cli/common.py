@@ -124,7 +124,7 @@ def friendly_errors(func: F) -> F:
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         from omegaconf.errors import OmegaConfBaseException
 
-        from sgf_pipeline.runner import describe_omegaconf_error
+        from sgf_pipeline.config import describe_omegaconf_error
 
         try:
             return func(*args, **kwargs)

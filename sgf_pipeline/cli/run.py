@@ -17,9 +17,9 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, open_dict
 
 from sgf_pipeline.cli.common import console, friendly_errors, raise_terminated
-from sgf_pipeline.config import config_dir
+from sgf_pipeline.config import config_dir, plain_config
 from sgf_pipeline.run_directory import RunDirectory
-from sgf_pipeline.runner import Pipeline, plain_config
+from sgf_pipeline.runner import Pipeline
 
 log = logging.getLogger("sgf_pipeline")
 

@@ -242,7 +242,7 @@ def test_a_traceback_on_request(files: dict[str, Path]):
     ],
 )
 def test_sgf_report_refuses_metrics_of_another_shape(tmp_path: Path, metrics: dict, message: str):
-    from sgf_experiments.report import find_runs
+    from sgf_experiments.runs import find_runs
 
     from sgf_pipeline.errors import DataError
 

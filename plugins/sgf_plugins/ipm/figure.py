@@ -25,7 +25,7 @@ from sgf_pipeline import hookimpl
 from sgf_pipeline.errors import DataError, SgfError
 from sgf_pipeline.folder_format import read_calibration_yaml
 from sgf_pipeline.io import atomic_write_bytes
-from sgf_pipeline.runner import RunInfo, StageNode
+from sgf_pipeline.run_info import RunInfo, StageNode
 from sgf_pipeline.trajectory import TrajectoryError, read_tum
 from sgf_pipeline.types import Bev, CameraImage, Frame
 from sgf_plugins.ipm.stages import (

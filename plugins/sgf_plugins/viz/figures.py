@@ -18,7 +18,7 @@ import numpy as np
 
 from sgf_pipeline import hookimpl
 from sgf_pipeline.io import atomic_path
-from sgf_pipeline.runner import RunInfo, StageNode
+from sgf_pipeline.run_info import RunInfo, StageNode
 from sgf_pipeline.types import Bev, Frame, GroupAssignments
 
 BUFFER_FRAMES = 150

@@ -7,7 +7,7 @@ from typing import Any
 from pydantic import BaseModel
 
 from sgf_pipeline import hookimpl
-from sgf_pipeline.runner import RunInfo, StageNode
+from sgf_pipeline.run_info import RunInfo, StageNode
 from sgf_pipeline.types import Frame
 from sgf_plugins.viz.rerun.options import NODE, RECORDING, RerunOptions
 from sgf_plugins.viz.rerun.worker import RecordingWorker
