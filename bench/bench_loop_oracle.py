@@ -30,7 +30,8 @@ from sgf_pipeline.context import RunContext
 from sgf_pipeline.evaluation import ate_rmse
 from sgf_pipeline.geometry import invert
 from sgf_pipeline.trajectory import Trajectory
-from sgf_pipeline.types import Frame, LoopConstraint, LoopConstraints, RevisitPair
+from sgf_pipeline.truth import RevisitPair
+from sgf_pipeline.types import Frame, LoopConstraint, LoopConstraints
 
 KEYFRAME_DISTANCE = 0.25  # m of odometry between processed frames, as the runner's default
 LOOP_COVARIANCE = np.diag([0.05**2, 0.05**2, math.radians(1.0) ** 2])

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from sgf_pipeline.calibration import Calibration
     from sgf_pipeline.trajectory import Trajectory
-    from sgf_pipeline.types import SequenceTruth
+    from sgf_pipeline.truth import SequenceTruth
 
 
 @dataclass

@@ -47,7 +47,7 @@ from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.errors import DataError
 from sgf_pipeline.io import atomic_write_text, read_text, read_yaml
 from sgf_pipeline.trajectory import Trajectory, write_tum
-from sgf_pipeline.types import MarkingPass, MarkingTruth, RevisitPair, SequenceTruth
+from sgf_pipeline.truth import MarkingPass, MarkingTruth, RevisitPair, SequenceTruth
 
 FORMAT = "sgf-folder"
 VERSION = 1

@@ -17,18 +17,8 @@ import numpy as np
 
 from sgf_pipeline.calibration import Calibration, Intrinsics
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw, xy_yaw
-from sgf_pipeline.types import (
-    BevGrid,
-    Frame,
-    GroupAssignment,
-    GroupAssignments,
-    MarkingPass,
-    MarkingTruth,
-    RevisitPair,
-    SalientGroundFeature,
-    SequenceTruth,
-    SgfDescriptor,
-)
+from sgf_pipeline.truth import MarkingPass, MarkingTruth, RevisitPair, SequenceTruth
+from sgf_pipeline.types import BevGrid, Frame, GroupAssignment, GroupAssignments, SalientGroundFeature, SgfDescriptor
 
 CALIBRATION = Calibration.from_mounting(
     Intrinsics(fx=400.0, fy=400.0, cx=320.0, cy=240.0, width=640, height=480), height=0.8, tilt=0.35

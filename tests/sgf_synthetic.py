@@ -12,7 +12,8 @@ import numpy as np
 
 from sgf_pipeline.calibration import Calibration, Intrinsics
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw
-from sgf_pipeline.types import Bev, BevGrid, Frame, MarkingPass, MarkingTruth, RevisitPair, SaliencyMap, SequenceTruth
+from sgf_pipeline.truth import MarkingPass, MarkingTruth, RevisitPair, SequenceTruth
+from sgf_pipeline.types import Bev, BevGrid, Frame, SaliencyMap
 
 #: The project's default BEV grid: 256 x 256 pixels of 2 cm, 0.5..5.62 m ahead, 2.56 m either side.
 DEFAULT_GRID = BevGrid(resolution=0.02, x_min=0.5, x_max=5.62, y_min=-2.56, y_max=2.56)

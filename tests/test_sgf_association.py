@@ -28,15 +28,13 @@ from sgf_synthetic import (
 from sgf_pipeline import RunContext
 from sgf_pipeline.geometry import invert, pose_from_xy_yaw
 from sgf_pipeline.stage import Settlement
+from sgf_pipeline.truth import MarkingPass, RevisitPair, SequenceTruth
 from sgf_pipeline.types import (
     Frame,
     LoopConstraint,
     LoopConstraints,
-    MarkingPass,
     PoseEstimate,
-    RevisitPair,
     SalientGroundFeature,
-    SequenceTruth,
     SgfDescriptor,
     SgfDescriptors,
     SgfDetections,

@@ -28,7 +28,8 @@ from sgf_testing import conf_node
 
 from sgf_pipeline import Dataset, Pipeline, RunContext, Stage, hookimpl, load_plugins
 from sgf_pipeline.geometry import pose_from_xy_yaw
-from sgf_pipeline.types import Bev, Frame, SaliencyMap, SequenceTruth
+from sgf_pipeline.truth import SequenceTruth
+from sgf_pipeline.types import Bev, Frame, SaliencyMap
 
 ROOT = Path(__file__).resolve().parents[1]
 

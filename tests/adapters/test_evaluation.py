@@ -231,7 +231,7 @@ def _v102_bag(evo: Path, path: Path, version: str = "ros2_sqlite3") -> Path:
     """V1_02 as a bag: the ground truth as PoseStamped, as tf (odom -> body under a static map -> odom), the
     estimate as Odometry."""
     from sgf_pipeline.geometry import pose_from_xyz_rpy
-    from sgf_pipeline.trajectory import _ns_from_seconds
+    from sgf_pipeline.trajectory.euroc import _ns_from_seconds
 
     from .recordings import odometry_message, pose_stamped, tf_message, transform_stamped, typestore, write_messages
 
@@ -311,7 +311,7 @@ def test_a_transform_stamped_topic_is_a_trajectory(tmp_path: Path):
 def test_bag_topics_are_found_with_or_without_the_leading_slash(shared_data: Path, tmp_path: Path):
     """A ROS 1 bag naming its topics without a slash, as evo's ROS_example.bag does: both spellings work."""
     from sgf_pipeline.bags import find_topic, read_bag_trajectory, split_bag_source
-    from sgf_pipeline.trajectory import _ns_from_seconds
+    from sgf_pipeline.trajectory.euroc import _ns_from_seconds
 
     from .recordings import pose_stamped, typestore, write_messages
 

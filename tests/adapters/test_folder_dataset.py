@@ -11,7 +11,7 @@ from sgf_plugins.datasets.folder import FolderDataset, FolderParams
 
 from sgf_pipeline.context import RunContext
 from sgf_pipeline.folder_format import FolderDatasetWriter
-from sgf_pipeline.types import MarkingPass, MarkingTruth, RevisitPair, SequenceTruth
+from sgf_pipeline.truth import MarkingPass, MarkingTruth, RevisitPair, SequenceTruth
 
 from .recordings import calibration, make_frames, write_folder
 

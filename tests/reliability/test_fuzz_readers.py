@@ -36,7 +36,7 @@ from sgf_pipeline.trajectory import (
     read_trajectory,
     write_trajectory,
 )
-from sgf_pipeline.types import SequenceTruth
+from sgf_pipeline.truth import SequenceTruth
 
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 
@@ -451,7 +451,7 @@ def test_hand_made_bad_truth_files(tmp_path: Path, data: str, message: str):
 
 def test_truth_written_by_the_project_reads_back(tmp_path: Path):
     from sgf_pipeline.folder_format import truth_to_dict
-    from sgf_pipeline.types import MarkingPass, MarkingTruth, RevisitPair
+    from sgf_pipeline.truth import MarkingPass, MarkingTruth, RevisitPair
 
     a = MarkingPass(1, 0, 3, 9, 0.1)
     b = MarkingPass(1, 1, 40, 48, 3.1)

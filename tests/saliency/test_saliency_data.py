@@ -15,7 +15,8 @@ from sgf_plugins.saliency.preprocess import normalize_image, resize_mask
 from sgf_plugins.saliency.synthetic_data import samples_from_bevs
 
 from sgf_pipeline.errors import DataError
-from sgf_pipeline.types import Bev, BevGrid, MarkingPass, MarkingTruth, SequenceTruth
+from sgf_pipeline.truth import MarkingPass, MarkingTruth, SequenceTruth
+from sgf_pipeline.types import Bev, BevGrid
 
 
 def test_written_folder_round_trips(tmp_path: Path) -> None:

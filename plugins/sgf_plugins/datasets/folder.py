@@ -15,7 +15,8 @@ from sgf_pipeline.folder_format import FORMAT, VERSION, read_calibration_yaml, r
 from sgf_pipeline.io import read_text, read_yaml
 from sgf_pipeline.timesync import PoseSeries
 from sgf_pipeline.trajectory import TrajectoryError, parse_tum
-from sgf_pipeline.types import Frame, SequenceTruth
+from sgf_pipeline.truth import SequenceTruth
+from sgf_pipeline.types import Frame
 from sgf_plugins.datasets._common import (
     RecordedDataset,
     RecordedParams,

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from sgf_pipeline.geometry import invert, xy_yaw
-from sgf_pipeline.types import RevisitPair, SequenceTruth
+from sgf_pipeline.truth import RevisitPair, SequenceTruth
 from sgf_plugins.loop.candidate import Candidate
 from sgf_plugins.loop.params import EvaluationParams, IcpLoopParams
 from sgf_plugins.shared.drift import pose_error

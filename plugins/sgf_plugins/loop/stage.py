@@ -31,15 +31,8 @@ from typing import Any
 from sgf_pipeline import Previous, RunContext, Stage, StageRegistry, hookimpl
 from sgf_pipeline.sgf_map import MapDescriptor
 from sgf_pipeline.stage import Settlement
-from sgf_pipeline.types import (
-    Frame,
-    GroupAssignment,
-    GroupAssignments,
-    LoopConstraint,
-    LoopConstraints,
-    PoseEstimate,
-    SequenceTruth,
-)
+from sgf_pipeline.truth import SequenceTruth
+from sgf_pipeline.types import Frame, GroupAssignment, GroupAssignments, LoopConstraint, LoopConstraints, PoseEstimate
 from sgf_plugins.loop import outcomes
 from sgf_plugins.loop.anchoring import LoopAnchoring
 from sgf_plugins.loop.candidate import Candidate

@@ -20,7 +20,8 @@ import numpy as np
 
 from sgf_pipeline import Pipeline
 from sgf_pipeline.errors import ConfigError
-from sgf_pipeline.types import Bev, SequenceTruth
+from sgf_pipeline.truth import SequenceTruth
+from sgf_pipeline.types import Bev
 from sgf_plugins.saliency.data import SplitSpec, WriteReport, write_sod_folder
 
 

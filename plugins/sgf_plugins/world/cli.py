@@ -94,7 +94,7 @@ def run_world_app(options: WorldAppOptions, dataset: dict[str, Any], out: Path) 
 
 def _truncated_truth(world: CampusWorld, frames: int) -> Any:
     """The ground truth of the first ``frames`` frames only (passes cut at the end, pairs re-counted)."""
-    from sgf_pipeline.types import SequenceTruth
+    from sgf_pipeline.truth import SequenceTruth
 
     truth = world.truth
     passes = [p for p in truth.passes if p.end_frame < frames]

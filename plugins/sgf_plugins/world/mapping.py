@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from sgf_pipeline.io import atomic_write_bytes
-from sgf_pipeline.types import MarkingPass
+from sgf_pipeline.truth import MarkingPass
 from sgf_plugins.world.world import CampusWorld
 
 MAP_TILE = 64.0

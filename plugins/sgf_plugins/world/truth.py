@@ -11,7 +11,8 @@ from scipy.spatial import cKDTree
 
 from sgf_pipeline.calibration import Calibration
 from sgf_pipeline.geometry import wrap_angle
-from sgf_pipeline.types import BevGrid, MarkingPass, MarkingTruth, RevisitPair, SequenceTruth
+from sgf_pipeline.truth import MarkingPass, MarkingTruth, RevisitPair, SequenceTruth
+from sgf_pipeline.types import BevGrid
 from sgf_plugins.world.layout import MarkingInstance
 from sgf_plugins.world.terrain import Terrain
 

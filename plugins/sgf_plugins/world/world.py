@@ -12,7 +12,8 @@ from pydantic import ValidationError
 
 from sgf_pipeline.calibration import Calibration, Intrinsics
 from sgf_pipeline.errors import ConfigError
-from sgf_pipeline.types import BevGrid, Frame, SequenceTruth
+from sgf_pipeline.truth import SequenceTruth
+from sgf_pipeline.types import BevGrid, Frame
 from sgf_plugins.world.conditions import RenderConditions
 from sgf_plugins.world.designs import allowed_designs
 from sgf_plugins.world.drive import DriveLog, OdometryModel, SensorLog, build_legs, drive, simulate_sensors

@@ -15,7 +15,8 @@ import numpy as np
 from sgf_pipeline import RunContext, hookimpl
 from sgf_pipeline.runner import RunInfo
 from sgf_pipeline.stage import SettledGroup
-from sgf_pipeline.types import MarkingPass, SequenceTruth, SgfDescriptor
+from sgf_pipeline.truth import MarkingPass, SequenceTruth
+from sgf_pipeline.types import SgfDescriptor
 from sgf_plugins.sgf.association.groups import Ranking, SgfGroup
 
 
