@@ -109,6 +109,14 @@ def test_the_table_gives_each_variant_its_breaking_point(suite: Path) -> None:
     assert table["rows"][0]["variant"] == "none"  # the preset robot's rows first
 
 
+def test_a_variant_whose_strong_severity_was_not_run_has_no_breaking_point_beyond_strong(suite: Path) -> None:
+    mild_only = [r for r in find_runs(suite) if not str(r.config.get("run", {}).get("tag")).endswith("/strong")]
+    assert robustness_table(mild_only)["breaking_point"]["heading_bias_left"] == {
+        "campus_large_loop": "beyond mild (strong not run)",
+        "campus_reverse_slope": "beyond mild (strong not run)",
+    }
+
+
 def test_sgf_report_writes_the_robustness_section_and_figure(suite: Path, tmp_path_factory) -> None:  # type: ignore[no-untyped-def]
     out = tmp_path_factory.mktemp("report")
     tables = write_report(suite, out)

@@ -198,9 +198,14 @@ def robustness_table(runs: Iterable[RunRecord]) -> dict[str, Any]:
         current = known.get(row["sequence"])
         if not row["holds"] and (current is None or SEVERITIES.index(row["severity"]) < SEVERITIES.index(current)):
             known[row["sequence"]] = row["severity"]
+    highest: dict[tuple[str, str], int] = {}
     for row in rows:
         if row["variant"] != "none":
-            breaking[row["variant"]].setdefault(row["sequence"], "beyond strong")
+            key = (row["variant"], row["sequence"])
+            highest[key] = max(highest.get(key, 0), SEVERITIES.index(row["severity"]))
+    for (variant, sequence), level in highest.items():
+        unrun = f" ({SEVERITIES[level + 1]} not run)" if level + 1 < len(SEVERITIES) else ""
+        breaking[variant].setdefault(sequence, f"beyond {SEVERITIES[level]}{unrun}")
     return {"rows": rows, "breaking_point": {k: dict(v) for k, v in breaking.items()}}
 
 
