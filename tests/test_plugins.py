@@ -352,6 +352,7 @@ def test_sigterm_during_a_run_leaves_a_record_and_no_half_file(toy_plugin_site: 
             "dataset=toy_circle",
             "dataset.frames=1000000",
             f"dataset.mark_file={mark}",
+            "run.keyframe_distance=0",  # every frame a keyframe: the reading thread's lead bounds the frames unprocessed
             "enhance=clahe",
             "run.progress=false",
             f"hydra.run.dir={run_dir}",
@@ -362,7 +363,7 @@ def test_sigterm_during_a_run_leaves_a_record_and_no_half_file(toy_plugin_site: 
         text=True,
     )
     # Frame 20 is read only after frames went through the stages: the reading thread holds a few
-    # frames ahead (READ_DEPTH), never twenty.
+    # keyframes ahead (READ_DEPTH), never twenty, and every frame is a keyframe here.
     from sgf_pipeline.reading import READ_DEPTH
 
     assert READ_DEPTH + 2 < 20

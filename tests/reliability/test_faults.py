@@ -347,8 +347,9 @@ def _default_sigint() -> None:
 
 
 def _wait_for_frames(run_dir: Path, proc: subprocess.Popen[str]) -> None:
-    """Wait until the toy dataset marks its frame 20 read: frames went through the stages by then."""
-    assert READ_DEPTH + 2 < 20  # the reading thread holds only a few frames ahead
+    """Wait until the toy dataset marks its frame 20 read: with every frame a keyframe, frames went
+    through the stages by then (the reading thread holds only a few keyframes ahead)."""
+    assert READ_DEPTH + 2 < 20
     deadline = time.time() + 120
     while not (run_dir.parent / f"{run_dir.name}.flowing").exists():
         assert time.time() < deadline and proc.poll() is None, proc.communicate()
@@ -362,6 +363,7 @@ def test_sigint_and_sigterm_leave_a_record_and_exit_130_and_143(toy_plugin_site:
         run_dir = tmp_path / sig.name
         args = ["pipeline=[dataset,enhance]", "dataset=toy_circle", "dataset.frames=10000000", "enhance=clahe"]
         args.append(f"dataset.mark_file={tmp_path / f'{sig.name}.flowing'}")
+        args.append("run.keyframe_distance=0")  # every frame a keyframe: the reading thread's lead bounds the rest
         procs[sig] = (
             run_dir,
             subprocess.Popen(
