@@ -14,7 +14,7 @@ from typing import Any
 from sgf_experiments.ablation import ablation_name, ablation_table, render_ablation
 from sgf_experiments.paper import PAPER_TABLE2, PAPER_TABLE3, PAPER_TABLE4, SEQUENCE_ORDER
 from sgf_experiments.robustness import plot_robustness, render_robustness, robustness_table
-from sgf_experiments.runs import RunRecord, find_runs, flatten, swept_keys, value_at
+from sgf_experiments.runs import METRIC_LOOP_KEYS, RunRecord, find_runs, flatten, swept_keys, value_at
 from sgf_pipeline.io import atomic_path, atomic_write_json, atomic_write_text
 
 
@@ -213,13 +213,7 @@ def runs_csv(runs: list[RunRecord]) -> str:
         "ate_sgf",
         "detected",
         "total",
-        "pairs_found",
-        "pairs_total",
-        "pairs_found_reverse",
-        "pairs_total_reverse",
-        "closed",
-        "closed_reverse",
-        "false_closed",
+        *METRIC_LOOP_KEYS,
         "purity",
         "fps",
         "realtime_factor",
@@ -241,13 +235,7 @@ def runs_csv(runs: list[RunRecord]) -> str:
                 "ate_sgf": value_at(m, "ate_rmse_m", "sgf"),
                 "detected": value_at(m, "sgf", "detected"),
                 "total": value_at(m, "sgf", "total"),
-                "pairs_found": value_at(m, "loops", "pairs_found"),
-                "pairs_total": value_at(m, "loops", "pairs_total"),
-                "pairs_found_reverse": value_at(m, "loops", "pairs_found_reverse"),
-                "pairs_total_reverse": value_at(m, "loops", "pairs_total_reverse"),
-                "closed": value_at(m, "loops", "closed"),
-                "closed_reverse": value_at(m, "loops", "closed_reverse"),
-                "false_closed": value_at(m, "loops", "false_closed"),
+                **{k: value_at(m, "loops", k) for k in METRIC_LOOP_KEYS},
                 "purity": value_at(m, "sgf", "purity"),
                 "fps": value_at(m, "timing", "fps"),
                 "realtime_factor": value_at(m, "timing", "realtime_factor"),
